@@ -1,0 +1,55 @@
+"""mi-nerfpp: NeRF++ (Zhang, Riegler, Snavely, Koltun 2020) as a Mitsuba 3 integrator.
+
+Importing the package
+
+1. points Dr.Jit at a libLLVM >= 17 when ``DRJIT_LIBLLVM_PATH`` is unset (and
+   fails with :class:`LLVMNotFoundError` saying what to install when none exists),
+2. selects the ``llvm_ad_rgb`` variant unless the caller already chose one
+   (``cuda_ad_rgb`` works unchanged),
+3. registers the ``nerfpp`` integrator with Mitsuba.
+"""
+from __future__ import annotations
+
+import sys
+
+from . import _llvm
+from ._llvm import LLVMNotFoundError
+
+__version__ = '0.1.0'
+DEFAULT_VARIANT = 'llvm_ad_rgb'
+
+
+def _chosen_variant():
+    """The Mitsuba variant the caller already selected, or None."""
+    mi = sys.modules.get('mitsuba')
+    if mi is None:
+        return None
+    try:
+        return mi.variant()
+    except Exception:
+        return None
+
+
+def _setup():
+    chosen = _chosen_variant()
+    if chosen is None or chosen.startswith('llvm'):
+        _llvm.configure()
+    import mitsuba as mi
+    if chosen is None:
+        mi.set_variant(DEFAULT_VARIANT)
+    variant = mi.variant()
+    if '_ad_' not in variant or not variant.endswith('rgb'):
+        raise ImportError(
+            f"mi_nerfpp needs a differentiable RGB Mitsuba variant (llvm_ad_rgb or "
+            f"cuda_ad_rgb), but '{variant}' is selected. Call "
+            f"mi.set_variant('{DEFAULT_VARIANT}') before importing mi_nerfpp.")
+    from .integrator import register
+    register()
+
+
+_setup()
+
+from .checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
+from .integrator import NeRFPPIntegrator  # noqa: E402
+
+__all__ = ['NeRFPPIntegrator', 'LLVMNotFoundError', 'load_checkpoint', 'save_checkpoint']

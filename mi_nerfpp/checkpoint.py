@@ -1,0 +1,106 @@
+"""The checkpoint file: a NumPy ``.npz`` archive (never pickle).
+
+Keys:
+
+* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 1);
+* ``config`` — JSON: ``{"fg": <field config>, "bg": <field config or null>,
+  "center": [x, y, z], "scale": s, "color_space": "srgb"|"linear", "meta": {...}}``.
+  ``center``/``scale`` are the scene normalization ``x_model = (x_world - center)·scale``;
+  ``meta`` holds free-form information (iteration, dataset, …);
+* ``param/<name>`` — float32 arrays of the learnable parameters, named as in
+  ``NeRFPPModel.parameters()`` (``fg.grid0``, ``bg.color.layers.0.weights``, …);
+* ``state/<name>`` — optional arrays of training state (optimizer moments, RNG)
+  that rendering ignores.
+
+Files are written atomically: to a temporary file in the same folder, then renamed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+
+import mitsuba as mi
+import numpy as np
+
+from .fields import make_field
+from .model import NeRFPPModel
+
+FORMAT = 'mi-nerfpp-checkpoint'
+VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, malformed or does not match its config."""
+
+
+def save_checkpoint(path, model, meta=None, state=None):
+    """Write ``model`` (and optional training ``state``: name -> array) to ``path`` atomically."""
+    path = os.fspath(path)
+    config = dict(model.config, meta=meta or {})
+    arrays = {'format': np.array(FORMAT), 'version': np.array(VERSION),
+              'config': np.array(json.dumps(config))}
+    for k, v in model.parameters().items():
+        arrays[f'param/{k}'] = np.asarray(v.numpy(), dtype=np.float32)
+    for k, v in (state or {}).items():
+        arrays[f'state/{k}'] = np.asarray(v)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    tmp = os.path.join(folder, f'.{os.path.basename(path)}.{os.getpid()}.tmp')
+    try:
+        with open(tmp, 'wb') as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def _read(path):
+    if not os.path.isfile(path):
+        raise CheckpointError(f'{path}: checkpoint not found')
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, ValueError, OSError) as e:
+        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): {e}') from None
+
+
+def load_checkpoint(path, seed=0):
+    """Read a checkpoint. Returns ``(model, meta, state)``; errors name the path and the problem."""
+    path = os.fspath(path)
+    z = _read(path)
+    if 'format' not in z or str(z['format']) != FORMAT:
+        raise CheckpointError(f"{path}: not a mi-nerfpp checkpoint (no 'format' = '{FORMAT}' entry)")
+    version = int(z['version'])
+    if version != VERSION:
+        raise CheckpointError(f'{path}: checkpoint version {version}, this mi-nerfpp reads {VERSION}')
+    try:
+        config = json.loads(str(z['config']))
+        fg = make_field(config['fg'], seed=seed)
+        bg = make_field(config['bg'], seed=seed + 1) if config.get('bg') else None
+        model = NeRFPPModel(fg, bg, center=config['center'], scale=config['scale'],
+                            color_space=config.get('color_space', 'srgb'))
+    except (KeyError, ValueError, TypeError) as e:
+        raise CheckpointError(f'{path}: invalid config: {e}') from None
+
+    expected = model.parameters()
+    stored = {k[len('param/'):]: v for k, v in z.items() if k.startswith('param/')}
+    missing = sorted(set(expected) - set(stored))
+    extra = sorted(set(stored) - set(expected))
+    if missing or extra:
+        raise CheckpointError(f'{path}: parameters do not match the config '
+                              f'(missing {missing}, unexpected {extra})')
+    values = {}
+    for k, v in stored.items():
+        if tuple(v.shape) != tuple(expected[k].shape):
+            raise CheckpointError(f"{path}: parameter '{k}' has shape {tuple(v.shape)}, "
+                                  f'the config needs {tuple(expected[k].shape)}')
+        if not np.all(np.isfinite(v)):
+            raise CheckpointError(f"{path}: parameter '{k}' contains NaN or inf")
+        values[k] = mi.TensorXf(np.ascontiguousarray(v, dtype=np.float32))
+    model.set_parameters(values)
+    state = {k[len('state/'):]: v for k, v in z.items() if k.startswith('state/')}
+    return model, config.get('meta', {}), state

@@ -1,0 +1,121 @@
+"""Sample placement along rays: stratified samples, inverse-CDF fine samples, merging.
+
+All arrays use one flat layout: sample ``k`` of ray ``r`` (of ``n`` per ray)
+sits at index ``r·n + k``. Samples are positions ``v`` along a per-ray
+parameter that increases along the ray (``t`` for the foreground; for the
+background ``v = 1 - s/s_max``, so that the far end comes last). Sample
+positions carry no derivatives: gradients flow through the fields only.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+# Added to every coarse weight before building the PDF, so that rays with no
+# weight at all still get (uniform) fine samples.
+PDF_EPSILON = 1e-5
+
+
+def flat_index(n_rays, n):
+    """``(ray, k)`` index arrays of the flat layout with ``n`` samples per ray."""
+    i = dr.arange(mi.UInt32, n_rays * n)
+    ray = i // n
+    return ray, i - ray * n
+
+
+def uniforms(seed, n, stream):
+    """``n`` uniform variates per ray from per-ray ``seed`` (UInt32), independent per ``stream``.
+
+    Returns None when ``seed`` is None (deterministic placement).
+    """
+    if seed is None:
+        return None
+    ray, k = flat_index(dr.width(seed), n)
+    rng = mi.PCG32(size=dr.width(ray), initstate=dr.gather(mi.UInt32, seed, ray),
+                   initseq=k * 16 + stream)
+    return rng.next_float32()
+
+
+def stratified(lo, hi, n, xi=None):
+    """``n`` stratified samples per ray on ``[lo, hi]``, sorted along the ray.
+
+    Sample ``k`` lies in the ``k``-th of ``n`` equal strata, at its midpoint when
+    ``xi`` is None, else at fraction ``xi`` (Float of size ``rays·n``) within it.
+    """
+    ray, k = flat_index(dr.width(lo), n)
+    u = (mi.Float(k) + (0.5 if xi is None else xi)) * (1.0 / n)
+    a, b = dr.gather(mi.Float, lo, ray), dr.gather(mi.Float, hi, ray)
+    return dr.fma(u, b - a, a)
+
+
+def bin_edges(v, lo, hi, n):
+    """Edges ``(e_k, e_{k+1})`` of the bin around each coarse sample ``v_k``.
+
+    Interior edges are midpoints between neighbouring samples; the first and
+    last bins reach ``lo`` and ``hi``, so the bins tile the whole segment.
+    """
+    ray, k = flat_index(dr.width(lo), n)
+    i = ray * n + k
+    prev = dr.gather(mi.Float, v, i - 1, k > 0)
+    nxt = dr.gather(mi.Float, v, i + 1, k < n - 1)
+    left = dr.select(k > 0, 0.5 * (prev + v), dr.gather(mi.Float, lo, ray))
+    right = dr.select(k < n - 1, 0.5 * (v + nxt), dr.gather(mi.Float, hi, ray))
+    return left, right
+
+
+def inverse_cdf(v, weights, lo, hi, n_coarse, n_fine, xi=None):
+    """Draw ``n_fine`` samples per ray from the piecewise-constant PDF of the coarse weights.
+
+    Bin ``k`` (see :func:`bin_edges`) has probability ``∝ weights_k + ε``.
+    Stratified uniforms ``u_j = (j + ξ_j)/n_fine`` are pushed through the
+    inverse CDF, so the result is sorted along each ray, and it concentrates
+    where the coarse weights are (in the direction of the ray for both volumes:
+    no mirrored PDF).
+    """
+    n_rays = dr.width(lo)
+    v, weights = dr.detach(v), dr.detach(weights)
+    p = weights + PDF_EPSILON
+    total = dr.block_sum(p, n_coarse)
+    cdf = dr.block_prefix_sum(p, n_coarse, exclusive=True)            # per-ray, starts at 0
+    left, right = bin_edges(v, lo, hi, n_coarse)
+
+    ray, j = flat_index(n_rays, n_fine)
+    u = (mi.Float(j) + (0.5 if xi is None else xi)) * (1.0 / n_fine)
+    u_scaled = u * dr.gather(mi.Float, total, ray)
+    base = ray * n_coarse
+    # First bin whose CDF exceeds u, minus one: the bin that contains u.
+    first_above = dr.binary_search(0, n_coarse, lambda k: dr.gather(mi.Float, cdf, base + k) <= u_scaled)
+    b = base + mi.UInt32(dr.maximum(mi.Int32(first_above) - 1, 0))
+    frac = (u_scaled - dr.gather(mi.Float, cdf, b)) / dr.gather(mi.Float, p, b)
+    e0, e1 = dr.gather(mi.Float, left, b), dr.gather(mi.Float, right, b)
+    return dr.fma(dr.clip(frac, 0.0, 1.0), e1 - e0, e0)
+
+
+def merge_order(a, n_a, b, n_b):
+    """Merge two per-ray sorted sample sets into one sorted set of ``n_a + n_b`` per ray.
+
+    Returns ``(from_b, index)`` for every merged slot: whether it comes from
+    ``b`` and its flat index in ``a`` or ``b``. Use :func:`gather_merged` to
+    assemble any per-sample quantity (differentiably) in merged order.
+    Each element's merged position is its rank: its index in its own set plus
+    the number of elements of the other set before it (ties put ``a`` first).
+    """
+    n_rays = dr.width(a) // n_a
+    m = n_a + n_b
+    ray_a, k_a = flat_index(n_rays, n_a)
+    ray_b, k_b = flat_index(n_rays, n_b)
+    before_a = dr.binary_search(0, n_b, lambda k: dr.gather(mi.Float, b, ray_a * n_b + k) < a)
+    before_b = dr.binary_search(0, n_a, lambda k: dr.gather(mi.Float, a, ray_b * n_a + k) <= b)
+    FROM_B = 1 << 31
+    source = dr.empty(mi.UInt32, n_rays * m)
+    dr.scatter(source, dr.arange(mi.UInt32, n_rays * n_a), ray_a * m + k_a + before_a)
+    dr.scatter(source, dr.arange(mi.UInt32, n_rays * n_b) | FROM_B, ray_b * m + k_b + before_b)
+    from_b = (source & FROM_B) != 0
+    return from_b, source & (FROM_B - 1)
+
+
+def gather_merged(order, a, b):
+    """Values of ``a`` and ``b`` (same type) in the merged order from :func:`merge_order`."""
+    from_b, index = order
+    tp = type(a)
+    return dr.select(from_b, dr.gather(tp, b, index, from_b), dr.gather(tp, a, index, ~from_b))

@@ -1,0 +1,165 @@
+"""Multi-layer OpenEXR output for compositing.
+
+Renders are written as one single-part scanline EXR whose channel names follow
+the ``layer.channel`` convention that Nuke, Blender and Natron read as layers:
+
+==========  ==========================  ==========================================
+layer       channels                    content
+==========  ==========================  ==========================================
+(beauty)    ``R G B A``                 the full image
+``fg``      ``fg.R fg.G fg.B fg.A``     premultiplied foreground radiance, opacity
+``bg``      ``bg.R bg.G bg.B``          background radiance as seen unoccluded
+``alpha``   ``alpha.Y``                 foreground opacity (same as ``fg.A``)
+``depth``   ``depth.Z``                 expected distance along the ray
+==========  ==========================  ==========================================
+
+Pixels are float32, or float16 with ``half=True``; depth always stays float32
+because half precision cannot hold scene-scale distances accurately.
+
+This module must not import drjit or mitsuba.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import uuid
+from collections.abc import Iterator, Mapping, Sequence
+
+import numpy as np
+import OpenEXR
+
+LAYERS = (
+    'R', 'G', 'B', 'A',
+    'fg.R', 'fg.G', 'fg.B', 'fg.A',
+    'bg.R', 'bg.G', 'bg.B',
+    'alpha.Y',
+    'depth.Z',
+)
+
+FULL_PRECISION_CHANNELS = frozenset({'depth.Z'})
+
+HALF_MAX = float(np.finfo(np.float16).max)
+
+COMPRESSIONS = {
+    'none': OpenEXR.NO_COMPRESSION,
+    'rle': OpenEXR.RLE_COMPRESSION,
+    'zips': OpenEXR.ZIPS_COMPRESSION,
+    'zip': OpenEXR.ZIP_COMPRESSION,
+    'piz': OpenEXR.PIZ_COMPRESSION,
+    'pxr24': OpenEXR.PXR24_COMPRESSION,
+    'b44': OpenEXR.B44_COMPRESSION,
+    'b44a': OpenEXR.B44A_COMPRESSION,
+    'dwaa': OpenEXR.DWAA_COMPRESSION,
+    'dwab': OpenEXR.DWAB_COMPRESSION,
+}
+
+
+@contextlib.contextmanager
+def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
+    """Yield a temporary path next to ``path``; move it onto ``path`` on success.
+
+    The parent directory is created if needed. Readers never see a partially
+    written file, and on error the temporary file is removed.
+    """
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    base, ext = os.path.splitext(os.path.basename(path))
+    # A fresh unique name rather than mkstemp, so the writer creates the file
+    # with the usual umask permissions instead of mkstemp's 0600.
+    tmp = os.path.join(directory, f'.{base}.{uuid.uuid4().hex}.tmp{ext}')
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
+
+
+def split_channels(image: np.ndarray, names: Sequence[str]) -> dict[str, np.ndarray]:
+    """Split an ``H x W x C`` image into ``{name: H x W}`` views, one per name."""
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != len(names):
+        raise ValueError(
+            f'expected an H x W x {len(names)} image for channels {list(names)}, '
+            f'got shape {image.shape}')
+    if len(set(names)) != len(names):
+        raise ValueError(f'duplicate channel names in {list(names)}')
+    return {name: image[..., i] for i, name in enumerate(names)}
+
+
+def _pixel_dtype(name: str, half: bool) -> type:
+    if half and name not in FULL_PRECISION_CHANNELS:
+        return np.float16
+    return np.float32
+
+
+def _prepare_channels(channels: Mapping[str, np.ndarray], half: bool) -> dict[str, np.ndarray]:
+    """Validate the channels and convert them to contiguous EXR pixel arrays."""
+    if not channels:
+        raise ValueError('no channels to write')
+    shape = None
+    prepared = {}
+    for name, pixels in channels.items():
+        pixels = np.asarray(pixels)
+        if pixels.ndim != 2:
+            raise ValueError(f"channel '{name}' must be H x W, got shape {pixels.shape}")
+        if shape is None:
+            shape = pixels.shape
+        elif pixels.shape != shape:
+            raise ValueError(
+                f"channel '{name}' has shape {pixels.shape}, expected {shape} like the others")
+        if not np.all(np.isfinite(pixels)):
+            raise ValueError(f"channel '{name}' contains NaN or infinite values")
+        dtype = _pixel_dtype(name, half)
+        if dtype is np.float16 and np.any(np.abs(pixels) > HALF_MAX):
+            raise ValueError(
+                f"channel '{name}' has values beyond the float16 range (|x| > {HALF_MAX:g}); "
+                f"write with half=False")
+        # OpenEXR ignores numpy strides, so views (e.g. from split_channels) are copied.
+        prepared[name] = np.ascontiguousarray(pixels, dtype=dtype)
+    return prepared
+
+
+def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray],
+              half: bool = False, compression: str = 'zip') -> None:
+    """Write ``{name: H x W array}`` as a single-part scanline EXR, atomically.
+
+    Raises :class:`ValueError` for an empty mapping, arrays that are not 2-D
+    or differ in shape, non-finite values (naming the channel), values that
+    overflow float16 when ``half`` is set, or an unknown ``compression`` (one
+    of :data:`COMPRESSIONS`).
+    """
+    if compression not in COMPRESSIONS:
+        raise ValueError(
+            f"unknown EXR compression '{compression}', expected one of {sorted(COMPRESSIONS)}")
+    header = {'compression': COMPRESSIONS[compression], 'type': OpenEXR.scanlineimage}
+    # A new dict: OpenEXR.File replaces the values of the dict it is given
+    # with Channel objects, so the caller's mapping must not reach it.
+    pixels = _prepare_channels(channels, half)
+    with atomic_write_path(path) as tmp:
+        with OpenEXR.File(header, pixels) as exr_file:
+            exr_file.write(tmp)
+
+
+def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read a single-part EXR into ``{name: H x W float32 array}``.
+
+    Raises :class:`ValueError` naming ``path`` when the file is missing, is not
+    an OpenEXR file, cannot be decoded, or has several parts.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ValueError(f'{path}: no such file')
+    if not OpenEXR.isOpenExrFile(path):
+        raise ValueError(f'{path}: not an OpenEXR file')
+    try:
+        with OpenEXR.File(path, separate_channels=True) as exr_file:
+            if len(exr_file.parts) != 1:
+                raise ValueError(
+                    f'{path}: expected a single-part EXR, found {len(exr_file.parts)} parts')
+            return {name: np.asarray(channel.pixels, dtype=np.float32)
+                    for name, channel in exr_file.channels().items()}
+    except RuntimeError as err:
+        raise ValueError(f'{path}: cannot read EXR ({err})') from err

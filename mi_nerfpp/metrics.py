@@ -1,0 +1,54 @@
+"""Image quality metrics for ``H x W x C`` float images: MSE, PSNR and SSIM.
+
+This module must not import drjit or mitsuba.
+"""
+from __future__ import annotations
+
+import numpy as np
+from skimage.metrics import structural_similarity
+
+SSIM_WIN_SIZE = 7
+SSIM_MIN_WIN_SIZE = 3
+
+
+def _check_pair(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pred = np.asarray(pred, dtype=np.float64)
+    gt = np.asarray(gt, dtype=np.float64)
+    if pred.shape != gt.shape:
+        raise ValueError(f'image shapes differ: pred {pred.shape} vs gt {gt.shape}')
+    if pred.ndim != 3:
+        raise ValueError(f'expected H x W x C images, got shape {pred.shape}')
+    return pred, gt
+
+
+def mse(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Mean squared error over all pixels and channels."""
+    pred, gt = _check_pair(pred, gt)
+    return float(np.mean((pred - gt) ** 2))
+
+
+def psnr(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> float:
+    """Peak signal-to-noise ratio in dB (``inf`` for identical images)."""
+    error = mse(pred, gt)
+    if error == 0.0:
+        return float('inf')
+    return float(10.0 * np.log10(data_range ** 2 / error))
+
+
+def _ssim_win_size(height: int, width: int) -> int:
+    """The largest odd window, at most 7, that fits in the image."""
+    side = min(height, width, SSIM_WIN_SIZE)
+    win_size = side if side % 2 else side - 1
+    if win_size < SSIM_MIN_WIN_SIZE:
+        raise ValueError(
+            f'SSIM needs images of at least {SSIM_MIN_WIN_SIZE} x {SSIM_MIN_WIN_SIZE} pixels, '
+            f'got {height} x {width}')
+    return win_size
+
+
+def ssim(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> float:
+    """Structural similarity (mean over the image and its channels)."""
+    pred, gt = _check_pair(pred, gt)
+    win_size = _ssim_win_size(*pred.shape[:2])
+    return float(structural_similarity(
+        pred, gt, win_size=win_size, channel_axis=-1, data_range=data_range))

@@ -1,0 +1,91 @@
+"""Tests for the image quality metrics in mi_nerfpp.metrics."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mi_nerfpp import metrics
+
+
+def noisy(image, sigma, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.clip(image + rng.normal(0.0, sigma, image.shape), 0.0, 1.0)
+
+
+@pytest.fixture
+def gt():
+    rng = np.random.default_rng(42)
+    smooth = np.cumsum(rng.uniform(size=(32, 40, 3)), axis=1)
+    return smooth / smooth.max()
+
+
+def test_mse_and_psnr_of_constant_offset():
+    gt = np.full((8, 8, 3), 0.5)
+    pred = gt + 0.1
+    assert metrics.mse(pred, gt) == pytest.approx(0.01, rel=1e-12)
+    assert metrics.psnr(pred, gt) == pytest.approx(20.0, abs=1e-9)
+
+
+def test_psnr_data_range():
+    gt = np.full((4, 4, 3), 128.0)
+    pred = gt + 25.5
+    assert metrics.psnr(pred, gt, data_range=255.0) == pytest.approx(20.0, abs=1e-9)
+
+
+def test_psnr_mean_over_pixels_and_channels():
+    gt = np.zeros((2, 2, 3))
+    pred = gt.copy()
+    pred[0, 0, 0] = 1.0  # one of 12 values off by 1: mse = 1/12
+    assert metrics.psnr(pred, gt) == pytest.approx(10.0 * math.log10(12.0))
+
+
+def test_identical_images():
+    image = np.random.default_rng(0).uniform(size=(9, 11, 3))
+    assert metrics.mse(image, image) == 0.0
+    assert metrics.psnr(image, image) == math.inf
+    assert metrics.ssim(image, image) == pytest.approx(1.0)
+
+
+def test_ssim_decreases_with_noise(gt):
+    scores = [metrics.ssim(noisy(gt, sigma), gt) for sigma in (0.01, 0.05, 0.2)]
+    assert 1.0 > scores[0] > scores[1] > scores[2]
+
+
+def test_psnr_decreases_with_noise(gt):
+    scores = [metrics.psnr(noisy(gt, sigma), gt) for sigma in (0.01, 0.05, 0.2)]
+    assert scores[0] > scores[1] > scores[2]
+
+
+def test_float32_inputs(gt):
+    pred = noisy(gt, 0.05).astype(np.float32)
+    assert metrics.ssim(pred, gt.astype(np.float32)) == pytest.approx(
+        metrics.ssim(pred, gt), abs=1e-5)
+
+
+@pytest.mark.parametrize('shape', [(3, 3, 3), (4, 6, 3), (5, 100, 3), (6, 6, 3)])
+def test_ssim_tiny_images(shape):
+    gt = np.random.default_rng(1).uniform(size=shape)
+    assert metrics.ssim(gt, gt) == pytest.approx(1.0)
+    assert metrics.ssim(noisy(gt, 0.3), gt) < 1.0
+
+
+@pytest.mark.parametrize('size, win', [((3, 3), 3), ((4, 9), 3), ((6, 20), 5),
+                                       ((7, 7), 7), ((100, 50), 7)])
+def test_ssim_win_size(size, win):
+    assert metrics._ssim_win_size(*size) == win
+
+
+def test_ssim_too_small():
+    image = np.zeros((2, 5, 3))
+    with pytest.raises(ValueError, match='at least 3'):
+        metrics.ssim(image, image)
+
+
+@pytest.mark.parametrize('fn', [metrics.mse, metrics.psnr, metrics.ssim])
+def test_shape_mismatch(fn):
+    with pytest.raises(ValueError, match='shapes differ'):
+        fn(np.zeros((8, 8, 3)), np.zeros((8, 9, 3)))
+    with pytest.raises(ValueError, match='H x W x C'):
+        fn(np.zeros((8, 8)), np.zeros((8, 8)))

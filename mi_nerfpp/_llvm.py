@@ -47,11 +47,14 @@ def llvm_version(path: str) -> int | None:
     ``libLLVM.19.dylib`` and ``/usr/lib/llvm-19/lib/libLLVM.so.1``.
     """
     name = os.path.basename(path)
-    for pattern in (r'^libLLVM-(\d+)', r'^libLLVM\.so\.(\d+)', r'^libLLVM\.(\d+)\.dylib'):
-        m = re.match(pattern, name)
-        if m:
-            return int(m.group(1))
+    m = re.match(r'^libLLVM-(\d+)', name)
+    if m:
+        return int(m.group(1))
+    # /usr/lib/llvm-19/lib/libLLVM.so.1: the ".1" is an ABI number, the folder has the version.
     m = re.search(r'llvm-?(\d+)', os.path.dirname(path))
+    if m:
+        return int(m.group(1))
+    m = re.match(r'^libLLVM\.so\.(\d+)', name) or re.match(r'^libLLVM\.(\d+)\.dylib', name)
     if m:
         return int(m.group(1))
     return None

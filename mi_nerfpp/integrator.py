@@ -122,7 +122,7 @@ class NeRFPPIntegrator(ADIntegrator):
                 res.fine.depth / model.scale]
         return res.fine.rgb, aovs
 
-    def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
+    def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
         o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
         seed = None
         if self.stratified:

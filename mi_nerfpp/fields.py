@@ -19,9 +19,8 @@ Three field kinds, chosen per volume by the ``field`` XML parameter:
 * :class:`MLPField` with ``structure='vanilla'`` (``'vanilla'``) — one MLP that
   takes ``γ^10(x)`` and ``γ^10(d)`` together at its input (paper §3.2).
 
-MLPs run in Dr.Jit's tensor mode (``drjit.nn`` layers applied to a
-``TensorXf`` of shape (features, samples)), which measured faster than the
-cooperative-vector mode for these small layers on the CPU.
+MLPs are ``drjit.nn`` networks: tensor mode while training, packed
+cooperative vectors while rendering (see :class:`_Net`).
 
 Every field keeps its learnable arrays in ``self.params`` (name -> ``TensorXf``);
 that dict is the single source of truth that the integrator exposes through
@@ -66,11 +65,12 @@ def sigmoid(x):
 
 
 def positional_encoding(x, octaves):
-    """The paper's ``γ^L``: ``[x, sin(2^k π x), cos(2^k π x)]_{k<L}`` of a (C, N) tensor."""
-    if octaves == 0:
-        return x
-    # SinEncode computes sin(2π·2^k·y); y = x/2 gives sin(2^k π x).
-    return dr.concat([x, nn.SinEncode(octaves).alloc(mi.TensorXf, x.shape[0])(x * 0.5)], axis=0)
+    """The paper's ``γ^L``: ``[x, sin(2^k π x), cos(2^k π x)]_{k<L}`` of a list of Floats."""
+    out = list(x)
+    for k in range(octaves):
+        for v in x:
+            out += dr.sincos(v * (dr.pi * 2 ** k))
+    return out
 
 
 def mlp(widths, out):
@@ -121,7 +121,13 @@ class Field:
 
 
 class _Net:
-    """A tensor-mode ``drjit.nn`` network whose weights live in a Field's params dict."""
+    """A ``drjit.nn`` MLP whose weights live in a Field's params dict.
+
+    Evaluated in tensor mode (a ``TensorXf`` of shape (features, samples)) when
+    any weight is being differentiated — measured faster for training — and as a
+    packed cooperative-vector network fused into the rendering kernel otherwise
+    (about 8x faster than tensor mode for inference on this CPU).
+    """
 
     def __init__(self, field, prefix, module, n_in, rng):
         self.field, self.prefix = field, prefix
@@ -129,10 +135,16 @@ class _Net:
         for k in self.module.keys():
             field.params[f'{prefix}.{k}'] = mi.TensorXf(self.module[k])
 
-    def __call__(self, x):
-        for k in self.module.keys():
-            self.module[k] = self.field.params[f'{self.prefix}.{k}']
-        return self.module(x)
+    def __call__(self, inputs):
+        """List of input Floats -> list of output Floats."""
+        weights = [self.field.params[f'{self.prefix}.{k}'] for k in self.module.keys()]
+        differentiate = any(dr.grad_enabled(w) for w in weights)
+        for k, w in zip(self.module.keys(), weights):
+            self.module[k] = w if differentiate else dr.detach(w)
+        if differentiate:
+            return unrows(self.module(rows(inputs)))
+        packed = nn.pack(self.module, layout='inference')
+        return list(packed(nn.CoopVec(*inputs)))
 
 
 # ----------------------------------------------------------------------------- grid + MLP
@@ -209,8 +221,7 @@ class GridField(Field):
             g = list(tex.eval(mi.Point3f(*c)))
             density += g[0]
             features += g[1:]
-        dirs = positional_encoding(rows([d.x, d.y, d.z]), self.dir_octaves)
-        out = unrows(self.color_net(rows(features + [dirs])))
+        out = self.color_net(features + positional_encoding([d.x, d.y, d.z], self.dir_octaves))
         return softplus(density), mi.Color3f(*[sigmoid(o) for o in out])
 
 
@@ -253,18 +264,15 @@ class MLPField(Field):
                     density_bias=self.density_bias)
 
     def __call__(self, x, d):
-        gx = positional_encoding(rows(list(x)), self.pos_octaves)
-        dirs = rows([d.x, d.y, d.z])
+        gx = positional_encoding(list(x), self.pos_octaves)
+        dirs = [d.x, d.y, d.z]
         if self.structure == 'nerf':
             h = self.trunk(gx)
-            feature = h[1:]
-            out = unrows(self.head(dr.concat([feature, positional_encoding(dirs, self.dir_octaves)],
-                                             axis=0)))
-            sigma_raw = h[0].array
+            out = self.head(h[1:] + positional_encoding(dirs, self.dir_octaves))
         else:
-            h = unrows(self.trunk(dr.concat([gx, positional_encoding(dirs, self.pos_octaves)], axis=0)))
-            sigma_raw, out = h[0], h[1:]
-        return softplus(sigma_raw + self.density_bias), mi.Color3f(*[sigmoid(o) for o in out])
+            h = self.trunk(gx + positional_encoding(dirs, self.pos_octaves))
+            out = h[1:]
+        return softplus(h[0] + self.density_bias), mi.Color3f(*[sigmoid(o) for o in out])
 
 
 # ----------------------------------------------------------------------------- factory

@@ -15,8 +15,10 @@ colour ``Σ w_i c_i``, opacity ``Σ w_i``, depth ``Σ w_i t_i``.
   infinity, where it is treated as infinitely long (as NeRF++ does): whatever
   light is left is absorbed by the last sample, so the background is opaque.
   Depth of a background sample is ``t(s)`` with ``s`` clamped to
-  ``>= 1/MAX_DEPTH_RADIUS``: the background at infinity reads as a distance of
-  about ``MAX_DEPTH_RADIUS`` unit-sphere radii.
+  ``>= 1/MAX_DEPTH_RADIUS``. Light absorbed by the last (infinite) interval is
+  given the distance of the last sample: with ``n`` midpoint samples it sits at
+  radius ``2n`` (128 unit-sphere radii for 64 coarse samples), never beyond
+  ``MAX_DEPTH_RADIUS``.
 
 Hierarchical sampling per volume: ``n_coarse`` stratified samples are shaded
 and composited; ``n_fine`` more are drawn from their weights by inverse CDF;
@@ -130,11 +132,9 @@ def quadrature(volume, v, sigma, rgb, n):
     tau = sigma * delta
     transmittance = dr.exp(-dr.block_prefix_sum(tau, n, exclusive=True))
     w = transmittance * (1.0 - dr.exp(-tau))
-    shading = Shading(
-        rgb=mi.Color3f(*[dr.block_sum(w * c, n) for c in rgb]),
-        opacity=dr.block_sum(w, n),
-        depth=dr.block_sum(w * volume.distance(ray, v), n))
-    return shading, w
+    r, g, b, opacity, depth = dr.block_sum([w * rgb.x, w * rgb.y, w * rgb.z, w,
+                                            w * volume.distance(ray, v)], n)
+    return Shading(rgb=mi.Color3f(r, g, b), opacity=opacity, depth=depth), w
 
 
 def composite(fg, bg):
@@ -151,18 +151,24 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0):
     """Hierarchical sampling and quadrature of one volume (see module docs)."""
     n_rays = dr.width(volume.lo)
     v_c = stratified(volume.lo, volume.hi, n_coarse, uniforms(seed, n_coarse, stream))
+    dr.eval(v_c)
     ray_c, _ = flat_index(n_rays, n_coarse)
     x, d = volume.inputs(ray_c, v_c)
     sigma_c, rgb_c = field(x, d)
+    # One kernel computes all outputs of the field; without this, every later
+    # use (gathers, block sums) would re-trace the field for its own channel.
+    dr.eval(sigma_c, rgb_c)
     coarse, w_c = quadrature(volume, v_c, sigma_c, rgb_c, n_coarse)
     if n_fine == 0:
         return VolumeRender(coarse, coarse)
 
     v_f = inverse_cdf(v_c, w_c, volume.lo, volume.hi, n_coarse, n_fine,
                       uniforms(seed, n_fine, stream + 1))
+    dr.eval(v_f)
     ray_f, _ = flat_index(n_rays, n_fine)
     x, d = volume.inputs(ray_f, v_f)
     sigma_f, rgb_f = field(x, d)
+    dr.eval(sigma_f, rgb_f)
 
     order = merge_order(v_c, n_coarse, v_f, n_fine)
     v = gather_merged(order, v_c, v_f)

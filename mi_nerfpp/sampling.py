@@ -83,8 +83,9 @@ def inverse_cdf(v, weights, lo, hi, n_coarse, n_fine, xi=None):
     u = (mi.Float(j) + (0.5 if xi is None else xi)) * (1.0 / n_fine)
     u_scaled = u * dr.gather(mi.Float, total, ray)
     base = ray * n_coarse
+    # (binary_search also probes index n: the masks keep those reads in bounds.)
     # First bin whose CDF exceeds u, minus one: the bin that contains u.
-    first_above = dr.binary_search(0, n_coarse, lambda k: dr.gather(mi.Float, cdf, base + k) <= u_scaled)
+    first_above = dr.binary_search(0, n_coarse, lambda k: dr.gather(mi.Float, cdf, base + k, k < n_coarse) <= u_scaled)
     b = base + mi.UInt32(dr.maximum(mi.Int32(first_above) - 1, 0))
     frac = (u_scaled - dr.gather(mi.Float, cdf, b)) / dr.gather(mi.Float, p, b)
     e0, e1 = dr.gather(mi.Float, left, b), dr.gather(mi.Float, right, b)
@@ -104,8 +105,8 @@ def merge_order(a, n_a, b, n_b):
     m = n_a + n_b
     ray_a, k_a = flat_index(n_rays, n_a)
     ray_b, k_b = flat_index(n_rays, n_b)
-    before_a = dr.binary_search(0, n_b, lambda k: dr.gather(mi.Float, b, ray_a * n_b + k) < a)
-    before_b = dr.binary_search(0, n_a, lambda k: dr.gather(mi.Float, a, ray_b * n_a + k) <= b)
+    before_a = dr.binary_search(0, n_b, lambda k: dr.gather(mi.Float, b, ray_a * n_b + k, k < n_b) < a)
+    before_b = dr.binary_search(0, n_a, lambda k: dr.gather(mi.Float, a, ray_b * n_a + k, k < n_a) <= b)
     FROM_B = 1 << 31
     source = dr.empty(mi.UInt32, n_rays * m)
     dr.scatter(source, dr.arange(mi.UInt32, n_rays * n_a), ray_a * m + k_a + before_a)

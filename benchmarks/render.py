@@ -1,0 +1,65 @@
+"""Render throughput of the nerfpp integrator (forward only), warm, median of several runs.
+
+    python benchmarks/render.py [--width 1280 --height 720] [--runs 3] [--field grid]
+                                [--fg-samples 64 --bg-samples 64 --fine-samples 128]
+
+Prints seconds per frame, rays/s, samples/s (field evaluations: (coarse + fine) per
+volume per ray) and the process's peak RSS. The first (cold) run compiles kernels
+and is reported separately.
+"""
+import argparse
+import resource
+import statistics
+import time
+
+import mi_nerfpp  # noqa: F401
+import drjit as dr
+import mitsuba as mi
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--width', type=int, default=1280)
+    ap.add_argument('--height', type=int, default=720)
+    ap.add_argument('--runs', type=int, default=3, help='warm runs (after one cold run)')
+    ap.add_argument('--field', default='grid', choices=['grid', 'nerf', 'vanilla'])
+    ap.add_argument('--fg-samples', type=int, default=64)
+    ap.add_argument('--bg-samples', type=int, default=64)
+    ap.add_argument('--fine-samples', type=int, default=128)
+    ap.add_argument('--chunk-rays', type=int, default=1 << 15)
+    a = ap.parse_args()
+
+    scene = mi.load_dict({
+        'type': 'scene',
+        'integrator': {'type': 'nerfpp', 'field': a.field, 'fg_samples': a.fg_samples,
+                       'bg_samples': a.bg_samples, 'fine_samples': a.fine_samples,
+                       'chunk_rays': a.chunk_rays},
+        'sensor': {'type': 'perspective', 'fov': 60,
+                   'to_world': mi.ScalarTransform4f().look_at([0, 0.2, 0.8], [0, 0, 0], [0, 1, 0]),
+                   'film': {'type': 'hdrfilm', 'width': a.width, 'height': a.height,
+                            'rfilter': {'type': 'box'}, 'pixel_format': 'rgba'}}})
+    rays = a.width * a.height
+    samples = rays * (a.fg_samples + a.bg_samples + 2 * a.fine_samples)
+
+    def run():
+        t0 = time.perf_counter()
+        img = mi.render(scene, seed=0)
+        dr.eval(img)
+        dr.sync_thread()
+        return time.perf_counter() - t0
+
+    cold = run()
+    times = [run() for _ in range(a.runs)]
+    t = statistics.median(times)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    n_params = sum(dr.width(v.array) for v in scene.integrator().model.parameters().values())
+    print(f'frame {a.width}x{a.height}, field={a.field} ({n_params / 1e6:.2f} M parameters), '
+          f'samples per ray: fg {a.fg_samples}+{a.fine_samples}, bg {a.bg_samples}+{a.fine_samples}')
+    print(f'cold run (kernel compilation included): {cold:.2f} s')
+    print(f'warm runs: {", ".join(f"{x:.2f}" for x in times)} s -> median {t:.2f} s per frame')
+    print(f'rays/s: {rays / t / 1e6:.3f} M   samples/s: {samples / t / 1e6:.2f} M')
+    print(f'peak RSS: {rss:.0f} MiB')
+
+
+if __name__ == '__main__':
+    main()

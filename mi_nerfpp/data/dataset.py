@@ -1,0 +1,185 @@
+"""The in-memory dataset every reader produces, and the checks and normalization they share.
+
+A reader turns its file format into :class:`Frame` records (an image path, a pose and a rule
+for the intrinsics); :func:`make_split` loads and validates the images and poses of one split,
+and :func:`make_dataset` checks the splits together and normalizes the cameras into the unit
+sphere as NeRF++ requires.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .cameras import Camera, apply_normalization, cameras_inside_unit_sphere, normalize_cameras
+from .errors import DatasetError
+from .images import downscale_image, read_image
+
+SPLITS = ('train', 'validation', 'test')
+
+
+@dataclass
+class Split:
+    """Cameras and their images for one split; all images of a split have the same size.
+
+    Attributes:
+        cameras: one :class:`Camera` per image (OpenCV pose, normalized world).
+        image_paths: the image files the images were read from.
+        images: float32 (H, W, 3) arrays, already downscaled and composited over the background.
+    """
+
+    cameras: list[Camera]
+    image_paths: list[str]
+    images: list[np.ndarray]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+
+@dataclass
+class Dataset:
+    """A posed image collection split into train / validation / test.
+
+    Attributes:
+        train, validation, test: the splits (validation and test may be empty).
+        format: the reader that produced it: 'nerfpp', 'blender' or 'llff'.
+        root: the folder (or file) it was read from.
+        color_space: 'srgb' (PNG/JPEG pixel values) or 'linear' (EXR).
+        center, scale: the normalization already applied to every camera,
+            ``world_normalized = (world - center) * scale``; the identity (0, 1) when the
+            cameras were inside the unit sphere as read.
+    """
+
+    train: Split
+    validation: Split
+    test: Split
+    format: str
+    root: str
+    color_space: str
+    center: np.ndarray
+    scale: float
+
+
+@dataclass
+class Frame:
+    """One image as a reader describes it, before the image is loaded.
+
+    Attributes:
+        image_path: the image file.
+        c2w: 4x4 camera-to-world, OpenCV convention.
+        intrinsics: maps the image's (width, height) in pixels to its 3x3 K (some formats
+            define focal lengths relative to the image size).
+        source: where the pose came from, for error messages.
+        name: camera name (usually the image stem).
+        size: (width, height) the format declares, checked against the image; None if none.
+        intrinsics_source: where the intrinsics came from, if not from ``source``.
+    """
+
+    image_path: str
+    c2w: np.ndarray
+    intrinsics: Callable[[int, int], np.ndarray]
+    source: str
+    name: str
+    size: tuple[int, int] | None = None
+    intrinsics_source: str | None = None
+
+
+def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.0)) -> Split:
+    """Load and validate the images and cameras of one split.
+
+    Raises:
+        DatasetError: unreadable images, images of different sizes, an image whose size differs
+            from the one its metadata declares, non-finite or non-rigid poses, bad intrinsics.
+    """
+    cameras, paths, images = [], [], []
+    first_size = None
+    for frame in frames:
+        c2w = np.asarray(frame.c2w, dtype=np.float64)
+        _check_pose(c2w, frame.source)
+        image = read_image(frame.image_path, background)
+        height, width = image.shape[:2]
+        if frame.size is not None and tuple(frame.size) != (width, height):
+            raise DatasetError(
+                f'{frame.image_path}: image is {width}x{height} but {frame.source} declares '
+                f'{frame.size[0]}x{frame.size[1]}: fix the metadata or resize the image')
+        if first_size is None:
+            first_size = (width, height)
+        elif (width, height) != first_size:
+            raise DatasetError(
+                f'{frame.image_path}: image is {width}x{height} but {paths[0]} in the same split '
+                f'is {first_size[0]}x{first_size[1]}: all images of a split must have the same '
+                f'size')
+        K = np.asarray(frame.intrinsics(width, height), dtype=np.float64)
+        _check_intrinsics(K, frame.intrinsics_source or frame.source)
+        camera = Camera(K=K, c2w=c2w, width=width, height=height, name=frame.name)
+        if downscale != 1:
+            try:
+                image = downscale_image(image, downscale)
+            except ValueError as e:
+                raise DatasetError(f'{frame.image_path}: {e}; use a smaller downscale') from e
+            camera = camera.downscaled(downscale)
+        cameras.append(camera)
+        paths.append(frame.image_path)
+        images.append(image)
+    return Split(cameras=cameras, image_paths=paths, images=images)
+
+
+def make_dataset(format: str, root: str, train: Split, validation: Split, test: Split,
+                 train_source: str) -> Dataset:
+    """Assemble the splits, normalizing all cameras into the unit sphere when needed.
+
+    One normalization (NeRF++'s rule, :func:`normalize_cameras`) computed over the cameras of
+    all splits is applied to every split, so that all of them share one world.
+
+    Args:
+        train_source: where the train split was looked for, named when it is empty.
+
+    Raises:
+        DatasetError: an empty train split, or EXR mixed with PNG/JPEG images.
+    """
+    if not len(train):
+        raise DatasetError(f'{train_source}: the train split has no images; add posed '
+                           f'training images there')
+    splits = {'train': train, 'validation': validation, 'test': test}
+    paths = [p for split in splits.values() for p in split.image_paths]
+    is_exr = [p.lower().endswith('.exr') for p in paths]
+    if any(is_exr) and not all(is_exr):
+        raise DatasetError(f'{root}: mixes EXR (linear) and PNG/JPEG (sRGB) images, e.g. '
+                           f'{paths[is_exr.index(True)]} and {paths[is_exr.index(False)]}: '
+                           f'use one kind of image for the whole dataset')
+    all_cameras = [cam for split in splits.values() for cam in split.cameras]
+    if cameras_inside_unit_sphere(all_cameras):
+        center, scale = np.zeros(3), 1.0
+    else:
+        try:
+            center, scale = normalize_cameras(all_cameras)
+        except ValueError as e:
+            raise DatasetError(f'{root}: {e}') from e
+        for split in splits.values():
+            split.cameras = [apply_normalization(cam, center, scale) for cam in split.cameras]
+    return Dataset(**splits, format=format, root=os.fspath(root),
+                   color_space='linear' if all(is_exr) else 'srgb', center=center, scale=scale)
+
+
+def _check_pose(c2w: np.ndarray, source: str) -> None:
+    if c2w.shape != (4, 4):
+        raise DatasetError(f'{source}: camera-to-world matrix must be 4x4, got shape {c2w.shape}')
+    if not np.all(np.isfinite(c2w)):
+        raise DatasetError(f'{source}: camera pose has non-finite values (NaN or inf): remove '
+                           f'this camera or fix its pose')
+    rotation = c2w[:3, :3]
+    if (not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-3)
+            or np.linalg.det(rotation) < 0 or not np.allclose(c2w[3], [0, 0, 0, 1])):
+        raise DatasetError(f'{source}: camera pose is not a rigid transform (its rotation has '
+                           f'scale, shear or a mirror, or its last row is not 0 0 0 1): '
+                           f'store poses as rotation + translation')
+
+
+def _check_intrinsics(K: np.ndarray, source: str) -> None:
+    if not np.all(np.isfinite(K)):
+        raise DatasetError(f'{source}: intrinsics have non-finite values (NaN or inf)')
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        raise DatasetError(f'{source}: intrinsics are not a pinhole K = [[fx, s, cx], '
+                           f'[0, fy, cy], [0, 0, 1]] with fx, fy > 0 (got {K.tolist()})')

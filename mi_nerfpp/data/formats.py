@@ -1,0 +1,65 @@
+"""Format detection: one entry point, :func:`load_dataset`, for every supported layout."""
+from __future__ import annotations
+
+import os
+
+from .blender import is_transforms, read_transforms
+from .dataset import Dataset
+from .errors import DatasetError
+from .llff import is_llff, read_llff
+from .nerfpp import is_nerfpp, read_nerfpp
+
+FORMATS = ('nerfpp', 'blender', 'llff')
+
+
+def detect_format(path) -> str:
+    """The format of the dataset at ``path``: 'nerfpp', 'blender' or 'llff'.
+
+    Checked in that order: a folder with ``train/pose/`` (NeRF++), a ``transforms*.json`` file
+    or a folder with ``transforms_train.json`` / ``transforms.json`` (Blender, instant-ngp,
+    nerfstudio), a ``poses_bounds.npy`` file or a folder with one (LLFF).
+
+    Raises:
+        DatasetError: the path does not exist or matches no format.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise DatasetError(f'{path}: no such file or folder')
+    if os.path.isdir(path) and is_nerfpp(path):
+        return 'nerfpp'
+    if is_transforms(path):
+        return 'blender'
+    if is_llff(path):
+        return 'llff'
+    raise DatasetError(
+        f'{path}: not a recognized dataset. Expected a NeRF++ folder '
+        f'(train/{{rgb,pose,intrinsics}}/), a Blender/instant-ngp/nerfstudio folder '
+        f'(transforms_train.json or transforms.json) or an LLFF folder (poses_bounds.npy + '
+        f'images/)')
+
+
+def load_dataset(path, downscale: int = 1, background=(1.0, 1.0, 1.0),
+                 llff_hold: int = 8) -> Dataset:
+    """Read the dataset at ``path`` in whichever supported format it is.
+
+    Cameras come back in the OpenCV convention, normalized into the unit sphere when they
+    were not inside it (see :class:`Dataset`).
+
+    Args:
+        path: dataset folder (or its transforms JSON / ``poses_bounds.npy``).
+        downscale: integer factor to shrink images by (area averaging); intrinsics follow.
+        background: RGB colour transparent pixels are composited over.
+        llff_hold: for formats without explicit splits (LLFF, a single ``transforms.json``),
+            every ``llff_hold``-th image is held out as test (0: none).
+
+    Raises:
+        DatasetError: anything wrong with the data; the message names the file and the fix.
+    """
+    if int(downscale) != downscale or downscale < 1:
+        raise ValueError(f'downscale must be a positive integer, got {downscale!r}')
+    fmt = detect_format(path)
+    if fmt == 'nerfpp':
+        return read_nerfpp(path, int(downscale), background)
+    if fmt == 'blender':
+        return read_transforms(path, int(downscale), background, llff_hold)
+    return read_llff(path, int(downscale), background, llff_hold)

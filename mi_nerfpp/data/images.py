@@ -1,0 +1,152 @@
+"""Reading and writing dataset images as float RGB arrays.
+
+Every image is returned as ``float32`` of shape (H, W, 3):
+
+- PNG and JPEG (8 or 16 bit) are scaled to [0, 1] and stay in their stored (sRGB) encoding;
+  16-bit PNGs go through ``mi.Bitmap`` because Pillow (behind imageio) truncates 16-bit colour
+  PNGs to 8 bits.
+- EXR values are returned as stored (linear, possibly above 1).
+- Grayscale is repeated into three channels.
+- An alpha channel is composited over a background colour: PNG/JPEG alpha is straight,
+  ``rgb * a + bg * (1 - a)``; EXR colour is premultiplied by alpha (OpenEXR's convention, and
+  what Mitsuba writes), ``rgb + bg * (1 - a)``.
+"""
+from __future__ import annotations
+
+import os
+
+import imageio.v3 as iio
+import numpy as np
+
+from .errors import DatasetError
+
+_PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
+
+
+def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """Read an image as a float32 (H, W, 3) array (see the module docstring for the rules).
+
+    Args:
+        path: a PNG, JPEG or EXR file (other formats imageio reads work the same as PNG).
+        background: RGB colour that transparent pixels are composited over.
+
+    Raises:
+        DatasetError: ``"{path}: cannot read image ({reason})"`` if the file cannot be decoded.
+    """
+    path = os.fspath(path)
+    try:
+        if path.lower().endswith('.exr'):
+            color, alpha = _read_exr(path)
+            premultiplied = True
+        else:
+            color, alpha = _split_alpha(_to_unit_range(_read_ldr(path)))
+            premultiplied = False
+    except DatasetError:
+        raise
+    except Exception as e:  # noqa: BLE001 - decoders raise many types; all mean "unreadable"
+        raise DatasetError(f'{path}: cannot read image ({type(e).__name__}: {e})') from e
+    if alpha is not None:
+        bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
+        color = (color if premultiplied else color * alpha) + bg * (1.0 - alpha)
+    return np.ascontiguousarray(color, dtype=np.float32)
+
+
+def write_png(path, img) -> None:
+    """Write a float image as an 8-bit PNG.
+
+    Args:
+        path: output file.
+        img: float array (H, W), (H, W, 1), (H, W, 3) or (H, W, 4) with values in [0, 1]
+            (clipped, then rounded to 8 bits). Values are written as given: convert linear
+            renderings to sRGB before calling this.
+    """
+    img = np.asarray(img)
+    if not np.issubdtype(img.dtype, np.floating):
+        raise TypeError(f'write_png expects a float image in [0, 1], got dtype {img.dtype}')
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (3, 4))):
+        raise ValueError(f'write_png expects (H, W[, 1|3|4]) pixels, got shape {img.shape}')
+    iio.imwrite(os.fspath(path), np.round(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8),
+                extension='.png')
+
+
+def downscale_image(img: np.ndarray, factor: int) -> np.ndarray:
+    """Shrink an (H, W, C) image by an integer factor, averaging factor x factor blocks.
+
+    A remainder of fewer than ``factor`` rows/columns at the bottom/right edge is cropped,
+    matching :meth:`Camera.downscaled <mi_nerfpp.data.cameras.Camera.downscaled>`.
+    """
+    factor = int(factor)
+    if factor < 1:
+        raise ValueError(f'downscale factor must be a positive integer, got {factor}')
+    if factor == 1:
+        return img
+    h, w = img.shape[0] // factor, img.shape[1] // factor
+    if h == 0 or w == 0:
+        raise ValueError(f'cannot downscale a {img.shape[1]}x{img.shape[0]} image by {factor}')
+    blocks = img[:h * factor, :w * factor].reshape(h, factor, w, factor, *img.shape[2:])
+    return blocks.mean(axis=(1, 3), dtype=np.float64).astype(img.dtype)
+
+
+def _png_bit_depth(path: str) -> int | None:
+    """Bit depth from a PNG's IHDR chunk, or None if the file is not a PNG."""
+    with open(path, 'rb') as f:
+        head = f.read(25)
+    if len(head) < 25 or not head.startswith(_PNG_SIGNATURE) or head[12:16] != b'IHDR':
+        return None
+    return head[24]
+
+
+def _read_ldr(path: str) -> np.ndarray:
+    """Raw integer (or bool) pixels of a PNG/JPEG/..., 16-bit PNGs at full precision."""
+    if _png_bit_depth(path) == 16:
+        import mitsuba as mi
+        return np.array(mi.Bitmap(path))
+    return iio.imread(path, plugin='pillow')
+
+
+def _to_unit_range(pixels: np.ndarray) -> np.ndarray:
+    """Integer pixels scaled to float32 [0, 1], as (H, W, C)."""
+    if pixels.dtype == np.bool_:
+        pixels = pixels.astype(np.float32)
+    elif np.issubdtype(pixels.dtype, np.integer):
+        pixels = pixels.astype(np.float32) / np.float32(np.iinfo(pixels.dtype).max)
+    else:
+        pixels = pixels.astype(np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    if pixels.ndim != 3:
+        raise ValueError(f'unexpected pixel array shape {pixels.shape}')
+    return pixels
+
+
+def _split_alpha(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(H, W, C) with C in 1..4 -> (rgb (H, W, 3), alpha (H, W, 1) or None)."""
+    channels = pixels.shape[2]
+    if channels in (1, 2):
+        rgb = np.repeat(pixels[..., :1], 3, axis=2)
+    elif channels in (3, 4):
+        rgb = pixels[..., :3]
+    else:
+        raise ValueError(f'{channels} channels (expected 1 to 4)')
+    alpha = pixels[..., -1:] if channels in (2, 4) else None
+    return rgb, alpha
+
+
+def _read_exr(path: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Colour (H, W, 3) and optional alpha (H, W, 1) of an EXR's default (unnamed) layer."""
+    import OpenEXR
+
+    with OpenEXR.File(path, separate_channels=True) as f:
+        channels = {name: np.asarray(ch.pixels, dtype=np.float32)
+                    for name, ch in f.channels().items()}
+    if all(c in channels for c in 'RGB'):
+        rgb = np.stack([channels['R'], channels['G'], channels['B']], axis=-1)
+    elif 'Y' in channels:
+        rgb = np.repeat(channels['Y'][..., None], 3, axis=2)
+    else:
+        raise DatasetError(f'{path}: cannot read image (no R, G, B or Y channel; found '
+                           f'{sorted(channels)}): write the colour into the default layer')
+    alpha = channels['A'][..., None] if 'A' in channels else None
+    return rgb, alpha

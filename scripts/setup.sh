@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Idempotent set-up: libLLVM >= 17 (Dr.Jit's CPU backend), a virtual environment in .venv,
+# and this package installed in it (editable, with test extras).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+have_llvm() {
+    python3 -c "import sys; sys.path.insert(0, 'mi_nerfpp'); import _llvm; sys.exit(0 if _llvm.find_libllvm() else 1)"
+}
+
+if [ -z "${DRJIT_LIBLLVM_PATH:-}" ] && ! have_llvm; then
+    if command -v apt-get >/dev/null 2>&1; then
+        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        echo "setup: installing libllvm19 (Dr.Jit needs libLLVM >= 17)"
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libllvm19 >/dev/null
+    else
+        echo "setup: no libLLVM >= 17 found and no apt-get: install LLVM >= 17 and set DRJIT_LIBLLVM_PATH" >&2
+        exit 1
+    fi
+fi
+
+if [ ! -x .venv/bin/python ]; then
+    python3 -m venv .venv
+fi
+.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]'

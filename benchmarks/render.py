@@ -27,6 +27,7 @@ def main():
     ap.add_argument('--bg-samples', type=int, default=64)
     ap.add_argument('--fine-samples', type=int, default=128)
     ap.add_argument('--chunk-rays', type=int, default=1 << 15)
+    ap.add_argument('--spp', type=int, default=1, help='rays per pixel (a frame = 1)')
     a = ap.parse_args()
 
     scene = mi.load_dict({
@@ -36,9 +37,10 @@ def main():
                        'chunk_rays': a.chunk_rays},
         'sensor': {'type': 'perspective', 'fov': 60,
                    'to_world': mi.ScalarTransform4f().look_at([0, 0.2, 0.8], [0, 0, 0], [0, 1, 0]),
+                   'sampler': {'type': 'independent', 'sample_count': a.spp},
                    'film': {'type': 'hdrfilm', 'width': a.width, 'height': a.height,
                             'rfilter': {'type': 'box'}, 'pixel_format': 'rgba'}}})
-    rays = a.width * a.height
+    rays = a.width * a.height * a.spp
     samples = rays * (a.fg_samples + a.bg_samples + 2 * a.fine_samples)
 
     def run():
@@ -53,7 +55,7 @@ def main():
     t = statistics.median(times)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     n_params = sum(dr.width(v.array) for v in scene.integrator().model.parameters().values())
-    print(f'frame {a.width}x{a.height}, field={a.field} ({n_params / 1e6:.2f} M parameters), '
+    print(f'frame {a.width}x{a.height} at {a.spp} spp, field={a.field} ({n_params / 1e6:.2f} M parameters), '
           f'samples per ray: fg {a.fg_samples}+{a.fine_samples}, bg {a.bg_samples}+{a.fine_samples}')
     print(f'cold run (kernel compilation included): {cold:.2f} s')
     print(f'warm runs: {", ".join(f"{x:.2f}" for x in times)} s -> median {t:.2f} s per frame')

@@ -30,8 +30,9 @@ class NeRFPPIntegrator(ADIntegrator):
 
      * - checkpoint
        - |string|
-       - Model file written by ``optimize.py`` (.npz). Without it, seeded random
-         fields are rendered. (Default: none)
+       - Model file written by ``optimize.py`` (.npz), relative paths resolved
+         against the scene file's folder. Without it, seeded random fields are
+         rendered. (Default: none)
      * - field
        - |string|
        - Field kind of a model without checkpoint: ``grid`` (grid + MLP),
@@ -89,7 +90,9 @@ class NeRFPPIntegrator(ADIntegrator):
         self.chunk_rays = props.get('chunk_rays', 1 << 15)
         self.show_progress = False
         if self.checkpoint:
-            self.model, self.meta, _ = load_checkpoint(self.checkpoint)
+            # Relative paths are found next to the scene file (Mitsuba's file resolver).
+            path = str(mi.Thread.thread().file_resolver().resolve(self.checkpoint))
+            self.model, self.meta, _ = load_checkpoint(path)
         else:
             self.model = NeRFPPModel.create(field=props.get('field', 'grid'),
                                             seed=props.get('seed', 0))

@@ -75,14 +75,16 @@ def build_parser():
     r.add_argument('-D', '--define', action='append', metavar='NAME=VALUE',
                    help='set a <default> parameter of the scene (repeatable)')
     r.set_defaults(func=cmd_render)
+
+    from . import optimize
+    optimize.add_parser(sub)
     return p
 
 
 def main(argv=None):
     args = build_parser().parse_args(argv)
     try:
-        args.func(args)
+        return args.func(args) or 0
     except KeyboardInterrupt:
         print('interrupted', file=sys.stderr)
         return 130
-    return 0

@@ -1,0 +1,12 @@
+#!/usr/bin/env python3
+"""Fit a NeRF++ to posed images: ``python optimize.py [DATA] [options]``.
+
+Without DATA, the embedded default scene is synthesized (once) and trained for about
+ten minutes. Same as ``python -m mi_nerfpp optimize``; ``--help`` lists the options.
+"""
+import sys
+
+from mi_nerfpp.cli import main
+
+if __name__ == '__main__':
+    sys.exit(main(['optimize'] + sys.argv[1:]))

@@ -1,0 +1,139 @@
+"""Training end to end on a tiny capture rendered by the tests: PSNR rises, runs resume."""
+import json
+import os
+import subprocess
+import sys
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_nerfpp.checkpoint import load_checkpoint
+from mi_nerfpp.data import load_dataset
+from mi_nerfpp.evaluate import evaluate_split
+from mi_nerfpp.train import TrainConfig, Trainer, TrainingError
+from conftest import make_capture
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SMALL = dict(batch_rays=512, fg_samples=16, bg_samples=16, fine_samples=16,
+             checkpoint_every=0, preview_every=0)
+
+
+@pytest.fixture(scope='module')
+def capture(tmp_path_factory):
+    return make_capture(str(tmp_path_factory.mktemp('capture') / 'data'))
+
+
+@pytest.fixture(scope='module')
+def dataset(capture):
+    return load_dataset(capture)
+
+
+def test_training_raises_held_out_psnr_well_above_untrained(dataset, tmp_path):
+    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=200, **SMALL))
+    sampling = tr.cfg.sampling
+    before = evaluate_split(tr.model, tr.test, str(tmp_path / 'before'), sampling)['psnr']
+    assert tr.run()
+    after = evaluate_split(tr.model, tr.test, str(tmp_path / 'after'), sampling)['psnr']
+    assert after > before + 6.0, (before, after)
+    assert after > 18.0, after
+    assert os.path.exists(tmp_path / 'after' / 'test_000.exr')
+
+
+def _params(model):
+    return {k: np.array(v) for k, v in model.parameters().items()}
+
+
+def test_resume_continues_where_the_run_stopped(dataset, tmp_path):
+    straight = Trainer(dataset, str(tmp_path / 'a'), TrainConfig(iterations=12, **SMALL))
+    straight.run()
+    first = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **SMALL))
+
+    def interrupt_at_6(trainer, loss, psnr):
+        if trainer.iteration == 6:
+            raise KeyboardInterrupt
+
+    assert first.run(on_step=interrupt_at_6) is False
+    resumed = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **SMALL),
+                      resume=True)
+    assert resumed.iteration == 6
+    resumed.run()
+    a, b = _params(straight.model), _params(resumed.model)
+    for k in a:
+        # Same batches, same optimizer moments; only float summation order may differ.
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-3, atol=1e-4, err_msg=k)
+    _, meta, state = load_checkpoint(tmp_path / 'b' / 'model.npz')
+    assert meta['iteration'] == 12 and any(k.startswith('adam.m/') for k in state)
+
+
+def test_interrupt_saves_a_checkpoint(dataset, tmp_path):
+    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=50, **SMALL))
+
+    def stop_at_7(trainer, loss, psnr):
+        if trainer.iteration == 7:
+            raise KeyboardInterrupt
+
+    assert tr.run(on_step=stop_at_7) is False
+    _, meta, _ = load_checkpoint(tmp_path / 'model.npz')
+    assert meta['iteration'] == 7
+
+
+def test_nan_loss_stops_and_keeps_last_good_checkpoint(dataset, tmp_path):
+    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=20, **dict(SMALL, checkpoint_every=4)))
+
+    def poison(trainer, loss, psnr):
+        if trainer.iteration == 6:
+            k = 'fg.color.layers.2.bias'
+            bad = mi.TensorXf(np.full(trainer.opt[k].shape, np.nan, np.float32))
+            trainer.opt[k] = bad
+
+    with pytest.raises(TrainingError, match=r'loss became nan at iteration 7.*iteration 4'):
+        tr.run(on_step=poison)
+    model, meta, _ = load_checkpoint(tmp_path / 'model.npz')   # finite (the loader checks)
+    assert meta['iteration'] == 4
+
+
+def test_nerf_baseline_has_one_volume_in_a_larger_sphere(dataset, tmp_path):
+    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=2, model='nerf', **SMALL))
+    assert tr.model.bg is None
+    radii = [np.linalg.norm(c.center) for c in tr.train.cameras]
+    assert max(radii) == pytest.approx(1 / 8, rel=1e-6)
+    assert tr.model.scale == pytest.approx(dataset.scale * 1.1 / 8)
+    assert tr.cfg.sampling.fg_samples == 32 and tr.cfg.sampling.fine_samples == 32
+    tr.run()
+
+
+def test_resume_without_checkpoint_is_an_error(dataset, tmp_path):
+    with pytest.raises(TrainingError, match='no checkpoint at'):
+        Trainer(dataset, str(tmp_path), TrainConfig(iterations=2, **SMALL), resume=True)
+
+
+def test_optimize_command_end_to_end(capture, tmp_path):
+    out = tmp_path / 'run'
+    cmd = [sys.executable, os.path.join(ROOT, 'optimize.py'), capture, '--out', str(out),
+           '--iterations', '30', '--batch-rays', '256', '--samples', '8', '8', '8',
+           '--preview-every', '15']
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert 'held-out views: PSNR' in r.stdout
+    metrics = json.loads((out / 'metrics.json').read_text())
+    assert metrics['iterations'] == 30 and len(metrics['test']['views']) == 4
+    assert np.isfinite(metrics['test']['psnr']) and metrics['train_samples_per_second'] > 0
+    assert (out / 'preview' / 'iter_000030.png').exists() and (out / 'training.png').exists()
+    assert (out / 'test' / 'test_000.exr').exists()
+    # The written scene renders as is, from anywhere.
+    r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'render', str(out / 'render.xml'),
+                        '-o', str(tmp_path / 'v.exr')], capture_output=True, text=True,
+                       timeout=300, cwd=str(tmp_path))
+    assert r.returncode == 0, r.stderr[-3000:]
+
+
+def test_optimize_reports_bad_dataset(tmp_path):
+    (tmp_path / 'empty').mkdir()
+    r = subprocess.run([sys.executable, os.path.join(ROOT, 'optimize.py'), str(tmp_path / 'empty'),
+                        '--iterations', '1'], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and 'empty' in r.stderr
+    r = subprocess.run([sys.executable, os.path.join(ROOT, 'optimize.py'), str(tmp_path / 'nope'),
+                        '--iterations', '1'], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and 'nope: dataset folder not found' in r.stderr

@@ -61,6 +61,58 @@ def cmd_render(args):
           + f' in {time.perf_counter() - t0:.1f} s')
 
 
+def cmd_evaluate(args):
+    from .optimize import finish_run
+    from .train import TrainingError, open_run, samples_per_second
+    try:
+        model, meta, cfg, dataset = open_run(args.run)
+    except (TrainingError, ValueError) as e:
+        raise SystemExit(f'error: {e}') from None
+    held_out = dataset.test if len(dataset.test) else dataset.validation
+    metrics = finish_run(args.run, model, held_out, cfg, os.path.join(args.run, 'model.npz'), {
+        'dataset': dataset.root, 'iterations': meta['iteration'],
+        'train_seconds': round(meta['elapsed'], 2),
+        'train_samples_per_second': samples_per_second(cfg, meta['iteration'], meta['elapsed'])})
+    if 'test' in metrics:
+        print(f'{len(held_out)} held-out views: PSNR {metrics["test"]["psnr"]:.2f} dB, '
+              f'SSIM {metrics["test"]["ssim"]:.3f}; written to {args.run}/metrics.json and test/')
+    else:
+        print(f'{dataset.root} has no test or validation views to evaluate')
+
+
+def cmd_video(args):
+    import numpy as np
+    from tqdm import tqdm
+
+    from .evaluate import render_view, rgb
+    from .preview import to_srgb8
+    from .train import TrainingError, open_run
+    from .video import orbit_cameras, resized, write_video
+    try:
+        model, meta, cfg, dataset = open_run(args.run)
+    except (TrainingError, ValueError) as e:
+        raise SystemExit(f'error: {e}') from None
+    template = dataset.train.cameras[0]
+    if args.res:
+        w, h = (int(v) for v in args.res.lower().split('x'))
+        template = resized(template, w, h)
+    if args.path == 'orbit':
+        cameras = orbit_cameras(dataset.train.cameras, args.frames, template)
+    else:
+        cameras = [resized(c, template.width, template.height) for c in dataset.test.cameras]
+        if not cameras:
+            raise SystemExit(f'{dataset.root} has no test cameras: use --path orbit')
+    out = args.output or os.path.join(args.run, 'video.mp4')
+    frames = [to_srgb8(np.clip(rgb(render_view(model, cam, cfg.sampling, cfg.model == 'nerfpp')),
+                               0, 1), model.color_space)
+              for cam in tqdm(cameras, desc='video', unit='frame')]
+    try:
+        write_video(out, frames, fps=args.fps)
+    except (RuntimeError, ValueError) as e:
+        raise SystemExit(f'error: {e}') from None
+    print(f'wrote {out} ({len(frames)} frames)')
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog='python -m mi_nerfpp',
                                 description='NeRF++ for Mitsuba 3: render, optimize, evaluate.')
@@ -78,6 +130,21 @@ def build_parser():
 
     from . import optimize
     optimize.add_parser(sub)
+    from .synth import add_parser as add_synth_parser; add_synth_parser(sub)  # noqa: E702
+
+    e = sub.add_parser('evaluate', help='re-run the held-out evaluation of a training run')
+    e.add_argument('run', help='run folder written by optimize (holds model.npz)')
+    e.set_defaults(func=cmd_evaluate)
+
+    v = sub.add_parser('video', help='render a novel-view video of a training run')
+    v.add_argument('run', help='run folder written by optimize (holds model.npz)')
+    v.add_argument('-o', '--output', help='.mp4 or .gif (default: RUN/video.mp4)')
+    v.add_argument('--path', choices=['orbit', 'test'], default='orbit',
+                   help="an orbit around the scene, or the dataset's test cameras")
+    v.add_argument('--frames', type=int, default=60, help='orbit frames (default 60)')
+    v.add_argument('--fps', type=int, default=24)
+    v.add_argument('--res', help='WxH (default: the training images)')
+    v.set_defaults(func=cmd_video)
     return p
 
 

@@ -7,6 +7,7 @@ loss/PSNR-vs-time plot.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import time
@@ -86,13 +87,31 @@ def plot_history(history, path):
     plt.close(fig)
 
 
+def finish_run(out, model, held_out, cfg, checkpoint_path, metrics):
+    """Evaluate the held-out views; write metrics.json (with ``metrics``) and render.xml."""
+    from tqdm import tqdm
+
+    from .evaluate import evaluate_split, world_camera, write_json
+    from .scene_xml import write_render_xml
+
+    metrics = dict(metrics, config=dataclasses.asdict(cfg))
+    background = cfg.model == 'nerfpp'
+    if len(held_out):
+        metrics['test'] = evaluate_split(model, held_out, os.path.join(out, 'test'),
+                                         cfg.sampling, background=background, progress=tqdm)
+        write_render_xml(os.path.join(out, 'render.xml'), checkpoint_path,
+                         world_camera(model, held_out.cameras[0]), cfg.sampling,
+                         near_clip=1e-3 / model.scale, background=background)
+    write_json(os.path.join(out, 'metrics.json'), metrics)
+    return metrics
+
+
 def run(args):
     from tqdm import tqdm
 
     from .data import DatasetError, load_dataset
-    from .evaluate import evaluate_split, render_view, rgb, world_camera, write_json
+    from .evaluate import render_view, rgb
     from .preview import write_png
-    from .scene_xml import write_render_xml
     from .train import TrainConfig, Trainer, TrainingError
 
     data = args.data
@@ -114,7 +133,8 @@ def run(args):
                       field=args.field, batch_rays=args.batch_rays, fg_samples=fg,
                       bg_samples=bg, fine_samples=fine, lr_grid=args.lr_grid,
                       lr_mlp=args.lr_mlp, seed=args.seed, preview_every=args.preview_every,
-                      checkpoint_every=args.checkpoint_every)
+                      checkpoint_every=args.checkpoint_every, downscale=args.downscale,
+                      background=_background(args.background))
     try:
         trainer = Trainer(dataset, out, cfg, resume=args.resume)
     except TrainingError as e:
@@ -154,19 +174,11 @@ def run(args):
               f'{trainer.checkpoint_path}; continue with --resume')
         return 130
 
-    test = trainer.test if len(trainer.test) else trainer.validation
-    metrics = {'dataset': os.path.abspath(data), 'iterations': trainer.iteration,
-               'train_seconds': round(trainer.elapsed, 2),
-               'train_samples_per_second': trainer.samples_per_second(),
-               'config': vars(cfg)}
-    if len(test):
-        result = evaluate_split(trainer.model, test, os.path.join(out, 'test'), cfg.sampling,
-                                background=cfg.model == 'nerfpp', progress=tqdm)
-        metrics['test'] = result
-        write_render_xml(os.path.join(out, 'render.xml'), trainer.checkpoint_path,
-                         world_camera(trainer.model, test.cameras[0]), cfg.sampling,
-                         near_clip=1e-3 / trainer.model.scale, background=cfg.model == 'nerfpp')
-    write_json(os.path.join(out, 'metrics.json'), metrics)
+    metrics = finish_run(out, trainer.model, trainer.test if len(trainer.test) else
+                         trainer.validation, cfg, trainer.checkpoint_path,
+                         {'dataset': os.path.abspath(data), 'iterations': trainer.iteration,
+                          'train_seconds': round(trainer.elapsed, 2),
+                          'train_samples_per_second': trainer.samples_per_second()})
     plot_history(trainer.history, os.path.join(out, 'training.png'))
 
     print(f'\ntrained {trainer.iteration} iterations in {trainer.elapsed / 60:.1f} min '
@@ -174,7 +186,7 @@ def run(args):
           f'wall time {time.perf_counter() - t_start:.0f} s')
     if 'test' in metrics:
         print(f'held-out views: PSNR {metrics["test"]["psnr"]:.2f} dB, '
-              f'SSIM {metrics["test"]["ssim"]:.3f} over {len(test)} views')
+              f'SSIM {metrics["test"]["ssim"]:.3f} over {len(metrics["test"]["views"])} views')
     print(f'written to {out}/: model.npz, metrics.json, test/*.exr|png, render.xml, '
           f'training.png, preview/')
     if 'test' in metrics:

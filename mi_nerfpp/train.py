@@ -53,6 +53,8 @@ class TrainConfig:
     seed: int = 0
     checkpoint_every: int = 500          # iterations
     preview_every: int = 500             # iterations (0: never)
+    downscale: int = 1                   # how the dataset was loaded (recorded for evaluate)
+    background: tuple = (1.0, 1.0, 1.0)
 
     def __post_init__(self):
         if self.model not in ('nerfpp', 'nerf'):
@@ -265,7 +267,30 @@ class Trainer:
 
     def samples_per_second(self):
         """Field evaluations per second of training so far (coarse + fine, both volumes)."""
-        if self.elapsed <= 0:
-            return 0.0
-        return self.iteration * self.cfg.batch_rays * self.cfg.samples_per_ray / self.elapsed
+        return samples_per_second(self.cfg, self.iteration, self.elapsed)
+
+
+def samples_per_second(cfg, iterations, seconds):
+    return iterations * cfg.batch_rays * cfg.samples_per_ray / seconds if seconds > 0 else 0.0
+
+
+def open_run(run_dir):
+    """A finished or interrupted run: ``(model, meta, config, dataset)``.
+
+    The dataset is re-read from where the run found it, with the same options; the
+    returned splits are in the model's frame.
+    """
+    from .data import load_dataset
+    model, meta, _ = load_checkpoint(os.path.join(run_dir, 'model.npz'))
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    cfg = TrainConfig(**{k: v for k, v in meta.get('config', {}).items() if k in fields})
+    cfg.background = tuple(cfg.background)
+    root = meta.get('dataset')
+    if not root or not os.path.exists(root):
+        raise TrainingError(f'{run_dir}/model.npz: its dataset {root!r} is not there any more')
+    dataset = load_dataset(root, downscale=cfg.downscale, background=cfg.background)
+    factor = NERF_CAMERA_RADIUS / NERFPP_CAMERA_RADIUS if cfg.model == 'nerf' else 1.0
+    dataset = dataclasses.replace(dataset, **{name: to_model_frame(getattr(dataset, name), factor)
+                                              for name in ('train', 'validation', 'test')})
+    return model, meta, cfg, dataset
 

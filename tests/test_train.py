@@ -127,6 +127,23 @@ def test_optimize_command_end_to_end(capture, tmp_path):
                         '-o', str(tmp_path / 'v.exr')], capture_output=True, text=True,
                        timeout=300, cwd=str(tmp_path))
     assert r.returncode == 0, r.stderr[-3000:]
+    # evaluate re-runs the same evaluation (deterministic sample placement).
+    (out / 'metrics.json').unlink()
+    r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'evaluate', str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    again = json.loads((out / 'metrics.json').read_text())
+    assert again['test']['psnr'] == pytest.approx(metrics['test']['psnr'], abs=1e-3)
+    assert again['iterations'] == 30
+    for path, extra in (('orbit.gif', ['--frames', '3']), ('path.mp4', ['--path', 'test'])):
+        r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'video', str(out), '-o',
+                            str(tmp_path / path)] + extra, capture_output=True, text=True,
+                           timeout=300)
+        assert r.returncode == 0, r.stderr[-3000:]
+        assert (tmp_path / path).stat().st_size > 0
+    import imageio.v3 as iio
+    frames = iio.imread(tmp_path / 'orbit.gif')
+    assert frames.shape[0] == 3 and frames.shape[1:3] == (24, 32)
 
 
 def test_optimize_reports_bad_dataset(tmp_path):

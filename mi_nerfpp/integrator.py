@@ -91,7 +91,7 @@ class NeRFPPIntegrator(ADIntegrator):
         self.show_progress = False
         if self.checkpoint:
             # Relative paths are found next to the scene file (Mitsuba's file resolver).
-            path = str(mi.Thread.thread().file_resolver().resolve(self.checkpoint))
+            path = str(mi.file_resolver().resolve(self.checkpoint))
             self.model, self.meta, _ = load_checkpoint(path)
         else:
             self.model = NeRFPPModel.create(field=props.get('field', 'grid'),

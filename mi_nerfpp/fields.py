@@ -97,12 +97,13 @@ class Field:
     def config(self):
         raise NotImplementedError
 
-    def __call__(self, x, d):
+    def __call__(self, x, d, ray):
         """Density and colour at sample points.
 
-        ``x``: list of Floats, the domain's inputs (``p`` for 'ball', ``(x̂, s)``
-        for 'inverted_sphere'); ``d``: unit view directions (Vector3f).
-        Returns ``(sigma: Float >= 0, rgb: Color3f in [0, 1])``.
+        ``x``: list of Floats, the domain's inputs per sample (``p`` for 'ball',
+        ``(x̂, s)`` for 'inverted_sphere'); ``d``: unit view direction of each *ray*
+        (Vector3f); ``ray``: the ray of each sample (UInt32 index into ``d``).
+        Returns ``(sigma: Float >= 0, rgb: Color3f in [0, 1])`` per sample.
         """
         raise NotImplementedError
 
@@ -148,6 +149,33 @@ class _Net:
         return list(packed(nn.CoopVec(*inputs)))
 
 
+class _LateNet:
+    """An MLP whose input is split into per-sample and per-ray parts.
+
+    ``MLP([a, b]) = rest(A·a + (B·b + bias))``: the view direction ``b`` is the
+    same for every sample of a ray, so its share of the first layer is computed
+    once per ray and gathered. Equal to one MLP over the concatenated input,
+    with a first layer of ``n_sample + n_ray`` inputs split into ``sample.*`` and
+    ``ray.*`` parameters.
+    """
+
+    def __init__(self, field, prefix, n_sample, n_ray, widths, out, rng):
+        first, rest = widths[0], list(widths[1:])
+        self.sample = _Net(field, f'{prefix}.sample', nn.Sequential(nn.Linear(-1, first, bias=False)),
+                           n_sample, rng)
+        self.ray = _Net(field, f'{prefix}.ray', nn.Sequential(nn.Linear(-1, first)), n_ray, rng)
+        layers = [nn.ReLU()]
+        for w in rest:
+            layers += [nn.Linear(-1, w), nn.ReLU()]
+        self.rest = _Net(field, f'{prefix}.rest', nn.Sequential(*layers, nn.Linear(-1, out)),
+                         first, rng)
+
+    def __call__(self, sample_inputs, ray_inputs, ray):
+        per_ray = self.ray(ray_inputs)
+        h = [a + dr.gather(mi.Float, b, ray) for a, b in zip(self.sample(sample_inputs), per_ray)]
+        return self.rest(h)
+
+
 # ----------------------------------------------------------------------------- grid + MLP
 
 class GridField(Field):
@@ -157,7 +185,7 @@ class GridField(Field):
     levels sums to the density logit: ``σ = softplus(Σ_l g_l[0](x) + density_bias)``.
     The other channels are concatenated into a feature vector ``f(x)``; colour
     is ``sigmoid(MLP([f(x), γ^dir_octaves(d)]))`` — the view direction enters
-    only at the colour head.
+    only at the colour head (its share of the first layer computed once per ray).
 
     Ball domain: level ``R`` is an ``R³`` grid over ``[-1, 1]³``.
     Inverted-sphere domain: level ``R`` is a grid over (longitude, colatitude,
@@ -186,7 +214,7 @@ class GridField(Field):
             self.textures.append(mi.Texture3f(self.params[f'grid{i}'], use_accel=False, wrap_mode=wrap))
         n_feat = len(self.resolutions) * (self.channels - 1)
         n_dir = 3 * (1 + 2 * self.dir_octaves)
-        self.color_net = _Net(self, 'color', mlp([self.hidden], 3), n_feat + n_dir, rng)
+        self.color_net = _LateNet(self, 'color', n_feat, n_dir, [self.hidden], 3, rng)
 
     def _grid_shape(self, r):
         """Tensor shape (Z, Y, X) of a level: texture axes are (x, y, z) = coordinates."""
@@ -206,7 +234,7 @@ class GridField(Field):
         u, v = direction_to_equirect(mi.Vector3f(x[0], x[1], x[2]))
         return [u, v, x[3]]
 
-    def __call__(self, x, d):
+    def __call__(self, x, d, ray):
         coords = self._grid_coords(x)
         density = mi.Float(self.density_bias)
         features = []
@@ -222,7 +250,7 @@ class GridField(Field):
             g = list(tex.eval(mi.Point3f(*c)))
             density += g[0]
             features += g[1:]
-        out = self.color_net(features + positional_encoding([d.x, d.y, d.z], self.dir_octaves))
+        out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves), ray)
         return softplus(density), mi.Color3f(*[sigmoid(o) for o in out])
 
 
@@ -253,10 +281,10 @@ class MLPField(Field):
         if structure == 'nerf':
             n_d = 3 * (1 + 2 * self.dir_octaves)
             self.trunk = _Net(self, 'trunk', mlp([self.width] * self.depth, 1 + self.width), n_x, rng)
-            self.head = _Net(self, 'head', mlp([max(self.width // 2, 1)], 3), self.width + n_d, rng)
+            self.head = _LateNet(self, 'head', self.width, n_d, [max(self.width // 2, 1)], 3, rng)
         else:
             n_d = 3 * (1 + 2 * self.pos_octaves)
-            self.trunk = _Net(self, 'trunk', mlp([self.width] * self.depth, 4), n_x + n_d, rng)
+            self.trunk = _LateNet(self, 'trunk', n_x, n_d, [self.width] * self.depth, 4, rng)
 
     @property
     def config(self):
@@ -264,14 +292,14 @@ class MLPField(Field):
                     pos_octaves=self.pos_octaves, dir_octaves=self.dir_octaves,
                     density_bias=self.density_bias)
 
-    def __call__(self, x, d):
+    def __call__(self, x, d, ray):
         gx = positional_encoding(list(x), self.pos_octaves)
         dirs = [d.x, d.y, d.z]
         if self.structure == 'nerf':
             h = self.trunk(gx)
-            out = self.head(h[1:] + positional_encoding(dirs, self.dir_octaves))
+            out = self.head(h[1:], positional_encoding(dirs, self.dir_octaves), ray)
         else:
-            h = self.trunk(gx + positional_encoding(dirs, self.pos_octaves))
+            h = self.trunk(gx, positional_encoding(dirs, self.pos_octaves), ray)
             out = h[1:]
         return softplus(h[0] + self.density_bias), mi.Color3f(*[sigmoid(o) for o in out])
 

@@ -74,10 +74,11 @@ class Foreground:
         self.lo, self.hi = geo.foreground_interval(o, d, near)
 
     def inputs(self, ray, v):
+        """Field inputs of the samples at ``v`` on rays ``ray``: the point ``p``."""
         o = dr.gather(mi.Point3f, self.o, ray)
         d = dr.gather(mi.Vector3f, self.d, ray)
         p = dr.fma(d, v, o)
-        return [p.x, p.y, p.z], d
+        return [p.x, p.y, p.z]
 
     def delta_scale(self, ray):
         return 1.0
@@ -102,11 +103,12 @@ class Background:
         return dr.gather(mi.Float, self.s_max, ray) * (1.0 - v)
 
     def inputs(self, ray, v):
+        """Field inputs of the samples at ``v`` on rays ``ray``: ``(x̂, s)``."""
         d = dr.gather(mi.Vector3f, self.d, ray)
         s = self.s(ray, v)
         x = geo.inverted_sphere_direction(dr.gather(mi.Point3f, self.p_m, ray),
                                           dr.gather(mi.Float, self.b, ray), d, s)
-        return [x.x, x.y, x.z, s], d
+        return [x.x, x.y, x.z, s]
 
     def delta_scale(self, ray):
         return dr.gather(mi.Float, self.s_max, ray)
@@ -153,8 +155,7 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0):
     v_c = stratified(volume.lo, volume.hi, n_coarse, uniforms(seed, n_coarse, stream))
     dr.eval(v_c)
     ray_c, _ = flat_index(n_rays, n_coarse)
-    x, d = volume.inputs(ray_c, v_c)
-    sigma_c, rgb_c = field(x, d)
+    sigma_c, rgb_c = field(volume.inputs(ray_c, v_c), volume.d, ray_c)
     # One kernel computes all outputs of the field; without this, every later
     # use (gathers, block sums) would re-trace the field for its own channel.
     dr.eval(sigma_c, rgb_c)
@@ -166,8 +167,7 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0):
                       uniforms(seed, n_fine, stream + 1))
     dr.eval(v_f)
     ray_f, _ = flat_index(n_rays, n_fine)
-    x, d = volume.inputs(ray_f, v_f)
-    sigma_f, rgb_f = field(x, d)
+    sigma_f, rgb_f = field(volume.inputs(ray_f, v_f), volume.d, ray_f)
     dr.eval(sigma_f, rgb_f)
 
     order = merge_order(v_c, n_coarse, v_f, n_fine)

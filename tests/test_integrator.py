@@ -89,15 +89,17 @@ def test_traverse_exposes_every_field_parameter_as_differentiable(tiny_scene):
         flags = params.properties[k][3]
         # Mitsuba's Differentiable flag is the absence of NonDifferentiable / ReadOnly.
         assert not flags & (mi.ParamFlags.NonDifferentiable | mi.ParamFlags.ReadOnly), k
-    assert {'fg.grid0', 'fg.grid1', 'bg.grid0', 'fg.color.layers.0.weights'} <= names
+    assert {'fg.grid0', 'fg.grid1', 'bg.grid0', 'fg.color.sample.layers.0.weights',
+            'fg.color.ray.layers.0.bias', 'fg.color.rest.layers.1.weights'} <= names
 
 
 def _loss(img, weights):
     return dr.sum(img * weights, axis=None)
 
 
-@pytest.mark.parametrize('key', ['fg.grid1', 'fg.color.layers.0.weights', 'bg.grid0',
-                                 'bg.color.layers.2.bias'])
+@pytest.mark.parametrize('key', ['fg.grid1', 'fg.color.sample.layers.0.weights', 'bg.grid0',
+                                 'fg.color.ray.layers.0.weights',
+                                 'bg.color.rest.layers.1.bias'])
 def test_gradients_match_central_finite_differences(key):
     # Fine sample positions follow the coarse weights but are detached (as in NeRF), so
     # finite differences see a dependence that AD deliberately ignores: check with the

@@ -44,7 +44,7 @@ def rays(n_rays, seed=0, r_max=0.9):
 
 
 def constant_field(sigma, rgb):
-    def field(x, d):
+    def field(x, d, ray):
         n = dr.width(x[0])
         return (dr.full(mi.Float, sigma, n),
                 mi.Color3f(*[dr.full(mi.Float, c, n) for c in rgb]))
@@ -52,7 +52,7 @@ def constant_field(sigma, rgb):
 
 
 def const_inputs(n_total, sigma, rgb):
-    return constant_field(sigma, rgb)([dr.zeros(mi.Float, n_total)], None)
+    return constant_field(sigma, rgb)([dr.zeros(mi.Float, n_total)], None, None)
 
 
 def np_quadrature(v, sigma, hi, infinite_last=False, scale=1.0):
@@ -334,7 +334,7 @@ def test_render_volume_fine_pass_varying_density():
     n_rays, n_c, n_f = 16, 24, 48
     o, d = rays(n_rays, seed=13)
 
-    def shell(x, d):
+    def shell(x, d, ray):
         r2 = dr.square(x[0]) + dr.square(x[1]) + dr.square(x[2])
         sigma = dr.select((r2 > 0.09) & (r2 < 0.36), 8.0, 0.0)
         return sigma, mi.Color3f(dr.sqrt(r2), 0.5, 1.0 - dr.sqrt(r2))

@@ -256,7 +256,7 @@ def test_background_fine_samples_go_where_the_far_density_is():
     bin_width = 1.0 / n_c
     assert np.all(s_f < 0.2 + 1.5 * bin_width)
     # The fine directions are then far-away points: x̂ is close to the ray direction d.
-    x = bg.inputs(ray_f, v_f)[0]
+    x = bg.inputs(ray_f, v_f)
     s_max = npf(geo.background_s_max(o, d))
     assert np.all(s_max == 1.0) and np.all(np.asarray(x[3]) == np.asarray(bg.s(ray_f, v_f)))
 

@@ -84,7 +84,7 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(dataset, tmp_path):
 
     def poison(trainer, loss, psnr):
         if trainer.iteration == 6:
-            k = 'fg.color.layers.2.bias'
+            k = 'fg.color.rest.layers.1.bias'
             bad = mi.TensorXf(np.full(trainer.opt[k].shape, np.nan, np.float32))
             trainer.opt[k] = bad
 

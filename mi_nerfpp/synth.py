@@ -1,0 +1,594 @@
+"""Synthetic captures: render posed images of a Mitsuba ground-truth scene in the NeRF++ layout.
+
+``python -m mi_nerfpp synth SCENE.xml --out DATA`` (or :func:`synthesize`) places ``views``
+pinhole cameras around the scene (see *Trajectories*), renders each with the scene's own
+integrator, and writes::
+
+    DATA/capture.json                   what was rendered, and how (see *capture.json*)
+    DATA/{train,validation,test}/
+        rgb/NNNNNN.png                  the render, linear RGB encoded as 8-bit sRGB (clipped)
+        pose/NNNNNN.txt                 camera-to-world, OpenCV, in WORLD units of the scene
+        intrinsics/NNNNNN.txt           K (top-left 3x3 of a 4x4 matrix)
+        gt/NNNNNN.exr                   ground-truth layers (see *Ground truth*)
+
+``mi_nerfpp.data.load_dataset(DATA)`` reads it like any NeRF++ dataset and normalizes the cameras
+into the unit sphere itself (``gt/`` is ignored by the reader).
+
+Trajectories
+------------
+``orbit``
+    ``views`` cameras on a jittered band around the origin: azimuth evenly spaced (jittered by up
+    to 0.3 of the spacing), elevation 5-35 degrees (a low-discrepancy sequence plus jitter),
+    distance ``radius`` +-10 %, looking at the origin jittered by ~0.08 world units, up = +Y, no
+    roll. Horizontal field of view ``fov`` degrees, square pixels, principal point at the image
+    centre. In the ground-truth scenes (``scenes/gt_*.xml``) every object between 1 and 5 units
+    from the origin stays below y = 0 (the cameras' lowest height is ~0.1), so cameras of either
+    trajectory with ``radius`` 3-4 are outside every object (checked at the default radius: every
+    camera is >= 0.5 units from the nearest surface).
+``truck``
+    The real camera poses of the Tanks and Temples "Truck" capture as released with NeRF++
+    (package data in ``mi_nerfpp/trajectories/``, BSD-2): train from its 226 train cameras,
+    test from its 25 test cameras, validation from its 200 camera-path cameras, each subsampled
+    (one random camera per equal stretch of the sequence). The poses are placed in the scene
+    with one similarity transform computed from the train cameras: their mean up direction
+    (minus the mean image-down axis) is rotated onto +Y, the point closest to all optical axes
+    moves to the origin, and the scale makes the median horizontal distance of the train
+    cameras from it ``radius`` (default 3.5, a factor of ~5.3; cameras then lie 1.9-4.6 units
+    out horizontally and 0.1-1.1 above the origin, looking down by ~10 degrees). ``K`` is
+    resampled to the requested resolution keeping the horizontal field of view (80 degrees)
+    and the relative principal point; with square pixels, an aspect ratio other than the
+    original 980:546 changes the vertical field of view. ``fov`` is ignored.
+
+Splits: with ``views >= 3``, validation and test get ``max(1, round(0.1 * views))`` views each
+and train the rest (80/10/10); 2 views are 1 train + 1 test, 1 view is train only. For ``orbit``
+the held-out views are spread around the ring (one random view per equal stretch of azimuth).
+Everything is deterministic for a given ``seed`` (which also seeds Mitsuba's sampler, per view).
+
+Ground truth
+------------
+``gt/NNNNNN.exr`` (read with :func:`mi_nerfpp.exr.read_exr`). ``depth.Z`` and ``fg.A`` come from
+one ray per pixel through the pixel centre (Mitsuba's ``aov`` integrator with a non-jittered
+1-spp ``stratified`` sampler):
+
+==========  ===================================================================================
+``R G B``   the beauty render, linear RGB, float32, not clipped (the PNG's ``spp`` samples)
+``depth.Z`` distance along the ray from the camera centre to the first surface hit, world units
+            (the ``depth`` AOV plus the near-clip offset that Mitsuba's perspective sensor
+            starts its rays at); 0 where the ray hits nothing (the environment at infinity)
+``fg.A``    1 where the first surface hit lies inside the sphere that NeRF++'s normalization
+            maps to the unit sphere (the foreground volume; centre and world radius in
+            ``capture.json``), else 0 (a background surface, or no hit)
+==========  ===================================================================================
+
+``fg.A`` is a binary per-pixel mask of *where the visible surface is*, not NeRF++'s foreground
+opacity: it is not antialiased, and the light arriving at a foreground surface still depends on
+the background (shadows, reflections). Not produced: separate foreground/background radiance
+(light transport does not split that way), opacity or depth integrated over the pixel footprint,
+normals, and anything for refracted paths.
+
+capture.json
+------------
+``scene`` (the XML path as given), ``scene_path`` (absolute), ``scene_sha256``, ``trajectory``,
+``views`` per split and the source camera ``names``, ``resolution`` [W, H], ``spp``, ``seed``,
+``fov``, ``radius``, ``layers`` (what the files hold), ``normalization`` (``center``,
+``scale``: ``x_normalized = (x_world - center) * scale``, and ``world_radius = 1/scale``, the
+foreground sphere of ``fg.A``), the Mitsuba and Dr.Jit versions and variant, ``params`` (what
+the cache compares), the render time, and ``complete`` (false while rendering).
+
+Caching: when ``DATA/capture.json`` is complete, its parameters (scene file contents, trajectory,
+views, resolution, spp, seed, fov, radius, Mitsuba version and variant) equal the requested ones
+and every file it lists exists, nothing is rendered. Files the XML references (textures,
+environment maps) are not hashed: delete ``capture.json`` after changing them. Otherwise an
+earlier capture in ``DATA`` (one with a ``capture.json``) is replaced: its split folders are
+removed. A non-empty ``DATA`` without ``capture.json`` is refused.
+
+Rendering speed: the scene is loaded once; each view gets its own sensor from
+:func:`mi_nerfpp.data.mitsuba_sensor_dict` passed as ``sensor=`` to ``mi.render``. Updating one
+sensor's ``to_world`` through ``mi.traverse`` measured the same (0.37 s per 128x96 view at 64 spp
+on 2 CPU cores, both ways: the kernel is reused), so the simpler form is used.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import time
+from importlib import resources
+
+import numpy as np
+
+from .data.cameras import (
+    Camera,
+    cameras_inside_unit_sphere,
+    mitsuba_sensor_dict,
+    normalize_cameras,
+    pixel_rays,
+)
+from .data.dataset import SPLITS
+from .data.nerfpp import write_nerfpp
+from .exr import atomic_write_path, write_exr
+from .preview import to_srgb8
+
+TRAJECTORIES = ('orbit', 'truck')
+CAPTURE_FILE = 'capture.json'
+CAPTURE_FORMAT = 'mi-nerfpp-synth'
+CAPTURE_VERSION = 1
+
+DEFAULT_VIEWS = 60
+DEFAULT_RES = (128, 96)
+DEFAULT_SPP = 64
+DEFAULT_FOV = 50.0
+DEFAULT_RADIUS = 3.5
+
+ORBIT_ELEVATION = (5.0, 35.0)      # degrees
+ORBIT_RADIUS_JITTER = 0.1          # relative
+ORBIT_AZIMUTH_JITTER = 0.3         # of the azimuth spacing
+ORBIT_TARGET_JITTER = 0.08         # world units (standard deviation; half of it vertically)
+HELD_OUT_FRACTION = 0.1            # of the views, each for validation and test
+NEAR_CLIP = 0.01                   # Mitsuba's default, set explicitly: depth is corrected by it
+
+TRUCK_FILES = {'train': 'train_cam_dict_norm.json',
+               'validation': 'camera_path_cam_dict_norm.json',
+               'test': 'test_cam_dict_norm.json'}
+
+
+# --- parameters --------------------------------------------------------------------------------
+
+def parse_res(value) -> tuple[int, int]:
+    """``'WxH'`` (or a ``(W, H)`` pair) -> ``(W, H)`` positive integers.
+
+    Raises:
+        ValueError: anything else, with the expected form in the message.
+    """
+    if isinstance(value, str):
+        parts = value.lower().split('x')
+        try:
+            if len(parts) != 2:
+                raise ValueError
+            width, height = int(parts[0]), int(parts[1])
+        except ValueError:
+            raise ValueError(f"resolution must be WxH with positive integers, e.g. 128x96, "
+                             f"got '{value}'") from None
+    else:
+        try:
+            width, height = value
+        except (TypeError, ValueError):
+            raise ValueError(f'resolution must be WxH or a (width, height) pair, '
+                             f'got {value!r}') from None
+        if int(width) != width or int(height) != height:
+            raise ValueError(f'resolution must be integers, got {value!r}')
+        width, height = int(width), int(height)
+    if width <= 0 or height <= 0:
+        raise ValueError(f'resolution must be positive, got {width}x{height}')
+    return width, height
+
+
+def split_counts(views: int) -> dict[str, int]:
+    """Number of views per split: 80/10/10 with at least one validation and test view."""
+    if views >= 3:
+        held = max(1, round(HELD_OUT_FRACTION * views))
+        return {'train': views - 2 * held, 'validation': held, 'test': held}
+    return {'train': 1, 'validation': 0, 'test': views - 1}
+
+
+def _stratified_choice(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    """``k`` sorted distinct indices of ``range(n)``: one random index in each of ``k`` equal
+    stretches, so that the choice covers the whole sequence."""
+    if k <= 0:
+        return np.zeros(0, dtype=int)
+    edges = np.floor(np.linspace(0, n, k + 1)).astype(int)
+    return np.array([rng.integers(lo, hi) for lo, hi in zip(edges[:-1], edges[1:])])
+
+
+# --- trajectories ------------------------------------------------------------------------------
+
+def intrinsics_from_fov(fov: float, width: int, height: int) -> np.ndarray:
+    """Pinhole K with horizontal field of view ``fov`` degrees, square pixels, centred."""
+    if not 0 < fov < 180:
+        raise ValueError(f'fov must be in (0, 180) degrees, got {fov}')
+    f = 0.5 * width / np.tan(np.radians(fov) / 2)
+    return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+
+
+def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """OpenCV camera-to-world (x right, y down, z forward) at ``eye`` looking at ``target``."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, float))
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
+    return c2w
+
+
+def orbit_cameras(views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
+                  radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
+    """The ``orbit`` trajectory (see the module docstring), split into train/validation/test."""
+    width, height = parse_res(res)
+    K = intrinsics_from_fov(fov, width, height)
+    rng = np.random.default_rng([seed, 1])
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    lo, hi = np.radians(ORBIT_ELEVATION)
+    cameras = []
+    for i in range(views):
+        azimuth = 2 * np.pi * (i + rng.uniform(-ORBIT_AZIMUTH_JITTER, ORBIT_AZIMUTH_JITTER)) / views
+        u = (0.5 + i * golden + rng.uniform(-0.05, 0.05)) % 1.0
+        elevation = lo + (hi - lo) * u
+        r = radius * (1.0 + rng.uniform(-ORBIT_RADIUS_JITTER, ORBIT_RADIUS_JITTER))
+        eye = r * np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation),
+                            np.cos(elevation) * np.cos(azimuth)])
+        target = rng.normal(0.0, ORBIT_TARGET_JITTER, 3) * np.array([1.0, 0.5, 1.0])
+        cameras.append(Camera(K, look_at(eye, target), width, height, name=f'orbit_{i:03d}'))
+    counts = split_counts(views)
+    held = _stratified_choice(rng, views, counts['validation'] + counts['test'])
+    order = rng.permutation(len(held))
+    validation = set(held[order[:counts['validation']]].tolist())
+    test = set(held[order[counts['validation']:]].tolist())
+    return {
+        'train': [c for i, c in enumerate(cameras) if i not in validation and i not in test],
+        'validation': [c for i, c in enumerate(cameras) if i in validation],
+        'test': [c for i, c in enumerate(cameras) if i in test],
+    }
+
+
+def _read_truck(split: str) -> list[tuple[str, np.ndarray, np.ndarray, tuple[int, int]]]:
+    """(name, K 3x3, c2w 4x4 OpenCV, (W, H)) of one Truck camera file, sorted by name."""
+    path = resources.files(__package__) / 'trajectories' / TRUCK_FILES[split]
+    data = json.loads(path.read_text())
+    out = []
+    for name in sorted(data):
+        entry = data[name]
+        K = np.asarray(entry['K'], float).reshape(4, 4)[:3, :3]
+        c2w = np.linalg.inv(np.asarray(entry['W2C'], float).reshape(4, 4))
+        out.append((name, K, c2w, tuple(int(v) for v in entry['img_size'])))
+    return out
+
+
+def _rotation_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector ``a`` onto unit vector ``b`` (Rodrigues)."""
+    v, c = np.cross(a, b), float(np.dot(a, b))
+    if np.linalg.norm(v) < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def truck_alignment(radius: float = DEFAULT_RADIUS) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R, focus, scale)`` placing Truck poses in a scene: ``x_scene = scale·R(x − focus)``.
+
+    Computed from the train cameras: R turns their mean up direction (minus the mean image-down
+    axis) onto +Y; ``focus`` is the point closest to all their optical axes (least squares);
+    ``scale`` makes their median horizontal distance from ``focus`` equal ``radius``.
+    """
+    train = _read_truck('train')
+    c2w = np.stack([cam[2] for cam in train])
+    centers, down, forward = c2w[:, :3, 3], c2w[:, :3, 1], c2w[:, :3, 2]
+    up = -down.mean(axis=0)
+    up /= np.linalg.norm(up)
+    R = _rotation_onto(up, np.array([0.0, 1.0, 0.0]))
+    projectors = np.eye(3)[None] - forward[:, :, None] * forward[:, None, :]
+    focus = np.linalg.solve(projectors.sum(axis=0), np.einsum('nij,nj->i', projectors, centers))
+    rel = (centers - focus) @ R.T
+    horizontal = np.linalg.norm(rel[:, [0, 2]], axis=1)
+    return R, focus, float(radius / np.median(horizontal))
+
+
+def truck_cameras(views: int, res, seed: int = 0,
+                  radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
+    """The ``truck`` trajectory (see the module docstring), split into train/validation/test."""
+    width, height = parse_res(res)
+    R, focus, scale = truck_alignment(radius)
+    counts = split_counts(views)
+    rng = np.random.default_rng([seed, 2])
+    splits = {}
+    for split in SPLITS:
+        source = _read_truck(split)
+        if counts[split] > len(source):
+            sizes = {s: len(_read_truck(s)) for s in SPLITS}
+            limit = max(v for v in range(1, 2000)
+                        if all(split_counts(v)[s] <= sizes[s] for s in SPLITS))
+            raise ValueError(f'the truck trajectory has {len(source)} {split} cameras but '
+                             f'{views} views need {counts[split]}: ask for at most {limit} views')
+        cameras = []
+        for index in _stratified_choice(rng, len(source), counts[split]):
+            name, K0, c2w0, (w0, h0) = source[index]
+            sx = width / w0
+            K = np.array([[K0[0, 0] * sx, 0.0, K0[0, 2] * sx],
+                          [0.0, K0[0, 0] * sx, K0[1, 2] * height / h0],
+                          [0.0, 0.0, 1.0]])
+            c2w = np.eye(4)
+            c2w[:3, :3] = R @ c2w0[:3, :3]
+            c2w[:3, 3] = scale * R @ (c2w0[:3, 3] - focus)
+            cameras.append(Camera(K, c2w, width, height, name=f'truck_{split}_{name}'))
+        splits[split] = cameras
+    return splits
+
+
+def make_cameras(trajectory: str, views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
+                 radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
+    """Cameras of a trajectory, split into train/validation/test (world units of the scene)."""
+    if trajectory == 'orbit':
+        return orbit_cameras(views, res, seed, fov, radius)
+    if trajectory == 'truck':
+        return truck_cameras(views, res, seed, radius)
+    raise ValueError(f"unknown trajectory '{trajectory}': use one of {', '.join(TRAJECTORIES)}")
+
+
+def foreground_sphere(cameras: list[Camera]) -> tuple[np.ndarray, float]:
+    """``(center, scale)`` of the normalization the dataset reader will apply to these cameras
+    (none, i.e. (0, 1), when they already lie inside the unit sphere)."""
+    if cameras_inside_unit_sphere(cameras):
+        return np.zeros(3), 1.0
+    return normalize_cameras(cameras)
+
+
+# --- rendering ---------------------------------------------------------------------------------
+
+def _sensor(camera: Camera, spp: int, centre_rays: bool = False):
+    """A Mitsuba perspective sensor for ``camera``; ``centre_rays``: 1 ray per pixel centre."""
+    import mitsuba as mi
+
+    desc = mitsuba_sensor_dict(camera, spp=spp, pixel_format='rgb')
+    desc['near_clip'] = NEAR_CLIP
+    if centre_rays:
+        desc['sampler'] = {'type': 'stratified', 'sample_count': 1, 'jitter': False}
+    return mi.load_dict(desc)
+
+
+def render_ground_truth(scene, camera: Camera, center, world_radius: float,
+                        aov_integrator=None) -> dict[str, np.ndarray]:
+    """``depth.Z`` and ``fg.A`` of one view (see the module docstring), H x W float32 each."""
+    import mitsuba as mi
+
+    if aov_integrator is None:
+        aov_integrator = mi.load_dict({'type': 'aov', 'aovs': 'dd.y:depth,pp:position'})
+    image = np.array(mi.render(scene, sensor=_sensor(camera, 1, centre_rays=True),
+                               integrator=aov_integrator, spp=1), dtype=np.float64)
+    names = list(aov_integrator.aov_names())
+    depth = image[..., names.index('dd.y.T')]
+    position = image[..., [names.index(f'pp.{c}') for c in 'XYZ']]
+    hit = depth > 0
+    # Mitsuba's perspective rays start on the near plane, at NEAR_CLIP / cos(angle to the axis)
+    # from the camera centre; the depth AOV counts from there.
+    px, py = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    _, dirs = pixel_rays(camera, px, py)
+    cos_axis = (dirs @ camera.c2w[:3, 2]).reshape(camera.height, camera.width)
+    depth = np.where(hit, depth + NEAR_CLIP / cos_axis, 0.0)
+    inside = np.linalg.norm(position - np.asarray(center), axis=-1) <= world_radius
+    return {'depth.Z': depth.astype(np.float32),
+            'fg.A': (hit & inside).astype(np.float32)}
+
+
+def _file_sha256(path: str) -> str:
+    with open(path, 'rb') as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+def _expected_files(out: str, counts: dict[str, int]) -> list[str]:
+    files = []
+    for split, n in counts.items():
+        for i in range(n):
+            stem = f'{i:06d}'
+            files += [os.path.join(out, split, 'rgb', stem + '.png'),
+                      os.path.join(out, split, 'pose', stem + '.txt'),
+                      os.path.join(out, split, 'intrinsics', stem + '.txt'),
+                      os.path.join(out, split, 'gt', stem + '.exr')]
+    return files
+
+
+def _read_capture(out: str) -> dict | None:
+    try:
+        with open(os.path.join(out, CAPTURE_FILE)) as f:
+            info = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return info if isinstance(info, dict) and info.get('format') == CAPTURE_FORMAT else None
+
+
+def _write_capture(out: str, info: dict) -> None:
+    with atomic_write_path(os.path.join(out, CAPTURE_FILE)) as tmp:
+        with open(tmp, 'w') as f:
+            json.dump(info, f, indent=2)
+            f.write('\n')
+
+
+def _prepare_output(out: str) -> None:
+    """Make ``out`` an empty place to write: create it, or clear an earlier capture in it."""
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise FileExistsError(f'{out}: exists and is not a folder; choose another --out')
+    if not os.path.isdir(out):
+        os.makedirs(out)
+        return
+    if os.path.isfile(os.path.join(out, CAPTURE_FILE)):
+        os.remove(os.path.join(out, CAPTURE_FILE))
+        for split in SPLITS:
+            shutil.rmtree(os.path.join(out, split), ignore_errors=True)
+    elif os.listdir(out):
+        raise FileExistsError(f'{out}: folder is not empty and holds no {CAPTURE_FILE}; synth '
+                              f'writes to an empty folder or over its own earlier capture')
+
+
+def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
+               spp: int = DEFAULT_SPP, trajectory: str = 'orbit', seed: int = 0,
+               fov: float = DEFAULT_FOV, radius: float = DEFAULT_RADIUS,
+               progress: bool = True) -> dict:
+    """Render a synthetic NeRF++ capture of a Mitsuba scene (see the module docstring).
+
+    Args:
+        scene_xml: Mitsuba scene file (its integrator and emitters are used; sensors ignored).
+        out: output folder (created; an earlier capture there is replaced or reused).
+        views: total number of cameras over all splits.
+        res: image size, ``(W, H)`` or ``'WxH'``.
+        spp: samples per pixel of the rendered images.
+        trajectory: 'orbit' or 'truck'.
+        seed: seeds the camera jitter, the split choice and Mitsuba's sampler.
+        fov: horizontal field of view in degrees ('orbit' only).
+        radius: camera distance from the origin in world units (orbit radius; for 'truck' the
+            median horizontal distance of the train cameras).
+        progress: show a progress bar and messages.
+
+    Returns:
+        The contents of ``capture.json``, plus ``'cached': True`` when nothing was rendered.
+
+    Raises:
+        FileNotFoundError: the scene file does not exist.
+        ValueError: unknown trajectory, malformed resolution, non-positive views/spp/radius,
+            more truck views than the Truck capture has.
+        FileExistsError: ``out`` is a non-empty folder that holds no earlier capture.
+        RuntimeError: Mitsuba cannot load the scene (its message included).
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    scene_xml, out = os.fspath(scene_xml), os.fspath(out)
+    if not os.path.isfile(scene_xml):
+        raise FileNotFoundError(f'{scene_xml}: scene file not found')
+    if trajectory not in TRAJECTORIES:
+        raise ValueError(f"unknown trajectory '{trajectory}': use one of "
+                         f"{', '.join(TRAJECTORIES)}")
+    width, height = parse_res(res)
+    for name, value in (('views', views), ('spp', spp)):
+        if int(value) != value or value < 1:
+            raise ValueError(f'{name} must be a positive integer, got {value!r}')
+    if not radius > 0:
+        raise ValueError(f'radius must be positive, got {radius!r}')
+    if int(seed) != seed or not 0 <= seed < 2**31:
+        raise ValueError(f'seed must be an integer in [0, 2^31), got {seed!r}')
+    views, spp, seed = int(views), int(spp), int(seed)
+
+    params = {
+        'scene_sha256': _file_sha256(scene_xml), 'trajectory': trajectory, 'views': views,
+        'resolution': [width, height], 'spp': spp, 'seed': seed, 'fov': float(fov),
+        'radius': float(radius), 'mitsuba': mi.__version__, 'variant': mi.variant(),
+        'version': CAPTURE_VERSION,
+    }
+    cameras = make_cameras(trajectory, views, (width, height), seed, fov, radius)
+    counts = {split: len(cameras[split]) for split in SPLITS}
+
+    previous = _read_capture(out)
+    if (previous is not None and previous.get('complete') and previous.get('params') == params
+            and all(os.path.isfile(f) for f in _expected_files(out, counts))):
+        if progress:
+            print(f'{out}: capture up to date (same scene file and parameters, all files '
+                  f'present); skipping rendering')
+        return dict(previous, cached=True)
+
+    _prepare_output(out)
+    try:
+        scene = mi.load_file(scene_xml)
+    except RuntimeError as e:
+        raise RuntimeError(f'{scene_xml}: Mitsuba cannot load the scene: {e}') from e
+
+    all_cameras = [cam for split in SPLITS for cam in cameras[split]]
+    center, scale = foreground_sphere(all_cameras)
+    info = {
+        'format': CAPTURE_FORMAT, 'version': CAPTURE_VERSION, 'complete': False,
+        'scene': scene_xml, 'scene_path': os.path.abspath(scene_xml),
+        'scene_sha256': params['scene_sha256'],
+        'trajectory': trajectory,
+        'views': counts,
+        'names': {split: [cam.name for cam in cameras[split]] for split in SPLITS},
+        'resolution': [width, height], 'spp': spp, 'seed': seed, 'fov': float(fov),
+        'radius': float(radius),
+        'normalization': {'center': [float(v) for v in center], 'scale': float(scale),
+                          'world_radius': float(1.0 / scale)},
+        'layers': {
+            'rgb/*.png': '8-bit sRGB encoding of the linear render (clipped to [0, 1])',
+            'gt/*.exr': {
+                'R G B': 'the linear render, float32',
+                'depth.Z': 'distance from the camera centre to the first surface hit by the '
+                           'ray through the pixel centre, world units (0: no hit)',
+                'fg.A': '1 where that hit lies within normalization.world_radius of '
+                        'normalization.center (the foreground sphere), else 0'}},
+        'mitsuba': mi.__version__, 'drjit': dr.__version__, 'variant': mi.variant(),
+        'params': params,
+    }
+    _write_capture(out, info)
+
+    from tqdm import tqdm
+
+    aov_integrator = mi.load_dict({'type': 'aov', 'aovs': 'dd.y:depth,pp:position'})
+    t0 = time.perf_counter()
+    bar = tqdm(total=views, desc=f'synth {os.path.basename(scene_xml)}', unit='view',
+               disable=not progress)
+    k = 0
+    for split in SPLITS:
+        images = []
+        for i, camera in enumerate(cameras[split]):
+            render_seed = (seed * 1_000_003 + k) % 2**32
+            rgb = np.array(mi.render(scene, sensor=_sensor(camera, spp), spp=spp,
+                                     seed=render_seed), dtype=np.float32)[..., :3]
+            rgb = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
+            images.append(to_srgb8(rgb))
+            layers = {'R': rgb[..., 0], 'G': rgb[..., 1], 'B': rgb[..., 2]}
+            layers.update(render_ground_truth(scene, camera, center, 1.0 / scale,
+                                              aov_integrator))
+            write_exr(os.path.join(out, split, 'gt', f'{i:06d}.exr'), layers)
+            k += 1
+            bar.update(1)
+        write_nerfpp(out, {split: (cameras[split],
+                                   [img.astype(np.float32) / 255.0 for img in images])})
+    bar.close()
+    info['render_seconds'] = round(time.perf_counter() - t0, 2)
+    info['complete'] = True
+    _write_capture(out, info)
+    if progress:
+        print(f'wrote {views} views ({counts["train"]} train, {counts["validation"]} validation, '
+              f'{counts["test"]} test) to {out} in {info["render_seconds"]:.1f} s')
+    return dict(info, cached=False)
+
+
+# --- command line ------------------------------------------------------------------------------
+
+def _res_arg(value: str) -> tuple[int, int]:
+    try:
+        return parse_res(value)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def cmd_synth(args) -> None:
+    try:
+        synthesize(args.scene, args.out, views=args.views, res=args.res, spp=args.spp,
+                   trajectory=args.trajectory, seed=args.seed, fov=args.fov, radius=args.radius)
+    except (FileNotFoundError, FileExistsError, ValueError, RuntimeError) as e:
+        raise SystemExit(f'synth: {e}') from e
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    """Register ``synth`` on the sub-command parsers of ``python -m mi_nerfpp``."""
+    p = sub.add_parser(
+        'synth', help='render a synthetic NeRF++ capture (images, poses, ground truth) of a '
+                      'Mitsuba scene',
+        description='Render posed views of a Mitsuba scene XML into the NeRF++ dataset layout, '
+                    'with ground-truth depth and foreground masks (DATA/{split}/gt/*.exr) and '
+                    'DATA/capture.json. An identical earlier capture in DATA is reused.')
+    p.add_argument('scene', help='Mitsuba scene XML (e.g. scenes/gt_garden.xml)')
+    p.add_argument('--out', required=True, metavar='DATA', help='output folder')
+    p.add_argument('--views', type=int, default=DEFAULT_VIEWS,
+                   help=f'number of views over all splits (default {DEFAULT_VIEWS}; 80/10/10 '
+                        f'train/validation/test)')
+    p.add_argument('--res', type=_res_arg, default=DEFAULT_RES, metavar='WxH',
+                   help='image size (default %dx%d)' % DEFAULT_RES)
+    p.add_argument('--spp', type=int, default=DEFAULT_SPP,
+                   help=f'samples per pixel (default {DEFAULT_SPP})')
+    p.add_argument('--trajectory', choices=TRAJECTORIES, default='orbit',
+                   help='orbit: jittered ring around the origin; truck: the Tanks and Temples '
+                        'Truck camera poses (default orbit)')
+    p.add_argument('--seed', type=int, default=0, help='seed of cameras, splits and sampler')
+    p.add_argument('--fov', type=float, default=DEFAULT_FOV,
+                   help=f'horizontal field of view in degrees, orbit only '
+                        f'(default {DEFAULT_FOV:g})')
+    p.add_argument('--radius', type=float, default=DEFAULT_RADIUS,
+                   help=f'camera distance from the origin in world units (default '
+                        f'{DEFAULT_RADIUS:g})')
+    p.set_defaults(func=cmd_synth)
+    return p

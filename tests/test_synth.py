@@ -1,0 +1,214 @@
+"""Synthetic captures (`python -m mi_nerfpp synth`): layout, ground truth, caching, trajectories."""
+import json
+import os
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_nerfpp import synth
+from mi_nerfpp.cli import main
+from mi_nerfpp.data import load_dataset, pixel_rays
+from mi_nerfpp.data.cameras import Camera
+from mi_nerfpp.exr import read_exr
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENES = os.path.join(ROOT, 'scenes')
+GARDEN = os.path.join(SCENES, 'gt_garden.xml')
+TINY = dict(views=6, res=(16, 12), spp=4, progress=False)
+
+
+@pytest.fixture(scope='module')
+def garden(tmp_path_factory):
+    """A tiny orbit capture of the garden scene (6 views, 16x12, 4 spp)."""
+    out = tmp_path_factory.mktemp('garden')
+    info = synth.synthesize(GARDEN, out, **TINY)
+    return out, info
+
+
+def gt_files(out):
+    return sorted(str(p) for p in out.glob('*/gt/*.exr'))
+
+
+def test_orbit_capture_loads_as_nerfpp_dataset(garden):
+    out, info = garden
+    assert not info['cached']
+    ds = load_dataset(out)
+    assert ds.format == 'nerfpp' and ds.color_space == 'srgb'
+    assert (len(ds.train), len(ds.validation), len(ds.test)) == (4, 1, 1)
+    for split in (ds.train, ds.validation, ds.test):
+        for cam, img in zip(split.cameras, split.images):
+            assert np.linalg.norm(cam.center) < 1.0
+            assert img.shape == (12, 16, 3)
+            assert cam.width == 16 and cam.height == 12
+            assert cam.fov_x == pytest.approx(50.0)
+    # The reader's normalization is the one that defines the foreground sphere of fg.A.
+    norm = info['normalization']
+    np.testing.assert_allclose(ds.center, norm['center'], rtol=1e-9)
+    assert ds.scale == pytest.approx(norm['scale'], rel=1e-9)
+    assert norm['world_radius'] == pytest.approx(1.0 / norm['scale'])
+    # Images are not blank: the scene is lit and has colour.
+    assert 0.05 < np.mean(ds.train.images) < 0.95
+
+
+def test_capture_json_describes_the_capture(garden):
+    out, _ = garden
+    with open(out / 'capture.json') as f:
+        info = json.load(f)
+    assert info['complete'] is True
+    assert info['scene'] == GARDEN and info['trajectory'] == 'orbit'
+    assert info['views'] == {'train': 4, 'validation': 1, 'test': 1}
+    assert info['resolution'] == [16, 12] and info['spp'] == 4 and info['seed'] == 0
+    assert info['mitsuba'] == mi.__version__ == '3.9.1'
+    assert set(info['normalization']) == {'center', 'scale', 'world_radius'}
+    assert len(info['names']['train']) == 4
+    assert info['params']['views'] == 6
+
+
+def test_ground_truth_layers(garden):
+    out, info = garden
+    files = gt_files(out)
+    assert len(files) == 6
+    masks = []
+    for path in files:
+        layers = read_exr(path)
+        assert {'R', 'G', 'B', 'depth.Z', 'fg.A'} <= set(layers)
+        depth, fg = layers['depth.Z'], layers['fg.A']
+        assert depth.shape == (12, 16)
+        assert np.all(np.isfinite(depth)) and np.all(depth >= 0)
+        hit = depth > 0
+        assert hit.mean() > 0.5                       # the lawn fills most of every view
+        assert np.all(depth[hit] > 0.5) and np.all(depth[hit] < 500)
+        assert set(np.unique(fg)) <= {0.0, 1.0}
+        assert np.all(fg[~hit] == 0)                  # the environment is background
+        masks.append(fg)
+    masks = np.stack(masks)
+    assert masks.min() == 0 and masks.max() == 1      # foreground objects and distant scenery
+    # The PNG is the sRGB encoding of the linear layers.
+    from mi_nerfpp.preview import to_srgb8
+    import imageio.v3 as iio
+    png = iio.imread(out / 'train' / 'rgb' / '000000.png')
+    layers = read_exr(out / 'train' / 'gt' / '000000.exr')
+    linear = np.stack([layers[c] for c in 'RGB'], axis=-1)
+    np.testing.assert_array_equal(png, to_srgb8(linear))
+
+
+def test_depth_matches_ray_intersection_at_image_centre(garden):
+    out, info = garden
+    pose = np.loadtxt(out / 'train' / 'pose' / '000001.txt')
+    K = np.loadtxt(out / 'train' / 'intrinsics' / '000001.txt')[:3, :3]
+    camera = Camera(K, pose, 16, 12)
+    layers = read_exr(out / 'train' / 'gt' / '000001.exr')
+    row, col = 6, 8                                    # the pixel whose centre is (8.5, 6.5)
+    origin, direction = pixel_rays(camera, col + 0.5, row + 0.5)
+    scene = mi.load_file(GARDEN)
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(origin.T), mi.Vector3f(direction.T)))
+    assert bool(si.is_valid()[0])
+    t = float(si.t[0])
+    assert layers['depth.Z'][row, col] == pytest.approx(t, rel=1e-3)
+    hit = np.array(si.p).ravel()
+    norm = info['normalization']
+    inside = np.linalg.norm(hit - norm['center']) <= norm['world_radius']
+    assert layers['fg.A'][row, col] == float(inside)
+
+
+def test_second_call_is_cached_and_changes_rerender(tmp_path):
+    out = tmp_path / 'cap'
+    kw = dict(views=3, res=(8, 6), spp=1, progress=False)
+    first = synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out, **kw)
+    assert not first['cached']
+    files = sorted(out.rglob('*.*'))
+    mtimes = {p: p.stat().st_mtime_ns for p in files}
+    again = synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out, **kw)
+    assert again['cached']
+    assert {p: p.stat().st_mtime_ns for p in sorted(out.rglob('*.*'))} == mtimes
+    # A missing file, or other parameters, re-render over the earlier capture.
+    os.remove(out / 'test' / 'gt' / '000000.exr')
+    assert not synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out, **kw)['cached']
+    assert (out / 'test' / 'gt' / '000000.exr').is_file()
+    changed = synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out,
+                               **dict(kw, views=4))
+    assert not changed['cached'] and changed['views'] == {'train': 2, 'validation': 1, 'test': 1}
+    assert len(load_dataset(out).train) == 2
+
+
+def test_truck_trajectory(tmp_path):
+    out = tmp_path / 'truck'
+    info = synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out, trajectory='truck',
+                            views=6, res=(20, 12), spp=1, progress=False)
+    assert info['trajectory'] == 'truck'
+    assert all(name.startswith('truck_train_') for name in info['names']['train'])
+    ds = load_dataset(out)
+    assert (len(ds.train), len(ds.validation), len(ds.test)) == (4, 1, 1)
+    for cam in ds.train.cameras + ds.test.cameras:
+        assert np.linalg.norm(cam.center) < 1.0
+        assert cam.fov_x == pytest.approx(2 * np.degrees(np.arctan(490 / 581.7877197265625)))
+        assert cam.K[0, 0] == pytest.approx(cam.K[1, 1])
+    # Placed upright around the origin: image-down points down the world's Y axis.
+    cams = synth.truck_cameras(60, (20, 12))
+    world = [c for split in cams.values() for c in split]
+    assert np.mean([c.c2w[1, 1] for c in world]) < -0.9
+    horizontal = np.median([np.hypot(c.center[0], c.center[2]) for c in cams['train']])
+    assert horizontal == pytest.approx(synth.DEFAULT_RADIUS, rel=0.05)
+
+
+def test_orbit_cameras_are_deterministic_and_outside_the_foreground():
+    a = synth.orbit_cameras(40, (16, 12), seed=3)
+    b = synth.orbit_cameras(40, (16, 12), seed=3)
+    c = synth.orbit_cameras(40, (16, 12), seed=4)
+    assert [cam.name for cam in a['test']] == [cam.name for cam in b['test']]
+    np.testing.assert_array_equal(a['train'][0].c2w, b['train'][0].c2w)
+    assert not np.allclose(a['train'][0].c2w, c['train'][0].c2w)
+    assert {k: len(v) for k, v in a.items()} == {'train': 32, 'validation': 4, 'test': 4}
+    for cam in sum(a.values(), []):
+        centre = cam.center
+        assert 3.0 < np.linalg.norm(centre) < 4.0 and centre[1] > 0.2
+
+
+def test_split_counts():
+    assert synth.split_counts(60) == {'train': 48, 'validation': 6, 'test': 6}
+    assert synth.split_counts(3) == {'train': 1, 'validation': 1, 'test': 1}
+    assert synth.split_counts(2) == {'train': 1, 'validation': 0, 'test': 1}
+    assert synth.split_counts(1) == {'train': 1, 'validation': 0, 'test': 0}
+
+
+def test_bad_inputs_raise_clear_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match='missing.xml: scene file not found'):
+        synth.synthesize(tmp_path / 'missing.xml', tmp_path / 'o')
+    with pytest.raises(ValueError, match="unknown trajectory 'spiral'"):
+        synth.synthesize(GARDEN, tmp_path / 'o', trajectory='spiral')
+    for res in ('128', '128x', 'axb', '0x5'):
+        with pytest.raises(ValueError, match='resolution'):
+            synth.synthesize(GARDEN, tmp_path / 'o', res=res)
+    with pytest.raises(ValueError, match='views must be a positive integer'):
+        synth.synthesize(GARDEN, tmp_path / 'o', views=0)
+    with pytest.raises(ValueError, match='at most 254 views'):
+        synth.synthesize(GARDEN, tmp_path / 'o', trajectory='truck', views=400)
+    busy = tmp_path / 'busy'
+    busy.mkdir()
+    (busy / 'notes.txt').write_text('mine')
+    with pytest.raises(FileExistsError, match='not empty'):
+        synth.synthesize(GARDEN, busy, **TINY)
+    assert (busy / 'notes.txt').read_text() == 'mine'
+    assert synth.parse_res('320x240') == (320, 240)
+
+
+def test_command_line(tmp_path, capsys):
+    out = tmp_path / 'cli'
+    assert main(['synth', os.path.join(SCENES, 'gt_plaza.xml'), '--out', str(out),
+                 '--views', '3', '--res', '8x6', '--spp', '1', '--seed', '2']) == 0
+    assert 'wrote 3 views' in capsys.readouterr().out
+    assert json.loads((out / 'capture.json').read_text())['seed'] == 2
+    with pytest.raises(SystemExit, match='scene file not found'):
+        main(['synth', str(tmp_path / 'nope.xml'), '--out', str(out)])
+    with pytest.raises(SystemExit):
+        main(['synth', GARDEN, '--out', str(out), '--res', '8by6'])
+    assert 'resolution must be WxH' in capsys.readouterr().err
+
+
+def test_trajectory_data_ships_with_licence():
+    from importlib import resources
+    folder = resources.files('mi_nerfpp') / 'trajectories'
+    for name in synth.TRUCK_FILES.values():
+        assert (folder / name).is_file()
+    assert 'BSD' in (folder / 'LICENSE-nerfplusplus-BSD-2').read_text()

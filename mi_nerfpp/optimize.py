@@ -35,8 +35,13 @@ def add_parser(sub):
     p.add_argument('--batch-rays', type=int, default=1024, help='rays per step (default 1024)')
     p.add_argument('--samples', type=int, nargs=3, metavar=('FG', 'BG', 'FINE'),
                    default=[32, 32, 32], help='coarse fg, coarse bg and fine samples per volume')
+    p.add_argument('--grid-levels', type=int, nargs='+', default=[32, 128], metavar='RES',
+                   help='grid field: resolution of each level (default: 32 128)')
+    p.add_argument('--grid-channels', type=int, default=4, help='grid field: channels per level')
     p.add_argument('--lr-grid', type=float, default=0.05)
     p.add_argument('--lr-mlp', type=float, default=5e-3)
+    p.add_argument('--distortion', type=float, default=0.01,
+                   help='weight of the distortion loss against floaters (0: off; default 0.01)')
     p.add_argument('--resume', action='store_true', help='continue from OUT/model.npz')
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--preview-every', type=int, default=500, help='iterations (0: never)')
@@ -132,7 +137,9 @@ def run(args):
     cfg = TrainConfig(iterations=args.iterations, minutes=minutes, model=args.model,
                       field=args.field, batch_rays=args.batch_rays, fg_samples=fg,
                       bg_samples=bg, fine_samples=fine, lr_grid=args.lr_grid,
-                      lr_mlp=args.lr_mlp, seed=args.seed, preview_every=args.preview_every,
+                      lr_mlp=args.lr_mlp, distortion=args.distortion, seed=args.seed,
+                      preview_every=args.preview_every, grid_levels=tuple(args.grid_levels),
+                      grid_channels=args.grid_channels,
                       checkpoint_every=args.checkpoint_every, downscale=args.downscale,
                       background=_background(args.background))
     try:

@@ -25,7 +25,7 @@ import numpy as np
 from .checkpoint import load_checkpoint, save_checkpoint
 from .data import apply_normalization, pixel_rays
 from .model import NeRFPPModel
-from .render import Sampling, render_rays
+from .render import Sampling, distortion, render_rays
 
 # NeRF baseline (paper §5): cameras scaled into radius 1/8 instead of NeRF++'s 1/1.1.
 NERF_CAMERA_RADIUS = 1.0 / 8.0
@@ -50,6 +50,9 @@ class TrainConfig:
     lr_grid: float = 0.05
     lr_mlp: float = 5e-3
     lr_final: float = 0.1                # learning rates decay to lr * lr_final
+    distortion: float = 0.01             # weight of the mip-NeRF 360 distortion loss (0: off)
+    grid_levels: tuple = (32, 128)       # grid field: resolution of each level
+    grid_channels: int = 4
     seed: int = 0
     checkpoint_every: int = 500          # iterations
     preview_every: int = 500             # iterations (0: never)
@@ -150,10 +153,15 @@ class Trainer:
         elif resume:
             raise TrainingError(f'--resume: no checkpoint at {self.checkpoint_path}')
         else:
+            grid = dict(kind='grid', resolutions=list(config.grid_levels),
+                        channels=config.grid_channels)
             self.model = NeRFPPModel.create(
                 field=config.field, background=config.model == 'nerfpp', seed=config.seed,
                 center=dataset.center, scale=dataset.scale * self.frame_factor,
-                color_space=dataset.color_space)
+                color_space=dataset.color_space,
+                **({'fg_config': dict(grid, domain='ball'),
+                    'bg_config': dict(grid, domain='inverted_sphere')}
+                   if config.field == 'grid' else {}))
         self.rng = np.random.default_rng(config.seed)
         if 'rng' in meta:
             self.rng.bit_generator.state = meta['rng']
@@ -212,6 +220,10 @@ class Trainer:
         res = render_rays(o, d, self.model.fg, self.model.bg, cfg.sampling, seed=seed)
         fine = mse(res.fine.rgb, gt)
         loss = fine + mse(res.coarse.rgb, gt)
+        if cfg.distortion > 0:
+            for vol in (res.fg, res.bg):
+                if vol is not None:
+                    loss += cfg.distortion * dr.mean(distortion(vol.weights, vol.position, vol.n))
         dr.backward(loss)
         self.opt.step()
         self.iteration += 1

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# The main job on the embedded default: render scenes/render_random.xml (a seeded random
-# NeRF++ model) to a multi-layer EXR and a PNG preview in out/.
+# The main job on the embedded default: synthesize (once, cached in data_cache/default) a
+# 60-view capture of scenes/gt_garden.xml and fit a NeRF++ to it for about ten minutes.
+# Results (metrics, EXRs, previews, plot, render.xml) land in runs/default/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-mkdir -p out
-.venv/bin/python -m mi_nerfpp render scenes/render_random.xml -o out/render.exr --preview out/render.png "$@"
+.venv/bin/python optimize.py --out runs/default "$@"

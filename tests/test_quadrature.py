@@ -350,3 +350,22 @@ def test_render_volume_fine_pass_varying_density():
         assert npf(out.fine.opacity)[r] == pytest.approx(1 - lam, abs=1e-4)
         assert npf(out.fine.rgb, n_rays)[0, r] == pytest.approx(np.sum(w * radius(v)), abs=1e-4)
         assert npf(out.fine.depth)[r] == pytest.approx(np.sum(w * v), abs=2e-4)
+
+
+def test_distortion_loss_matches_pairwise_definition():
+    from mi_nerfpp.render import distortion
+    rng = np.random.default_rng(3)
+    n_rays, n = 7, 9
+    m = np.sort(rng.uniform(0, 1, (n_rays, n)), axis=1)
+    w = rng.uniform(0, 0.2, (n_rays, n))
+    got = np.array(distortion(F(w.ravel()), F(m.ravel()), n))
+    delta = np.concatenate([np.diff(m, axis=1), 1 - m[:, -1:]], axis=1)
+    ref = (np.abs(m[:, :, None] - m[:, None, :]) * w[:, :, None] * w[:, None, :]).sum((1, 2)) \
+        + (w ** 2 * delta).sum(1) / 3
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-7)
+    # Concentrating the same total weight in one sample lowers it.
+    w1 = np.zeros((1, n))
+    w1[0, 4] = 0.9
+    spread = np.full((1, n), 0.1)
+    assert np.array(distortion(F(w1.ravel()), F(m[0]), n))[0] < \
+        np.array(distortion(F(spread.ravel()), F(m[0]), n))[0]

@@ -43,16 +43,17 @@ class TrainConfig:
     minutes: float | None = None         # ... or after this wall time (whichever comes first)
     model: str = 'nerfpp'                # 'nerfpp', or 'nerf': one bounded volume
     field: str = 'grid'                  # 'grid', 'nerf' (NeRF-MLP), 'vanilla'
-    batch_rays: int = 1024
+    batch_rays: int = 512
     fg_samples: int = 32
     bg_samples: int = 32
     fine_samples: int = 32
-    lr_grid: float = 0.05
+    lr_grid: float = 0.1
     lr_mlp: float = 5e-3
     lr_final: float = 0.1                # learning rates decay to lr * lr_final
-    distortion: float = 0.01             # weight of the mip-NeRF 360 distortion loss (0: off)
+    distortion: float = 0.0              # weight of the mip-NeRF 360 distortion loss (0: off)
     grid_levels: tuple = (32, 128)       # grid field: resolution of each level
     grid_channels: int = 4
+    dir_octaves: int = 4                 # γ^L of the view direction in the colour head
     seed: int = 0
     checkpoint_every: int = 500          # iterations
     preview_every: int = 500             # iterations (0: never)
@@ -154,7 +155,7 @@ class Trainer:
             raise TrainingError(f'--resume: no checkpoint at {self.checkpoint_path}')
         else:
             grid = dict(kind='grid', resolutions=list(config.grid_levels),
-                        channels=config.grid_channels)
+                        channels=config.grid_channels, dir_octaves=config.dir_octaves)
             self.model = NeRFPPModel.create(
                 field=config.field, background=config.model == 'nerfpp', seed=config.seed,
                 center=dataset.center, scale=dataset.scale * self.frame_factor,

@@ -24,6 +24,7 @@ import mitsuba as mi
 import numpy as np
 
 from .fields import make_field
+from .files import atomic_write_path
 from .model import NeRFPPModel
 
 FORMAT = 'mi-nerfpp-checkpoint'
@@ -44,18 +45,10 @@ def save_checkpoint(path, model, meta=None, state=None):
         arrays[f'param/{k}'] = np.asarray(v.numpy(), dtype=np.float32)
     for k, v in (state or {}).items():
         arrays[f'state/{k}'] = np.asarray(v)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    tmp = os.path.join(folder, f'.{os.path.basename(path)}.{os.getpid()}.tmp')
-    try:
-        with open(tmp, 'wb') as f:
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    with atomic_write_path(path) as tmp, open(tmp, 'wb') as f:
+        np.savez(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def _read(path):

@@ -14,6 +14,7 @@ import numpy as np
 
 from .data import Camera, apply_normalization, mitsuba_sensor_dict
 from .exr import split_channels, write_exr
+from .files import atomic_write_path
 from .integrator import AOV_NAMES
 from .metrics import psnr, ssim
 from .preview import write_png
@@ -84,7 +85,5 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
 
 def write_json(path, data):
     """Write JSON atomically."""
-    tmp = f'{path}.tmp'
-    with open(tmp, 'w') as f:
+    with atomic_write_path(path) as tmp, open(tmp, 'w') as f:
         json.dump(data, f, indent=2)
-    os.replace(tmp, path)

@@ -9,7 +9,7 @@ import os
 import imageio.v3 as iio
 import numpy as np
 
-from .exr import atomic_write_path
+from .files import atomic_write_path
 
 COLOR_SPACES = ('linear', 'srgb')
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 
 from .data import Camera, opencv_to_mitsuba
+from .files import atomic_write_path
 from .render import Sampling
 
 TEMPLATE = """<scene version="3.0.0">
@@ -56,7 +57,5 @@ def write_render_xml(path, checkpoint, camera: Camera, sampling: Sampling, near_
                            background=str(bool(background)).lower(), fov=camera.fov_x,
                            ppx=0.5 - K[0, 2] / camera.width, ppy=0.5 - K[1, 2] / camera.height,
                            near=near_clip, matrix=matrix, w=camera.width, h=camera.height)
-    tmp = f'{path}.tmp'
-    with open(tmp, 'w') as f:
+    with atomic_write_path(path) as tmp, open(tmp, 'w') as f:
         f.write(text)
-    os.replace(tmp, path)

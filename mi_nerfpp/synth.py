@@ -108,7 +108,8 @@ from .data.cameras import (
 )
 from .data.dataset import SPLITS
 from .data.nerfpp import write_nerfpp
-from .exr import atomic_write_path, write_exr
+from .exr import write_exr
+from .files import atomic_write_path
 from .preview import to_srgb8
 
 TRAJECTORIES = ('orbit', 'truck')

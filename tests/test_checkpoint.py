@@ -22,7 +22,7 @@ def test_round_trip_preserves_parameters_config_and_normalization(tmp_path):
     assert m2.config == m.config
     for k, v in m.parameters().items():
         np.testing.assert_array_equal(np.array(v), np.array(m2.parameters()[k]))
-    assert not [f for f in os.listdir(tmp_path) if f.endswith('.tmp')]
+    assert os.listdir(tmp_path) == ['model.npz']    # no temporary file left behind
 
 
 def test_render_from_checkpoint_equals_render_from_model(tmp_path):

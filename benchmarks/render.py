@@ -54,7 +54,7 @@ def main():
     times = [run() for _ in range(a.runs)]
     t = statistics.median(times)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    n_params = sum(dr.width(v.array) for v in scene.integrator().model.parameters().values())
+    n_params = scene.integrator().model.n_parameters()
     print(f'frame {a.width}x{a.height} at {a.spp} spp, field={a.field} ({n_params / 1e6:.2f} M parameters), '
           f'samples per ray: fg {a.fg_samples}+{a.fine_samples}, bg {a.bg_samples}+{a.fine_samples}')
     print(f'cold run (kernel compilation included): {cold:.2f} s')

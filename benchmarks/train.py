@@ -49,7 +49,7 @@ def main():
         if i >= a.warmup:
             times.append(time.perf_counter() - t0)
     t = statistics.median(times)
-    n_params = sum(dr.width(v.array) for v in tr.model.parameters().values())
+    n_params = tr.model.n_parameters()
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f'dataset {dataset.root}: {tr.rays.size} training rays; model={a.model} field={a.field} '
           f'({n_params / 1e6:.2f} M parameters)')

@@ -116,9 +116,6 @@ class Field:
         """
         raise NotImplementedError
 
-    def n_parameters(self):
-        return sum(dr.width(v.array) for v in self.params.values())
-
     def set_parameters(self, values):
         """Replace parameters by name (arrays with matching shapes)."""
         for k, v in values.items():

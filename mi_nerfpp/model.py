@@ -58,6 +58,10 @@ class NeRFPPModel:
             out.update({f'bg.{k}': v for k, v in self.bg.params.items()})
         return out
 
+    def n_parameters(self):
+        """Number of learnable scalars."""
+        return sum(dr.width(v.array) for v in self.parameters().values())
+
     def set_parameters(self, values):
         """Replace parameters by their ``fg.``/``bg.`` names."""
         for volume, field in (('fg', self.fg), ('bg', self.bg)):

@@ -154,3 +154,14 @@ def test_optimize_reports_bad_dataset(tmp_path):
     r = subprocess.run([sys.executable, os.path.join(ROOT, 'optimize.py'), str(tmp_path / 'nope'),
                         '--iterations', '1'], capture_output=True, text=True, timeout=120)
     assert r.returncode != 0 and 'nope: dataset folder not found' in r.stderr
+
+
+@pytest.mark.parametrize('field', ['nerf', 'vanilla'])
+def test_pure_mlp_fields_train(dataset, tmp_path, field):
+    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=3, field=field, **SMALL))
+    before = _params(tr.model)
+    losses = []
+    tr.run(on_step=lambda t, loss, psnr: losses.append(loss))
+    after = _params(tr.model)
+    assert tr.model.fg.kind == field and len(losses) == 3 and all(np.isfinite(losses))
+    assert all(not np.array_equal(before[k], after[k]) for k in before if 'trunk' in k)

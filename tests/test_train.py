@@ -4,7 +4,6 @@ import os
 import subprocess
 import sys
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest

@@ -22,7 +22,7 @@ Trajectories
     distance ``radius`` +-10 %, looking at the origin jittered by ~0.08 world units, up = +Y, no
     roll. Horizontal field of view ``fov`` degrees, square pixels, principal point at the image
     centre. In the ground-truth scenes (``scenes/gt_*.xml``) every object between 1 and 5 units
-    from the origin stays below y = 0 (the cameras' lowest height is ~0.1), so cameras of either
+    from the origin stays below y = 0 (the cameras' lowest height is ~0.1), so cameras of every
     trajectory with ``radius`` 3-4 are outside every object (checked at the default radius: every
     camera is >= 0.5 units from the nearest surface).
 ``truck``
@@ -38,10 +38,30 @@ Trajectories
     resampled to the requested resolution keeping the horizontal field of view (80 degrees)
     and the relative principal point; with square pixels, an aspect ratio other than the
     original 980:546 changes the vertical field of view. ``fov`` is ignored.
+``hemisphere``
+    ``views`` cameras at random on the upper hemisphere (for the shape-radiance ambiguity
+    experiment of NeRF++ §3): azimuth uniform in [0, 360) degrees, elevation between 5 and 75
+    degrees distributed so that the cameras are uniform over that band of the sphere's area
+    (sin(elevation) uniform in [sin 5, sin 75]), distance exactly ``radius``, looking exactly at
+    the origin, up = +Y, no roll. ``fov`` and ``K`` as for ``orbit``. The held-out views are a
+    random subset of the cameras.
+``arc``
+    A DTU-like arc in front of the object (+Z side; for NeRF++ §3's interpolation versus
+    extrapolation test), distance exactly ``radius``, looking exactly at the origin, up = +Y,
+    no roll, ``fov`` and ``K`` as for ``orbit``. Azimuth is measured from +Z towards +X.
+    *train*: azimuth evenly spaced from -50 to +50 degrees (jittered by up to 0.3 of the
+    spacing, clipped to that range; a single train view sits at 0), elevation 10-40 degrees (a
+    low-discrepancy sequence plus jitter). *validation* holds **interpolated** views: azimuth and
+    elevation uniform at random inside the training ranges (|azimuth| <= 50, elevation 10-40).
+    *test* holds **extrapolated** views: |azimuth| uniform in [65, 90] degrees, on alternating
+    sides (+, -, +, ...), elevation uniform in 10-40 degrees. Needs ``views >= 3``. Cameras
+    are named ``arc_NNN`` numbered through train, then validation, then test.
 
 Splits: with ``views >= 3``, validation and test get ``max(1, round(0.1 * views))`` views each
-and train the rest (80/10/10); 2 views are 1 train + 1 test, 1 view is train only. For ``orbit``
-the held-out views are spread around the ring (one random view per equal stretch of azimuth).
+and train the rest (80/10/10); 2 views are 1 train + 1 test, 1 view is train only (``arc``
+refuses fewer than 3 views: it needs one view of each split). For ``orbit`` the held-out views
+are spread around the ring (one random view per equal stretch of azimuth); for ``hemisphere``
+they are a random subset; for ``arc`` they are the views described above.
 Everything is deterministic for a given ``seed`` (which also seeds Mitsuba's sampler, per view).
 
 Ground truth
@@ -112,7 +132,7 @@ from .exr import write_exr
 from .files import atomic_write_path
 from .preview import to_srgb8
 
-TRAJECTORIES = ('orbit', 'truck')
+TRAJECTORIES = ('orbit', 'truck', 'hemisphere', 'arc')
 CAPTURE_FILE = 'capture.json'
 CAPTURE_FORMAT = 'mi-nerfpp-synth'
 CAPTURE_VERSION = 1
@@ -127,6 +147,11 @@ ORBIT_ELEVATION = (5.0, 35.0)      # degrees
 ORBIT_RADIUS_JITTER = 0.1          # relative
 ORBIT_AZIMUTH_JITTER = 0.3         # of the azimuth spacing
 ORBIT_TARGET_JITTER = 0.08         # world units (standard deviation; half of it vertically)
+HEMISPHERE_ELEVATION = (5.0, 75.0)  # degrees; uniform over the sphere's area in between
+ARC_AZIMUTH = 50.0                 # degrees: train and validation azimuth in [-50, 50]
+ARC_ELEVATION = (10.0, 40.0)       # degrees, all splits
+ARC_EXTRAPOLATION = (65.0, 90.0)   # degrees of |azimuth|, test views
+ARC_AZIMUTH_JITTER = 0.3           # of the train azimuth spacing
 HELD_OUT_FRACTION = 0.1            # of the views, each for validation and test
 NEAR_CLIP = 0.01                   # Mitsuba's default, set explicitly: depth is corrected by it
 
@@ -313,6 +338,84 @@ def truck_cameras(views: int, res, seed: int = 0,
     return splits
 
 
+def _sphere_point(radius: float, azimuth: float, elevation: float) -> np.ndarray:
+    """The point at ``radius`` from the origin with ``azimuth`` (from +Z towards +X) and
+    ``elevation`` (above the XZ plane), radians."""
+    return radius * np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation),
+                              np.cos(elevation) * np.cos(azimuth)])
+
+
+def hemisphere_cameras(views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
+                       radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
+    """The ``hemisphere`` trajectory (see the module docstring), split into
+    train/validation/test."""
+    width, height = parse_res(res)
+    K = intrinsics_from_fov(fov, width, height)
+    rng = np.random.default_rng([seed, 3])
+    lo, hi = np.sin(np.radians(HEMISPHERE_ELEVATION))
+    cameras = []
+    for i in range(views):
+        azimuth = rng.uniform(0.0, 2 * np.pi)
+        elevation = np.arcsin(rng.uniform(lo, hi))
+        eye = _sphere_point(radius, azimuth, elevation)
+        cameras.append(Camera(K, look_at(eye, np.zeros(3)), width, height,
+                              name=f'hemisphere_{i:03d}'))
+    counts = split_counts(views)
+    held = rng.permutation(views)[:counts['validation'] + counts['test']]
+    validation = set(held[:counts['validation']].tolist())
+    test = set(held[counts['validation']:].tolist())
+    return {
+        'train': [c for i, c in enumerate(cameras) if i not in validation and i not in test],
+        'validation': [c for i, c in enumerate(cameras) if i in validation],
+        'test': [c for i, c in enumerate(cameras) if i in test],
+    }
+
+
+def arc_cameras(views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
+                radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
+    """The ``arc`` trajectory (see the module docstring): train on an arc in front of the
+    object, validation = interpolated views, test = extrapolated views.
+
+    Raises:
+        ValueError: ``views < 3``.
+    """
+    if views < 3:
+        raise ValueError(f'the arc trajectory needs at least 3 views (one train, one '
+                         f'interpolation and one extrapolation view), got {views}')
+    width, height = parse_res(res)
+    K = intrinsics_from_fov(fov, width, height)
+    rng = np.random.default_rng([seed, 4])
+    held = max(1, round(HELD_OUT_FRACTION * views))
+    n_train = views - 2 * held
+    span = np.radians(ARC_AZIMUTH)
+    el_lo, el_hi = np.radians(ARC_ELEVATION)
+    ex_lo, ex_hi = np.radians(ARC_EXTRAPOLATION)
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+
+    angles = {'train': [], 'validation': [], 'test': []}
+    spacing = 2 * span / (n_train - 1) if n_train > 1 else 0.0
+    for i in range(n_train):
+        azimuth = -span + i * spacing if n_train > 1 else 0.0
+        azimuth += spacing * rng.uniform(-ARC_AZIMUTH_JITTER, ARC_AZIMUTH_JITTER)
+        u = (0.5 + i * golden + rng.uniform(-0.05, 0.05)) % 1.0
+        angles['train'].append((np.clip(azimuth, -span, span), el_lo + (el_hi - el_lo) * u))
+    for _ in range(held):
+        angles['validation'].append((rng.uniform(-span, span), rng.uniform(el_lo, el_hi)))
+    for j in range(held):
+        side = 1.0 if j % 2 == 0 else -1.0
+        angles['test'].append((side * rng.uniform(ex_lo, ex_hi), rng.uniform(el_lo, el_hi)))
+
+    splits, k = {}, 0
+    for split in SPLITS:
+        splits[split] = []
+        for azimuth, elevation in angles[split]:
+            eye = _sphere_point(radius, azimuth, elevation)
+            splits[split].append(Camera(K, look_at(eye, np.zeros(3)), width, height,
+                                        name=f'arc_{k:03d}'))
+            k += 1
+    return splits
+
+
 def make_cameras(trajectory: str, views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
                  radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
     """Cameras of a trajectory, split into train/validation/test (world units of the scene)."""
@@ -320,6 +423,10 @@ def make_cameras(trajectory: str, views: int, res, seed: int = 0, fov: float = D
         return orbit_cameras(views, res, seed, fov, radius)
     if trajectory == 'truck':
         return truck_cameras(views, res, seed, radius)
+    if trajectory == 'hemisphere':
+        return hemisphere_cameras(views, res, seed, fov, radius)
+    if trajectory == 'arc':
+        return arc_cameras(views, res, seed, fov, radius)
     raise ValueError(f"unknown trajectory '{trajectory}': use one of {', '.join(TRAJECTORIES)}")
 
 
@@ -429,11 +536,11 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
         views: total number of cameras over all splits.
         res: image size, ``(W, H)`` or ``'WxH'``.
         spp: samples per pixel of the rendered images.
-        trajectory: 'orbit' or 'truck'.
+        trajectory: 'orbit', 'truck', 'hemisphere' or 'arc'.
         seed: seeds the camera jitter, the split choice and Mitsuba's sampler.
-        fov: horizontal field of view in degrees ('orbit' only).
-        radius: camera distance from the origin in world units (orbit radius; for 'truck' the
-            median horizontal distance of the train cameras).
+        fov: horizontal field of view in degrees (ignored by 'truck').
+        radius: camera distance from the origin in world units (the orbit's mean radius; for
+            'truck' the median horizontal distance of the train cameras).
         progress: show a progress bar and messages.
 
     Returns:
@@ -442,7 +549,7 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
     Raises:
         FileNotFoundError: the scene file does not exist.
         ValueError: unknown trajectory, malformed resolution, non-positive views/spp/radius,
-            more truck views than the Truck capture has.
+            more truck views than the Truck capture has, fewer than 3 arc views.
         FileExistsError: ``out`` is a non-empty folder that holds no earlier capture.
         RuntimeError: Mitsuba cannot load the scene (its message included).
     """
@@ -583,10 +690,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help=f'samples per pixel (default {DEFAULT_SPP})')
     p.add_argument('--trajectory', choices=TRAJECTORIES, default='orbit',
                    help='orbit: jittered ring around the origin; truck: the Tanks and Temples '
-                        'Truck camera poses (default orbit)')
+                        'Truck camera poses; hemisphere: random views on the upper hemisphere '
+                        '(elevation 5-75 deg); arc: DTU-like arc in front (train within +-50 '
+                        'deg azimuth; validation = interpolated views, test = extrapolated '
+                        'views at 65-90 deg; needs >= 3 views) (default orbit)')
     p.add_argument('--seed', type=int, default=0, help='seed of cameras, splits and sampler')
     p.add_argument('--fov', type=float, default=DEFAULT_FOV,
-                   help=f'horizontal field of view in degrees, orbit only '
+                   help=f'horizontal field of view in degrees, ignored by truck '
                         f'(default {DEFAULT_FOV:g})')
     p.add_argument('--radius', type=float, default=DEFAULT_RADIUS,
                    help=f'camera distance from the origin in world units (default '

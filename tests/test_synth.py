@@ -165,6 +165,107 @@ def test_orbit_cameras_are_deterministic_and_outside_the_foreground():
         assert 3.0 < np.linalg.norm(centre) < 4.0 and centre[1] > 0.2
 
 
+def _angles(cameras):
+    """(distance, azimuth from +Z towards +X, elevation) of camera centres, degrees."""
+    centres = np.array([cam.center for cam in cameras])
+    distance = np.linalg.norm(centres, axis=1)
+    azimuth = np.degrees(np.arctan2(centres[:, 0], centres[:, 2]))
+    elevation = np.degrees(np.arcsin(centres[:, 1] / distance))
+    return distance, azimuth, elevation
+
+
+def _assert_on_sphere_looking_at_origin(cameras, radius):
+    for cam in cameras:
+        assert np.linalg.norm(cam.center) == pytest.approx(radius, rel=1e-12)
+        axis = cam.c2w[:3, 2]
+        np.testing.assert_allclose(axis, -cam.center / radius, atol=1e-12)  # through the origin
+        assert abs(cam.c2w[1, 0]) < 1e-12                # image x horizontal: no roll
+        assert cam.c2w[1, 1] < 0                         # image down points down
+        assert cam.fov_x == pytest.approx(synth.DEFAULT_FOV)
+
+
+@pytest.mark.parametrize('trajectory', ['hemisphere', 'arc'])
+def test_new_trajectories_are_deterministic_per_seed(trajectory):
+    a = synth.make_cameras(trajectory, 40, (16, 12), seed=3)
+    b = synth.make_cameras(trajectory, 40, (16, 12), seed=3)
+    c = synth.make_cameras(trajectory, 40, (16, 12), seed=4)
+    for split in a:
+        assert [cam.name for cam in a[split]] == [cam.name for cam in b[split]]
+        for x, y in zip(a[split], b[split]):
+            np.testing.assert_array_equal(x.c2w, y.c2w)
+            np.testing.assert_array_equal(x.K, y.K)
+    assert not np.allclose(a['train'][0].c2w, c['train'][0].c2w)
+    assert not np.allclose(a['test'][0].c2w, c['test'][0].c2w)
+    names = [cam.name for split in a.values() for cam in split]
+    assert len(set(names)) == 40 and all(n.startswith(f'{trajectory}_') for n in names)
+    assert {k: len(v) for k, v in a.items()} == {'train': 32, 'validation': 4, 'test': 4}
+
+
+def test_hemisphere_cameras():
+    radius = 3.2
+    cams = synth.hemisphere_cameras(200, (16, 12), seed=1, radius=radius)
+    assert {k: len(v) for k, v in cams.items()} == synth.split_counts(200)
+    world = sum(cams.values(), [])
+    _assert_on_sphere_looking_at_origin(world, radius)
+    _, azimuth, elevation = _angles(world)
+    lo, hi = synth.HEMISPHERE_ELEVATION
+    assert (lo, hi) == (5.0, 75.0)
+    assert elevation.min() >= lo - 1e-9 and elevation.max() <= hi + 1e-9
+    # Uniform over the band's area: sin(elevation) uniform, so its mean is the middle.
+    s = np.sin(np.radians(elevation))
+    middle = (np.sin(np.radians(lo)) + np.sin(np.radians(hi))) / 2
+    assert abs(s.mean() - middle) < 0.06
+    assert abs(np.mean(elevation < 45) - 0.70) < 0.1           # 70 % of the area lies below 45
+    # Azimuth covers the whole circle (every quadrant populated).
+    assert set(np.floor((azimuth % 360) / 90).astype(int)) == {0, 1, 2, 3}
+    # The held-out views are a random subset, not always the same indices.
+    held = {c.name for c in cams['validation'] + cams['test']}
+    other = synth.hemisphere_cameras(200, (16, 12), seed=2, radius=radius)
+    assert held != {c.name for c in other['validation'] + other['test']}
+    assert {k: len(v) for k, v in synth.hemisphere_cameras(2, (8, 6)).items()} == \
+        {'train': 1, 'validation': 0, 'test': 1}
+
+
+def test_arc_cameras_interpolation_and_extrapolation():
+    radius = 3.7
+    cams = synth.arc_cameras(40, (16, 12), seed=5, radius=radius)
+    assert {k: len(v) for k, v in cams.items()} == {'train': 32, 'validation': 4, 'test': 4}
+    _assert_on_sphere_looking_at_origin(sum(cams.values(), []), radius)
+    lo, hi = synth.ARC_ELEVATION
+    assert synth.ARC_AZIMUTH == 50 and (lo, hi) == (10, 40)
+    assert synth.ARC_EXTRAPOLATION == (65, 90)
+    for split in ('train', 'validation'):                      # interpolation: inside the range
+        _, azimuth, elevation = _angles(cams[split])
+        assert np.all(np.abs(azimuth) <= 50 + 1e-9)
+        assert np.all((elevation >= lo - 1e-9) & (elevation <= hi + 1e-9))
+    _, azimuth, elevation = _angles(cams['train'])
+    assert azimuth.min() < -45 and azimuth.max() > 45           # the train arc spans the range
+    assert np.all(np.diff(azimuth) > 0)                         # evenly spaced, in order
+    _, azimuth, elevation = _angles(cams['test'])               # extrapolation: outside it
+    assert np.all((np.abs(azimuth) >= 65 - 1e-9) & (np.abs(azimuth) <= 90 + 1e-9))
+    assert np.any(azimuth > 0) and np.any(azimuth < 0)
+    assert np.all((elevation >= lo - 1e-9) & (elevation <= hi + 1e-9))
+    # Smallest counts: one view per split.
+    small = synth.arc_cameras(3, (8, 6))
+    assert {k: len(v) for k, v in small.items()} == {'train': 1, 'validation': 1, 'test': 1}
+    for views in (1, 2):
+        with pytest.raises(ValueError, match='arc trajectory needs at least 3 views'):
+            synth.make_cameras('arc', views, (8, 6))
+
+
+def test_make_cameras_dispatches_every_trajectory():
+    assert synth.TRAJECTORIES == ('orbit', 'truck', 'hemisphere', 'arc')
+    for trajectory in synth.TRAJECTORIES:
+        cams = synth.make_cameras(trajectory, 10, (16, 12), seed=1)
+        assert {k: len(v) for k, v in cams.items()} == synth.split_counts(10)
+        assert cams['train'][0].name.startswith(f'{trajectory}_')
+    np.testing.assert_array_equal(synth.make_cameras('arc', 10, (16, 12), seed=1)['test'][0].c2w,
+                                  synth.arc_cameras(10, (16, 12), seed=1)['test'][0].c2w)
+    np.testing.assert_array_equal(
+        synth.make_cameras('hemisphere', 10, (16, 12), seed=1)['train'][0].c2w,
+        synth.hemisphere_cameras(10, (16, 12), seed=1)['train'][0].c2w)
+
+
 def test_split_counts():
     assert synth.split_counts(60) == {'train': 48, 'validation': 6, 'test': 6}
     assert synth.split_counts(3) == {'train': 1, 'validation': 1, 'test': 1}
@@ -199,6 +300,19 @@ def test_command_line(tmp_path, capsys):
                  '--views', '3', '--res', '8x6', '--spp', '1', '--seed', '2']) == 0
     assert 'wrote 3 views' in capsys.readouterr().out
     assert json.loads((out / 'capture.json').read_text())['seed'] == 2
+    arc = tmp_path / 'arc'
+    assert main(['synth', os.path.join(SCENES, 'gt_bounded.xml'), '--out', str(arc),
+                 '--views', '3', '--res', '4x3', '--spp', '1', '--trajectory', 'arc']) == 0
+    info = json.loads((arc / 'capture.json').read_text())
+    assert info['trajectory'] == 'arc' and info['names']['test'] == ['arc_002']
+    assert len(load_dataset(arc).test) == 1
+    with pytest.raises(SystemExit, match='at least 3 views'):
+        main(['synth', os.path.join(SCENES, 'gt_bounded.xml'), '--out', str(tmp_path / 'a2'),
+              '--views', '2', '--res', '4x3', '--spp', '1', '--trajectory', 'arc'])
+    from mi_nerfpp.cli import build_parser
+    args = build_parser().parse_args(['synth', GARDEN, '--out', str(out),
+                                      '--trajectory', 'hemisphere'])
+    assert args.trajectory == 'hemisphere'
     with pytest.raises(SystemExit, match='scene file not found'):
         main(['synth', str(tmp_path / 'nope.xml'), '--out', str(out)])
     with pytest.raises(SystemExit):

@@ -16,8 +16,9 @@ Three field kinds, chosen per volume by the ``field`` XML parameter:
 * :class:`MLPField` with ``structure='nerf'`` (``'nerf'``) — the paper's NeRF-MLP:
   ``γ^10(x)`` through a trunk to σ and a feature vector, ``γ^4(d)`` injected
   at the colour head.
-* :class:`MLPField` with ``structure='vanilla'`` (``'vanilla'``) — one MLP that
-  takes ``γ^10(x)`` and ``γ^10(d)`` together at its input (paper §3.2).
+* :class:`MLPField` with ``structure='vanilla'`` (``'vanilla'``) — the paper's §3
+  control: σ from the same trunk over ``γ^10(x)``, colour from a separate MLP that
+  takes ``γ^10(x)`` and ``γ^10(d)`` together at its input.
 
 MLPs are ``drjit.nn`` networks: tensor mode while training, packed
 cooperative vectors while rendering (see :class:`_Net`).
@@ -192,8 +193,12 @@ class GridField(Field):
     (``density_activation='exp'``, clamped; or ``'softplus'``). The exponential
     lets opaque surfaces (σ·δ ≫ 1) form in a few hundred Adam steps.
     The other channels are concatenated into a feature vector ``f(x)``; colour
-    is ``sigmoid(MLP([f(x), γ^dir_octaves(d)]))`` — the view direction enters
-    only at the colour head (its share of the first layer computed once per ray).
+    is ``sigmoid(MLP([f(x), γ^dir_octaves(d)]))`` with ``color_layers`` hidden
+    layers of ``hidden`` units (its first layer's direction share computed once
+    per ray). The default — one layer of 32, ``γ^4`` — is the late-injection
+    prior: the direction passes one non-linearity. ``color_layers=4, hidden=64,
+    dir_octaves=10`` is the grid analogue of the paper's vanilla MLP (§3): grid
+    features and ``γ^10(d)`` side by side at the input of a deep colour MLP.
 
     Ball domain: level ``R`` is an ``R³`` grid over ``[-1, 1]³``.
     Inverted-sphere domain: level ``R`` is a grid over (longitude, colatitude,
@@ -203,7 +208,7 @@ class GridField(Field):
     kind = 'grid'
 
     def __init__(self, domain, resolutions=(32, 128), channels=4, hidden=32, dir_octaves=4,
-                 density_bias=-3.0, density_activation='exp', seed=0):
+                 density_bias=-3.0, density_activation='exp', color_layers=1, seed=0):
         super().__init__(domain)
         if channels < 2:
             raise ValueError('GridField needs channels >= 2 (density + features)')
@@ -211,6 +216,9 @@ class GridField(Field):
         self.channels = int(channels)
         self.hidden = int(hidden)
         self.dir_octaves = int(dir_octaves)
+        self.color_layers = int(color_layers)
+        if self.color_layers < 1:
+            raise ValueError('GridField needs color_layers >= 1')
         self.density_bias = float(density_bias)
         if density_activation not in ACTIVATIONS:
             raise ValueError(f"density_activation must be one of {sorted(ACTIVATIONS)}")
@@ -225,7 +233,8 @@ class GridField(Field):
             self.textures.append(mi.Texture3f(self.params[f'grid{i}'], use_accel=False, wrap_mode=wrap))
         n_feat = len(self.resolutions) * (self.channels - 1)
         n_dir = 3 * (1 + 2 * self.dir_octaves)
-        self.color_net = _LateNet(self, 'color', n_feat, n_dir, [self.hidden], 3, rng)
+        self.color_net = _LateNet(self, 'color', n_feat, n_dir, [self.hidden] * self.color_layers,
+                                  3, rng)
 
     def _grid_shape(self, r):
         """Tensor shape (Z, Y, X) of a level: texture axes are (x, y, z) = coordinates."""
@@ -237,7 +246,8 @@ class GridField(Field):
     def config(self):
         return dict(kind=self.kind, domain=self.domain, resolutions=self.resolutions,
                     channels=self.channels, hidden=self.hidden, dir_octaves=self.dir_octaves,
-                    density_bias=self.density_bias, density_activation=self.density_activation)
+                    color_layers=self.color_layers, density_bias=self.density_bias,
+                    density_activation=self.density_activation)
 
     def _grid_coords(self, x):
         if self.domain == 'ball':
@@ -272,8 +282,11 @@ class MLPField(Field):
 
     ``structure='nerf'``: ``γ^pos_octaves(x)`` -> trunk (``depth`` ReLU layers of
     ``width``) -> ``[σ, feature]``; ``[feature, γ^dir_octaves(d)]`` -> ``width/2`` -> rgb.
-    ``structure='vanilla'``: ``[γ^pos_octaves(x), γ^pos_octaves(d)]`` -> ``depth`` ReLU
-    layers -> ``[σ, rgb]`` (direction at the input, same encoding as position).
+    ``structure='vanilla'`` (paper §3, "keeping the structure of σ the same"): the
+    same trunk gives σ; colour is a second MLP of ``depth`` ReLU layers of ``width``
+    over ``[γ^pos_octaves(x), γ^pos_octaves(d)]`` — position and direction treated
+    symmetrically, both at the first layer with the same encoding (``dir_octaves``
+    is unused). About twice the network evaluations of ``'nerf'``.
     The paper's network is depth 8, width 256 with a skip connection; the
     defaults here are smaller for the CPU and have no skip.
     """
@@ -295,7 +308,8 @@ class MLPField(Field):
             self.head = _LateNet(self, 'head', self.width, n_d, [max(self.width // 2, 1)], 3, rng)
         else:
             n_d = 3 * (1 + 2 * self.pos_octaves)
-            self.trunk = _LateNet(self, 'trunk', n_x, n_d, [self.width] * self.depth, 4, rng)
+            self.trunk = _Net(self, 'trunk', mlp([self.width] * self.depth, 1), n_x, rng)
+            self.color = _LateNet(self, 'color', n_x, n_d, [self.width] * self.depth, 3, rng)
 
     @property
     def config(self):
@@ -310,8 +324,8 @@ class MLPField(Field):
             h = self.trunk(gx)
             out = self.head(h[1:], positional_encoding(dirs, self.dir_octaves), ray)
         else:
-            h = self.trunk(gx, positional_encoding(dirs, self.pos_octaves), ray)
-            out = h[1:]
+            h = self.trunk(gx)
+            out = self.color(gx, positional_encoding(dirs, self.pos_octaves), ray)
         return softplus(h[0] + self.density_bias), mi.Color3f(*[sigmoid(o) for o in out])
 
 

@@ -32,6 +32,8 @@ def add_parser(sub):
                    help="'nerf': the paper's baseline, one bounded volume (default: nerfpp)")
     p.add_argument('--field', choices=['grid', 'nerf', 'vanilla'], default='grid',
                    help='field kind of both volumes (default: grid)')
+    p.add_argument('--bg-field', choices=['grid', 'nerf', 'vanilla'],
+                   help='field kind of the background volume (default: as --field)')
     p.add_argument('--downscale', type=int, default=1, help='integer image downscale factor')
     p.add_argument('--batch-rays', type=int, default=512, help='rays per step (default 512)')
     p.add_argument('--samples', type=int, nargs=3, metavar=('FG', 'BG', 'FINE'),
@@ -41,6 +43,10 @@ def add_parser(sub):
     p.add_argument('--grid-channels', type=int, default=4, help='grid field: channels per level')
     p.add_argument('--dir-octaves', type=int, default=4,
                    help='grid field: frequencies of the view-direction encoding (default 4)')
+    p.add_argument('--color-layers', type=int, default=1,
+                   help='grid field: hidden layers of the colour MLP (default 1)')
+    p.add_argument('--color-width', type=int, default=32,
+                   help='grid field: width of the colour MLP (default 32)')
     p.add_argument('--lr-grid', type=float, default=0.1)
     p.add_argument('--lr-mlp', type=float, default=5e-3)
     p.add_argument('--distortion', type=float, default=0.0,
@@ -145,11 +151,12 @@ def run(args):
     out = args.out or os.path.join('runs', os.path.basename(os.path.normpath(data)))
     fg, bg, fine = args.samples
     cfg = TrainConfig(iterations=args.iterations, minutes=minutes, model=args.model,
-                      field=args.field, batch_rays=args.batch_rays, fg_samples=fg,
+                      field=args.field, bg_field=args.bg_field, batch_rays=args.batch_rays, fg_samples=fg,
                       bg_samples=bg, fine_samples=fine, lr_grid=args.lr_grid,
                       lr_mlp=args.lr_mlp, distortion=args.distortion, seed=args.seed,
                       preview_every=args.preview_every, grid_levels=tuple(args.grid_levels),
                       grid_channels=args.grid_channels, dir_octaves=args.dir_octaves,
+                      color_layers=args.color_layers, color_width=args.color_width,
                       checkpoint_every=args.checkpoint_every, downscale=args.downscale,
                       background=_background(args.background))
     try:

@@ -24,7 +24,7 @@ import numpy as np
 
 from .checkpoint import load_checkpoint, save_checkpoint
 from .data import apply_normalization, pixel_rays
-from .model import NeRFPPModel
+from .model import NeRFPPModel, default_field_config
 from .render import Sampling, distortion, render_rays
 
 # NeRF baseline (paper §5): cameras scaled into radius 1/8 instead of NeRF++'s 1/1.1.
@@ -43,6 +43,7 @@ class TrainConfig:
     minutes: float | None = None         # ... or after this wall time (whichever comes first)
     model: str = 'nerfpp'                # 'nerfpp', or 'nerf': one bounded volume
     field: str = 'grid'                  # 'grid', 'nerf' (NeRF-MLP), 'vanilla'
+    bg_field: str | None = None          # background field kind (None: same as ``field``)
     batch_rays: int = 512
     fg_samples: int = 32
     bg_samples: int = 32
@@ -53,7 +54,9 @@ class TrainConfig:
     distortion: float = 0.0              # weight of the mip-NeRF 360 distortion loss (0: off)
     grid_levels: tuple = (32, 128)       # grid field: resolution of each level
     grid_channels: int = 4
-    dir_octaves: int = 4                 # γ^L of the view direction in the colour head
+    dir_octaves: int = 4                 # grid field: γ^L of the view direction in the colour MLP
+    color_layers: int = 1                # grid field: hidden layers of the colour MLP ...
+    color_width: int = 32                # ... and their width
     seed: int = 0
     checkpoint_every: int = 500          # iterations
     preview_every: int = 500             # iterations (0: never)
@@ -65,9 +68,19 @@ class TrainConfig:
             raise ValueError(f"model must be 'nerfpp' or 'nerf', not '{self.model}'")
         if self.iterations is None and self.minutes is None:
             self.iterations = 2000
-        for name in ('batch_rays', 'fg_samples', 'bg_samples'):
+        for name in ('batch_rays', 'fg_samples', 'bg_samples', 'color_layers', 'color_width'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name} must be >= 1')
+        if self.bg_field is None:
+            self.bg_field = self.field
+
+    def field_config(self, kind, domain):
+        """The field config of one volume: the grid options apply to grid fields only."""
+        if kind != 'grid':
+            return default_field_config(kind, domain)
+        return dict(kind='grid', domain=domain, resolutions=list(self.grid_levels),
+                    channels=self.grid_channels, dir_octaves=self.dir_octaves,
+                    color_layers=self.color_layers, hidden=self.color_width)
 
     @property
     def sampling(self):
@@ -154,15 +167,12 @@ class Trainer:
         elif resume:
             raise TrainingError(f'--resume: no checkpoint at {self.checkpoint_path}')
         else:
-            grid = dict(kind='grid', resolutions=list(config.grid_levels),
-                        channels=config.grid_channels, dir_octaves=config.dir_octaves)
             self.model = NeRFPPModel.create(
-                field=config.field, background=config.model == 'nerfpp', seed=config.seed,
+                background=config.model == 'nerfpp', seed=config.seed,
                 center=dataset.center, scale=dataset.scale * self.frame_factor,
                 color_space=dataset.color_space,
-                **({'fg_config': dict(grid, domain='ball'),
-                    'bg_config': dict(grid, domain='inverted_sphere')}
-                   if config.field == 'grid' else {}))
+                fg_config=config.field_config(config.field, 'ball'),
+                bg_config=config.field_config(config.bg_field, 'inverted_sphere'))
         self.rng = np.random.default_rng(config.seed)
         if 'rng' in meta:
             self.rng.bit_generator.state = meta['rng']

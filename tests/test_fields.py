@@ -1,0 +1,65 @@
+"""Field structures of paper §3: where the view direction enters, and with which encoding."""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_nerfpp.fields import GridField, MLPField, make_field
+
+
+def _eval(field, n=64, seed=0):
+    """σ and rgb at the same points seen along two different directions."""
+    rng = np.random.default_rng(seed)
+    x = [mi.Float(v) for v in rng.uniform(-0.8, 0.8, (3, n)).astype(np.float32)]
+    out = []
+    for d in rng.normal(size=(2, 3)):
+        d = d / np.linalg.norm(d)
+        sigma, rgb = field(x, mi.Vector3f(*[mi.Float(float(c)) for c in d]), dr.zeros(mi.UInt32, n))
+        out.append((np.array(sigma), np.array(rgb)))
+    return out
+
+
+FIELDS = {
+    'nerf': lambda: MLPField('ball', 'nerf', depth=2, width=16),
+    'vanilla': lambda: MLPField('ball', 'vanilla', depth=2, width=16),
+    'grid': lambda: GridField('ball', resolutions=(4, 8), channels=3, hidden=8),
+    'grid, vanilla colour': lambda: GridField('ball', resolutions=(4, 8), channels=3, hidden=8,
+                                              color_layers=3, dir_octaves=10),
+}
+
+
+@pytest.mark.parametrize('kind', FIELDS)
+def test_density_depends_on_position_only_and_colour_on_direction(kind):
+    (s1, c1), (s2, c2) = _eval(FIELDS[kind]())
+    np.testing.assert_array_equal(s1, s2)
+    assert np.abs(c1 - c2).max() > 1e-4
+
+
+def test_direction_encoding_and_depth_of_each_structure():
+    nerf = MLPField('ball', 'nerf', depth=3, width=16)
+    vanilla = MLPField('ball', 'vanilla', depth=3, width=16)
+    def rest_layers(field, net):
+        return len([k for k in field.params if k.startswith(f'{net}.rest') and 'weights' in k])
+    # NeRF-MLP: γ^4(d) = 27 inputs into a head of one hidden layer (width/2) and the output.
+    assert nerf.params['head.ray.layers.0.weights'].shape == (8, 27)
+    assert rest_layers(nerf, 'head') == 1
+    # Vanilla: γ^10(x) and γ^10(d) (63 inputs each) at the first layer of a colour MLP of
+    # 3 hidden layers (the first, 2 more, then the output).
+    assert vanilla.params['color.ray.layers.0.weights'].shape == (16, 63)
+    assert vanilla.params['color.sample.layers.0.weights'].shape == (16, 63)
+    assert rest_layers(vanilla, 'color') == 3
+    # σ comes from a trunk over γ^10(x) alone in both.
+    assert nerf.params['trunk.layers.0.weights'].shape[1] == 63
+    assert vanilla.params['trunk.layers.0.weights'].shape[1] == 63
+    assert vanilla.params['trunk.layers.6.weights'].shape == (1, 16)
+
+
+def test_grid_colour_layers_round_trip_through_config():
+    f = GridField('inverted_sphere', resolutions=(4,), channels=3, hidden=8, color_layers=2,
+                  dir_octaves=10)
+    g = make_field(f.config)
+    assert g.config == f.config
+    assert set(g.params) == set(f.params)
+    assert g.params['color.ray.layers.0.weights'].shape == (8, 63)
+    with pytest.raises(ValueError, match='color_layers'):
+        GridField('ball', color_layers=0)

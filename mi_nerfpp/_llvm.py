@@ -13,7 +13,6 @@ from __future__ import annotations
 import glob
 import os
 import re
-import sys
 
 MIN_VERSION = 17
 ENV = 'DRJIT_LIBLLVM_PATH'
@@ -103,6 +102,3 @@ def configure(environ=os.environ, patterns=SEARCH_PATTERNS) -> str:
     environ[ENV] = path
     return path
 
-
-def drjit_already_imported() -> bool:
-    return 'drjit' in sys.modules

@@ -2,11 +2,13 @@
 
 Keys:
 
-* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 1);
+* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 2);
 * ``config`` — JSON: ``{"fg": <field config>, "bg": <field config or null>,
-  "center": [x, y, z], "scale": s, "color_space": "srgb"|"linear", "meta": {...}}``.
-  ``center``/``scale`` are the scene normalization ``x_model = (x_world - center)·scale``;
-  ``meta`` holds free-form information (iteration, dataset, …);
+  "normalization": {"center": [x, y, z], "scale": s}, "color_space": "srgb"|"linear",
+  "meta": {...}}``. ``normalization`` is the scene normalization
+  ``x_model = (x_world - center)·scale`` (:class:`~mi_nerfpp.frame.Normalization`; version 1
+  files stored ``center`` and ``scale`` at the top level and are still read);
+  ``meta`` holds free-form information (iteration, dataset, training config, …);
 * ``param/<name>`` — float32 arrays of the learnable parameters, named as in
   ``NeRFPPModel.parameters()`` (``fg.grid0``, ``bg.color.layers.0.weights``, …);
 * ``state/<name>`` — optional arrays of training state (optimizer moments, RNG)
@@ -25,10 +27,12 @@ import numpy as np
 
 from .fields import make_field
 from .files import atomic_write_path
+from .frame import Normalization
 from .model import NeRFPPModel
 
 FORMAT = 'mi-nerfpp-checkpoint'
-VERSION = 1
+VERSION = 2
+READABLE_VERSIONS = (1, 2)    # 1: normalization as top-level center / scale
 
 
 class CheckpointError(ValueError):
@@ -68,13 +72,14 @@ def load_checkpoint(path, seed=0):
     if 'format' not in z or str(z['format']) != FORMAT:
         raise CheckpointError(f"{path}: not a mi-nerfpp checkpoint (no 'format' = '{FORMAT}' entry)")
     version = int(z['version'])
-    if version != VERSION:
-        raise CheckpointError(f'{path}: checkpoint version {version}, this mi-nerfpp reads {VERSION}')
+    if version not in READABLE_VERSIONS:
+        raise CheckpointError(f'{path}: checkpoint version {version}, this mi-nerfpp reads '
+                              f'{", ".join(map(str, READABLE_VERSIONS))}')
     try:
         config = json.loads(str(z['config']))
         fg = make_field(config['fg'], seed=seed)
         bg = make_field(config['bg'], seed=seed + 1) if config.get('bg') else None
-        model = NeRFPPModel(fg, bg, center=config['center'], scale=config['scale'],
+        model = NeRFPPModel(fg, bg, normalization=Normalization.from_config(config),
                             color_space=config.get('color_space', 'srgb'))
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None

@@ -1,16 +1,15 @@
 """A NeRF++ scene representation: foreground and background fields plus the scene normalization.
 
 The model lives in a *normalized* frame where all cameras are inside the unit
-sphere: ``x_model = (x_world - center) · scale``. Rays from a Mitsuba sensor in
-world space are mapped into it with :meth:`NeRFPPModel.world_to_model`.
+sphere; its :class:`~mi_nerfpp.frame.Normalization` maps world-space points, cameras and
+rays into it and back.
 """
 from __future__ import annotations
 
 import drjit as dr
-import mitsuba as mi
-import numpy as np
 
 from .fields import make_field
+from .frame import Normalization
 
 FIELD_KINDS = ('grid', 'nerf', 'vanilla')
 
@@ -24,17 +23,16 @@ def default_field_config(kind, domain):
 class NeRFPPModel:
     """Foreground field (unit ball), optional background field (inverted sphere), normalization.
 
+    ``normalization`` (:class:`~mi_nerfpp.frame.Normalization`) maps the world to the model frame.
+
     ``bg=None`` is a bounded NeRF: one volume, nothing behind it.
     ``color_space`` says what the radiance values mean: 'srgb' when the model
     was fitted to sRGB-encoded photos (PNG/JPG), 'linear' for EXR inputs.
     """
 
-    def __init__(self, fg, bg=None, center=(0.0, 0.0, 0.0), scale=1.0, color_space='srgb'):
+    def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb'):
         self.fg, self.bg = fg, bg
-        self.center = np.asarray(center, dtype=np.float64).reshape(3)
-        self.scale = float(scale)
-        if not self.scale > 0:
-            raise ValueError(f'normalization scale must be positive, got {scale}')
+        self.normalization = normalization
         self.color_space = color_space
 
     @classmethod
@@ -49,7 +47,7 @@ class NeRFPPModel:
     @property
     def config(self):
         return {'fg': self.fg.config, 'bg': self.bg.config if self.bg else None,
-                'center': self.center.tolist(), 'scale': self.scale, 'color_space': self.color_space}
+                'normalization': self.normalization.to_config(), 'color_space': self.color_space}
 
     def parameters(self):
         """All learnable arrays, named ``fg.<name>`` / ``bg.<name>`` (live references)."""
@@ -73,8 +71,3 @@ class NeRFPPModel:
         unknown = [k for k in values if not k.startswith(('fg.', 'bg.'))]
         if unknown:
             raise KeyError(f'unknown parameter names {unknown}')
-
-    def world_to_model(self, o, d):
-        """Map world-space rays into the normalized frame (directions are unchanged)."""
-        c = mi.Point3f(*[float(x) for x in self.center])
-        return (mi.Point3f(o) - c) * self.scale, dr.normalize(mi.Vector3f(d))

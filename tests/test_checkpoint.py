@@ -7,14 +7,15 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from mi_nerfpp.checkpoint import VERSION, CheckpointError, load_checkpoint, save_checkpoint
+from mi_nerfpp.frame import Normalization
 from mi_nerfpp.model import NeRFPPModel
-from conftest import TINY_GRID, scene_dict, tiny_model
+from tests.helpers import TINY_GRID, scene_dict, tiny_model
 
 
 def test_round_trip_preserves_parameters_config_and_normalization(tmp_path):
     m = tiny_model(seed=3)
-    m.center, m.scale, m.color_space = np.array([1.0, 2.0, -3.0]), 0.5, 'linear'
+    m.normalization, m.color_space = Normalization(np.array([1.0, 2.0, -3.0]), 0.5), 'linear'
     path = tmp_path / 'model.npz'
     save_checkpoint(path, m, meta={'iteration': 7}, state={'adam.t': np.array(7)})
     m2, meta, state = load_checkpoint(path)
@@ -31,7 +32,7 @@ def test_render_from_checkpoint_equals_render_from_model(tmp_path):
     save_checkpoint(path, m)
     a = mi.load_dict(scene_dict(checkpoint=str(path)))
     b = mi.load_dict(scene_dict())
-    b.integrator().model = m
+    b.integrator().set_model(m)
     np.testing.assert_array_equal(np.array(mi.render(a, seed=0)), np.array(mi.render(b, seed=0)))
 
 
@@ -111,7 +112,22 @@ def test_parameters_are_float32_arrays_without_pickle(tmp_path):
     p = tmp_path / 'm.npz'
     save_checkpoint(p, tiny_model())
     with np.load(p, allow_pickle=False) as z:
-        assert str(z['format']) == 'mi-nerfpp-checkpoint' and int(z['version']) == 1
+        assert str(z['format']) == 'mi-nerfpp-checkpoint' and int(z['version']) == VERSION == 2
         params = [k for k in z.files if k.startswith('param/')]
         assert params and all(z[k].dtype == np.float32 for k in params)
     assert TINY_GRID['kind'] == 'grid' and dr.width(tiny_model().fg.params['grid0'].array) > 0
+
+
+def test_version_1_files_with_top_level_center_and_scale_are_still_read(tmp_path):
+    m = tiny_model(seed=2)
+    m.normalization = Normalization((1.0, -2.0, 0.5), 0.25)
+    p = tmp_path / 'v1.npz'
+    save_checkpoint(p, m)
+    cfg = json.loads(str(np.load(p)['config']))
+    cfg.update(cfg.pop('normalization'))        # the version 1 layout
+    _rewrite(p, config=np.array(json.dumps(cfg)), version=np.array(1))
+    m2, _, _ = load_checkpoint(p)
+    assert m2.normalization == m.normalization
+    for k, v in m.parameters().items():
+        np.testing.assert_array_equal(np.array(v), np.array(m2.parameters()[k]))
+

@@ -1,9 +1,9 @@
 """Posed image datasets: cameras, conventions, images and the readers/writers of each format.
 
 Modules:
-    cameras  -- :class:`Camera`, OpenCV/OpenGL/Mitsuba conventions, rays, NeRF++ normalization
+    cameras  -- :class:`Camera`, OpenCV/OpenGL/Mitsuba conventions, rays
     images   -- reading/writing images as float RGB
-    dataset  -- :class:`Dataset` / :class:`Split`, shared validation and normalization
+    dataset  -- :class:`Dataset` / :class:`Split`, shared validation, normalization applied
     nerfpp   -- the NeRF++ layout (read and write)
     blender  -- ``transforms.json`` (Blender / NeRF synthetic, instant-ngp, nerfstudio)
     llff     -- ``poses_bounds.npy``
@@ -12,11 +12,8 @@ Modules:
 from .blender import read_transforms
 from .cameras import (
     Camera,
-    apply_normalization,
-    cameras_inside_unit_sphere,
     mitsuba_sensor_dict,
     mitsuba_to_opencv,
-    normalize_cameras,
     opencv_to_mitsuba,
     opencv_to_opengl,
     opengl_to_opencv,
@@ -25,16 +22,15 @@ from .cameras import (
 )
 from .dataset import Dataset, Split
 from .errors import DatasetError
-from .formats import FORMATS, detect_format, load_dataset
+from .formats import detect_format, load_dataset
 from .images import downscale_image, read_image, write_png
 from .llff import llff_to_opencv, read_llff
 from .nerfpp import read_nerfpp, write_nerfpp
 
 __all__ = [
-    'Camera', 'Dataset', 'DatasetError', 'FORMATS', 'Split',
-    'apply_normalization', 'cameras_inside_unit_sphere', 'detect_format', 'downscale_image',
+    'Camera', 'Dataset', 'DatasetError', 'Split', 'detect_format', 'downscale_image',
     'llff_to_opencv', 'load_dataset', 'mitsuba_sensor_dict', 'mitsuba_to_opencv',
-    'normalize_cameras', 'opencv_to_mitsuba', 'opencv_to_opengl', 'opengl_to_opencv',
+    'opencv_to_mitsuba', 'opencv_to_opengl', 'opengl_to_opencv',
     'pixel_rays', 'project', 'read_image', 'read_llff', 'read_nerfpp', 'read_transforms',
     'write_nerfpp', 'write_png',
 ]

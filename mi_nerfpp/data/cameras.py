@@ -1,4 +1,6 @@
-"""Pinhole cameras, the coordinate conventions that meet in mi-nerfpp, and NeRF++ normalization.
+"""Pinhole cameras and the coordinate conventions that meet in mi-nerfpp.
+
+The normalization into the unit sphere is :class:`mi_nerfpp.frame.Normalization`.
 
 A :class:`Camera` stores its pose as a camera-to-world matrix in the **OpenCV** convention, which
 is the one the NeRF++ data format uses. Three camera-space conventions meet in this project:
@@ -28,9 +30,6 @@ import numpy as np
 # Camera-space axis flips, applied on the right of a camera-to-world matrix.
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 _OPENCV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
-
-# NeRF++ places the farthest camera at this radius (the 1.1 margin of its normalize_cam_dict.py).
-NORMALIZED_RADIUS = 1.0 / 1.1
 
 # Mitsuba's perspective sensor has a single focal length; fx and fy closer than this are accepted.
 SQUARE_PIXEL_TOLERANCE = 1e-3
@@ -239,40 +238,3 @@ def mitsuba_sensor_dict(camera: Camera, spp: int = 1, pixel_format: str = 'rgba'
             'rfilter': {'type': 'box'},
         },
     }
-
-
-# --- NeRF++ normalization ---------------------------------------------------------------------
-
-def normalize_cameras(cameras: list[Camera]) -> tuple[np.ndarray, float]:
-    """NeRF++'s normalization of a capture into the unit sphere.
-
-    Translates the mean camera centre to the origin and scales so that the farthest camera
-    sits at radius 1/1.1: ``world_normalized = (world - center) * scale``.
-
-    Returns:
-        ``(center (3,), scale)``.
-    """
-    if not cameras:
-        raise ValueError('normalize_cameras: no cameras given')
-    centers = np.stack([cam.center for cam in cameras])
-    center = centers.mean(axis=0)
-    radius = np.linalg.norm(centers - center, axis=1).max()
-    if not radius > 0:
-        raise ValueError(f'normalize_cameras: all {len(cameras)} camera centres coincide, '
-                         f'so there is no scale to normalize; add cameras from other positions')
-    return center, float(NORMALIZED_RADIUS / radius)
-
-
-def apply_normalization(camera: Camera, center, scale: float) -> Camera:
-    """The camera moved into the normalized world: translation ``(t - center) * scale``.
-
-    The rotation and intrinsics are unchanged.
-    """
-    c2w = camera.c2w.copy()
-    c2w[:3, 3] = (c2w[:3, 3] - np.asarray(center, dtype=np.float64)) * scale
-    return dataclasses.replace(camera, c2w=c2w)
-
-
-def cameras_inside_unit_sphere(cameras: list[Camera]) -> bool:
-    """Whether every camera centre lies strictly inside the unit sphere (radius < 1)."""
-    return all(np.linalg.norm(cam.center) < 1.0 for cam in cameras)

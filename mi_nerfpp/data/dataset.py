@@ -13,7 +13,8 @@ from typing import Callable
 
 import numpy as np
 
-from .cameras import Camera, apply_normalization, cameras_inside_unit_sphere, normalize_cameras
+from ..frame import Normalization
+from .cameras import Camera
 from .errors import DatasetError
 from .images import downscale_image, read_image
 
@@ -47,9 +48,8 @@ class Dataset:
         format: the reader that produced it: 'nerfpp', 'blender' or 'llff'.
         root: the folder (or file) it was read from.
         color_space: 'srgb' (PNG/JPEG pixel values) or 'linear' (EXR).
-        center, scale: the normalization already applied to every camera,
-            ``world_normalized = (world - center) * scale``; the identity (0, 1) when the
-            cameras were inside the unit sphere as read.
+        normalization: the :class:`~mi_nerfpp.frame.Normalization` already applied to every
+            camera; the identity when the cameras were inside the unit sphere as read.
     """
 
     train: Split
@@ -58,8 +58,7 @@ class Dataset:
     format: str
     root: str
     color_space: str
-    center: np.ndarray
-    scale: float
+    normalization: Normalization
 
 
 @dataclass
@@ -130,7 +129,7 @@ def make_dataset(format: str, root: str, train: Split, validation: Split, test: 
                  train_source: str) -> Dataset:
     """Assemble the splits, normalizing all cameras into the unit sphere when needed.
 
-    One normalization (NeRF++'s rule, :func:`normalize_cameras`) computed over the cameras of
+    One normalization (NeRF++'s rule, :meth:`Normalization.for_cameras`) computed over the cameras of
     all splits is applied to every split, so that all of them share one world.
 
     Args:
@@ -150,17 +149,14 @@ def make_dataset(format: str, root: str, train: Split, validation: Split, test: 
                            f'{paths[is_exr.index(True)]} and {paths[is_exr.index(False)]}: '
                            f'use one kind of image for the whole dataset')
     all_cameras = [cam for split in splits.values() for cam in split.cameras]
-    if cameras_inside_unit_sphere(all_cameras):
-        center, scale = np.zeros(3), 1.0
-    else:
-        try:
-            center, scale = normalize_cameras(all_cameras)
-        except ValueError as e:
-            raise DatasetError(f'{root}: {e}') from e
-        for split in splits.values():
-            split.cameras = [apply_normalization(cam, center, scale) for cam in split.cameras]
+    try:
+        normalization = Normalization.for_cameras(all_cameras)
+    except ValueError as e:
+        raise DatasetError(f'{root}: {e}') from e
+    for split in splits.values():
+        split.cameras = [normalization.to_model_camera(cam) for cam in split.cameras]
     return Dataset(**splits, format=format, root=os.fspath(root),
-                   color_space='linear' if all(is_exr) else 'srgb', center=center, scale=scale)
+                   color_space='linear' if all(is_exr) else 'srgb', normalization=normalization)
 
 
 def _check_pose(c2w: np.ndarray, source: str) -> None:

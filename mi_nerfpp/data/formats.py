@@ -9,8 +9,6 @@ from .errors import DatasetError
 from .llff import is_llff, read_llff
 from .nerfpp import is_nerfpp, read_nerfpp
 
-FORMATS = ('nerfpp', 'blender', 'llff')
-
 
 def detect_format(path) -> str:
     """The format of the dataset at ``path``: 'nerfpp', 'blender' or 'llff'.

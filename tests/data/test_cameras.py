@@ -1,6 +1,4 @@
-"""Camera conventions, projection and NeRF++ normalization (mi_nerfpp.data.cameras)."""
-import json
-import os
+"""Camera conventions and projection (mi_nerfpp.data.cameras)."""
 
 import mitsuba as mi
 import numpy as np
@@ -10,9 +8,6 @@ from mi_nerfpp.data import cameras
 from mi_nerfpp.data.cameras import Camera
 
 mi.set_variant('llvm_ad_rgb')
-
-FIXTURE = os.path.join(os.path.dirname(__file__), 'fixtures', 'truck_cams_subset.json')
-
 
 def random_rotation(rng):
     q, r = np.linalg.qr(rng.normal(size=(3, 3)))
@@ -32,18 +27,6 @@ def off_centre_camera(rng=None, fy_ratio=1.0):
     rng = rng or np.random.default_rng(1)
     K = np.array([[35.0, 0.0, 14.3], [0.0, 35.0 * fy_ratio, 18.6], [0.0, 0.0, 1.0]])
     return Camera(K=K, c2w=random_c2w(rng), width=40, height=30, name='off_centre')
-
-
-def truck_cameras():
-    with open(FIXTURE) as f:
-        cam_dict = json.load(f)
-    result = []
-    for name, entry in sorted(cam_dict.items()):
-        K = np.array(entry['K']).reshape(4, 4)[:3, :3]
-        w2c = np.array(entry['W2C']).reshape(4, 4)
-        width, height = entry['img_size']
-        result.append(Camera(K=K, c2w=np.linalg.inv(w2c), width=width, height=height, name=name))
-    return result
 
 
 # --- conventions ------------------------------------------------------------------------------
@@ -187,44 +170,3 @@ def test_mitsuba_sensor_transform():
                                cam.center + shift[:3, 3], atol=1e-6)
     with pytest.raises(ValueError, match='rigid'):
         cameras.mitsuba_sensor_dict(cam, transform=np.diag([2.0, 2.0, 2.0, 1.0]))
-
-
-# --- normalization ----------------------------------------------------------------------------
-
-def test_truck_fixture_is_inside_the_unit_sphere():
-    cams = truck_cameras()
-    assert len(cams) == 5 and cams[0].width == 980 and cams[0].height == 546
-    assert cameras.cameras_inside_unit_sphere(cams)
-
-
-def test_normalization_rule_on_truck_cameras():
-    rng = np.random.default_rng(3)
-    # Move the (already normalized) capture far away and blow it up, then normalize it back.
-    offset, blow_up = rng.normal(size=3) * 20.0, 37.0
-    cams = [cameras.apply_normalization(cam, -offset / blow_up, blow_up) for cam in truck_cameras()]
-    assert not cameras.cameras_inside_unit_sphere(cams)
-    center, scale = cameras.normalize_cameras(cams)
-    normalized = [cameras.apply_normalization(cam, center, scale) for cam in cams]
-    centers = np.stack([cam.center for cam in normalized])
-    np.testing.assert_allclose(centers.mean(axis=0), 0.0, atol=1e-12)
-    assert np.linalg.norm(centers, axis=1).max() == pytest.approx(1 / 1.1)
-    assert cameras.cameras_inside_unit_sphere(normalized)
-    for before, after in zip(cams, normalized):
-        np.testing.assert_array_equal(after.c2w[:3, :3], before.c2w[:3, :3])
-        np.testing.assert_array_equal(after.K, before.K)
-        np.testing.assert_allclose(after.center / scale + center, before.center)
-
-
-def test_normalization_rejects_degenerate_input():
-    cam = off_centre_camera()
-    with pytest.raises(ValueError, match='coincide'):
-        cameras.normalize_cameras([cam, cam])
-    with pytest.raises(ValueError, match='no cameras'):
-        cameras.normalize_cameras([])
-
-
-def test_inside_unit_sphere_is_strict():
-    cam = off_centre_camera()
-    on_sphere = cameras.apply_normalization(cam, cam.center - np.array([1.0, 0, 0]), 1.0)
-    assert np.linalg.norm(on_sphere.center) == pytest.approx(1.0)
-    assert not cameras.cameras_inside_unit_sphere([on_sphere])

@@ -184,8 +184,8 @@ def test_nerfpp_round_trip(tmp_path):
     ds = load_dataset(tmp_path)
     assert (ds.format, ds.color_space, ds.root) == ('nerfpp', 'srgb', str(tmp_path))
     assert (len(ds.train), len(ds.validation), len(ds.test)) == (4, 0, 2)
-    np.testing.assert_array_equal(ds.center, 0.0)
-    assert ds.scale == 1.0
+    np.testing.assert_array_equal(ds.normalization.center, 0.0)
+    assert ds.normalization.scale == 1.0
     for split, offset in ((ds.train, 0), (ds.test, 4)):
         for i, (cam, img) in enumerate(zip(split.cameras, split.images)):
             assert_same_camera(cam, cams[offset + i], atol=0.0)   # text keeps every bit
@@ -219,9 +219,10 @@ def test_nerfpp_normalizes_cameras_outside_the_unit_sphere(tmp_path):
     centers = np.stack([cam.center for cam in loaded])
     np.testing.assert_allclose(centers.mean(axis=0), 0.0, atol=1e-12)
     assert np.linalg.norm(centers, axis=1).max() == pytest.approx(1 / 1.1)
-    np.testing.assert_allclose(ds.center, np.mean([c.center for c in cams], axis=0))
+    np.testing.assert_allclose(ds.normalization.center, np.mean([c.center for c in cams], axis=0))
     for original, cam in zip(cams, loaded):
-        np.testing.assert_allclose(cam.center / ds.scale + ds.center, original.center)
+        norm = ds.normalization
+        np.testing.assert_allclose(cam.center / norm.scale + norm.center, original.center)
         np.testing.assert_allclose(cam.c2w[:3, :3], original.c2w[:3, :3])
 
 

@@ -16,7 +16,8 @@ on the unit sphere, as in the paper; any :mod:`mi_nerfpp.fields` field ('nerf', 
 'grid') supplies ``c``. Its density output is ignored, so density parameters get no gradient.
 
 Data flow as in training: rays of the training split (:class:`mi_nerfpp.train.RayBank`) ->
-sphere hit -> field colour -> squared error -> Adam (``drjit.opt``).
+sphere hit -> field colour -> squared error -> Adam, with training's optimizer set-up,
+learning-rate schedule and loss (:mod:`mi_nerfpp.optim`).
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import optim
 from .data import pixel_rays
 from .geometry import unit_sphere_chord
 
@@ -80,8 +82,8 @@ class OpaqueSphere:
         return np.concatenate(out).reshape(camera.height, camera.width, 3)
 
 
-def fit_radiance(sphere, rays, iterations, batch_rays=4096, lr_mlp=5e-3, lr_grid=0.1,
-                 lr_final=0.1, seed=0, progress=None):
+def fit_radiance(sphere, rays, iterations, batch_rays=4096, lr_mlp=optim.LR_MLP,
+                 lr_grid=optim.LR_GRID, lr_final=optim.LR_FINAL, seed=0, progress=None):
     """Fit the sphere's radiance field to a :class:`~mi_nerfpp.train.RayBank` by Adam on the
     squared error (learning rates decay exponentially to ``lr_final`` of their start).
 
@@ -89,24 +91,19 @@ def fit_radiance(sphere, rays, iterations, batch_rays=4096, lr_mlp=5e-3, lr_grid
     Returns the training history ``[(iteration, mse), ...]`` every 50 iterations.
     """
     field = sphere.field
-    opt = dr.opt.Adam(lr=lr_mlp)
-    for k, v in field.params.items():
-        opt[k] = v
+    opt = optim.adam(field.params, lr_mlp)
     rng = np.random.default_rng(seed)
     history = []
     steps = range(iterations)
     if progress is not None:
         steps = progress(steps, desc='fit radiance', unit='it')
     for it in steps:
-        decay = lr_final ** (it / max(iterations, 1))
-        opt.set_learning_rate({k: (lr_grid if k.startswith('grid') else lr_mlp) * decay
-                               for k in opt.keys()})
+        optim.set_learning_rates(opt, it / max(iterations, 1), lr_grid, lr_mlp, lr_final)
         o, d, gt = rays.batch(rng.integers(0, rays.size, batch_rays))
         for k in opt.keys():
             field.params[k] = opt[k]
         rgb = sphere.render(o, d)
-        loss = dr.mean(dr.square(rgb.x - gt.x) + dr.square(rgb.y - gt.y)
-                       + dr.square(rgb.z - gt.z)) / 3.0
+        loss = optim.mse(rgb, gt)
         dr.backward(loss)
         opt.step()
         if it % 50 == 0 or it == iterations - 1:

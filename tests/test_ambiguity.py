@@ -4,7 +4,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import make_capture
+from tests.helpers import make_capture
 from mi_nerfpp.ambiguity import OpaqueSphere, fit_radiance, sphere_hit
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.fields import MLPField
@@ -63,8 +63,9 @@ def test_rays_that_miss_see_the_background_and_colour_depends_on_direction():
 def test_fitting_the_radiance_explains_the_training_views(tmp_path):
     ds = load_dataset(make_capture(str(tmp_path / 'cap'), views=12, width=16, height=12, spp=4))
     # A sphere of world radius 5 around the cameras (radius 3): every ray hits it from inside.
-    sphere = OpaqueSphere(MLPField('ball', 'nerf', depth=2, width=32), -ds.center * ds.scale,
-                          5.0 * ds.scale)
+    norm = ds.normalization
+    sphere = OpaqueSphere(MLPField('ball', 'nerf', depth=2, width=32),
+                          norm.to_model_point(np.zeros(3)), norm.to_model_distance(5.0))
     cam, gt = ds.train.cameras[0], ds.train.images[0]
     before = psnr(np.clip(sphere.render_view(cam), 0, 1), gt)
     history = fit_radiance(sphere, RayBank(ds.train), iterations=150, batch_rays=1024)

@@ -1,0 +1,36 @@
+"""The optimization core shared by training (:mod:`.train`) and the shape-radiance ambiguity
+fit (:mod:`.ambiguity`): Adam (``drjit.opt``) over named parameters, learning rates by
+parameter kind decaying exponentially over the run, and the colour loss.
+"""
+from __future__ import annotations
+
+import drjit as dr
+
+LR_GRID = 0.1      # learning rate of feature grids
+LR_MLP = 5e-3      # learning rate of everything else (MLP weights and biases)
+LR_FINAL = 0.1     # learning rates decay exponentially to this fraction of their start
+
+
+def is_grid(name: str) -> bool:
+    """Whether a parameter is a feature grid (``grid0``, ``fg.grid1``, ...), not an MLP array."""
+    return name.rsplit('.', 1)[-1].startswith('grid')
+
+
+def adam(params: dict, lr: float = LR_MLP):
+    """An Adam optimizer holding ``params`` (name -> array)."""
+    opt = dr.opt.Adam(lr=lr)
+    for k, v in params.items():
+        opt[k] = v
+    return opt
+
+
+def set_learning_rates(opt, progress: float, lr_grid: float = LR_GRID, lr_mlp: float = LR_MLP,
+                       lr_final: float = LR_FINAL) -> None:
+    """Grid or MLP rate by name, times ``lr_final ** progress`` (progress clamped to [0, 1])."""
+    decay = lr_final ** min(max(progress, 0.0), 1.0)
+    opt.set_learning_rate({k: (lr_grid if is_grid(k) else lr_mlp) * decay for k in opt.keys()})
+
+
+def mse(a, b):
+    """Mean squared error of two ``Color3f`` batches, averaged over rays and channels."""
+    return dr.mean(dr.square(a.x - b.x) + dr.square(a.y - b.y) + dr.square(a.z - b.z)) / 3.0

@@ -4,15 +4,22 @@ One training step: draw a batch of random rays across all training images, rende
 them with :func:`mi_nerfpp.render.render_rays` (the same code the integrator uses),
 take the squared error of the coarse and the fine composite against the pixels,
 back-propagate with Dr.Jit and take an Adam step (``drjit.opt``). Learning rates
-decay exponentially to ``lr_final`` times their start over the run.
+decay exponentially to ``lr_final`` times their start over the run (:mod:`.optim`, shared
+with :mod:`.ambiguity`).
 
 The run directory holds ``model.npz`` (the latest checkpoint, written atomically with
-the optimizer and RNG state, so ``resume=True`` continues exactly), ``preview/``,
-``history.json`` and, at the end, the evaluation outputs.
+the optimizer and RNG state and the loss history, so ``resume=True`` continues exactly);
+the ``optimize`` command adds ``preview/`` and, at the end, the evaluation outputs.
+
+:class:`TrainConfig` is the one home of the training options and their defaults: the
+``optimize`` command line is generated from its fields (:mod:`.options`). To add an option,
+add a field ``name: type = option(default, 'help text')``; give it ``shapes_model=True`` when
+a checkpoint trained with another value cannot be resumed.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import time
@@ -22,52 +29,86 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import optim
 from .checkpoint import load_checkpoint, save_checkpoint
-from .data import apply_normalization, pixel_rays
-from .model import NeRFPPModel, default_field_config
+from .data import pixel_rays
+from .frame import NERF_CAMERA_RADIUS, reframe_cameras
+from .model import FIELD_KINDS, NeRFPPModel, default_field_config
+from .options import flag, option
 from .render import Sampling, distortion, render_rays
 
-# NeRF baseline (paper §5): cameras scaled into radius 1/8 instead of NeRF++'s 1/1.1.
-NERF_CAMERA_RADIUS = 1.0 / 8.0
-NERFPP_CAMERA_RADIUS = 1.0 / 1.1
+MODEL_KINDS = ('nerfpp', 'nerf')
+DEFAULT_ITERATIONS = 2000     # the budget when neither iterations nor minutes is given
 
 
 class TrainingError(RuntimeError):
     """Training cannot go on (diverged, or a resume that does not match)."""
 
 
+def _comma_floats(text):
+    """``'1,1,1'`` -> ``(1.0, 1.0, 1.0)`` (the ``--background`` option)."""
+    import argparse
+    try:
+        values = tuple(float(v) for v in text.split(','))
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expects three numbers like 1,1,1, got '{text}'")
+    return values
+
+
 @dataclass
 class TrainConfig:
-    """Options of a training run (the ``optimize`` command line)."""
-    iterations: int | None = None        # stop after this many steps ...
-    minutes: float | None = None         # ... or after this wall time (whichever comes first)
-    model: str = 'nerfpp'                # 'nerfpp', or 'nerf': one bounded volume
-    field: str = 'grid'                  # 'grid', 'nerf' (NeRF-MLP), 'vanilla'
-    bg_field: str | None = None          # background field kind (None: same as ``field``)
-    batch_rays: int = 512
-    fg_samples: int = 32
-    bg_samples: int = 32
-    fine_samples: int = 32
-    lr_grid: float = 0.1
-    lr_mlp: float = 5e-3
-    lr_final: float = 0.1                # learning rates decay to lr * lr_final
-    distortion: float = 0.0              # weight of the mip-NeRF 360 distortion loss (0: off)
-    grid_levels: tuple = (32, 128)       # grid field: resolution of each level
-    grid_channels: int = 4
-    dir_octaves: int = 4                 # grid field: γ^L of the view direction in the colour MLP
-    color_layers: int = 1                # grid field: hidden layers of the colour MLP ...
-    color_width: int = 32                # ... and their width
-    seed: int = 0
-    checkpoint_every: int = 500          # iterations
-    preview_every: int = 500             # iterations (0: never)
-    downscale: int = 1                   # how the dataset was loaded (recorded for evaluate)
-    background: tuple = (1.0, 1.0, 1.0)
+    """Options of a training run; the ``optimize`` command line is generated from these fields."""
+    iterations: int | None = option(
+        None, 'training steps', type=int, exclusive='budget',
+        default_help=f'(default without --minutes: {DEFAULT_ITERATIONS}, or the embedded '
+                     f"default's time budget)")
+    minutes: float | None = option(
+        None, 'wall-time budget in minutes of training steps', type=float, exclusive='budget')
+    model: str = option('nerfpp', "'nerf': the paper's baseline, one bounded volume",
+                        choices=MODEL_KINDS, shapes_model=True)
+    field: str = option('grid', 'field kind of both volumes', choices=FIELD_KINDS,
+                        shapes_model=True)
+    bg_field: str | None = option(None, 'field kind of the background volume', type=str,
+                                  choices=FIELD_KINDS, default_help='(default: as --field)',
+                                  shapes_model=True)
+    batch_rays: int = option(512, 'rays per step')
+    fg_samples: int = option(32, 'coarse foreground samples per ray', joint='--samples',
+                             metavar='FG')
+    bg_samples: int = option(32, 'coarse background samples per ray', joint='--samples',
+                             metavar='BG')
+    fine_samples: int = option(32, 'fine samples per ray and volume', joint='--samples',
+                               metavar='FINE')
+    lr_grid: float = option(optim.LR_GRID, 'learning rate of the feature grids')
+    lr_mlp: float = option(optim.LR_MLP, 'learning rate of the MLPs')
+    lr_final: float = option(optim.LR_FINAL, 'learning rates decay exponentially to this '
+                             'fraction of their start over the run')
+    distortion: float = option(0.0, 'weight of the mip-NeRF 360 distortion loss against '
+                               'floaters (0: off; 0.01 measured 0.9 dB worse after 2 minutes '
+                               'on the default capture)')
+    grid_levels: tuple = option((32, 128), 'grid field: resolution of each level',
+                                metavar='RES', shapes_model=True)
+    grid_channels: int = option(4, 'grid field: channels per level', shapes_model=True)
+    dir_octaves: int = option(4, 'grid field: frequencies of the view-direction encoding',
+                              shapes_model=True)
+    color_layers: int = option(1, 'grid field: hidden layers of the colour MLP',
+                               shapes_model=True)
+    color_width: int = option(32, 'grid field: width of the colour MLP', shapes_model=True)
+    seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
+    checkpoint_every: int = option(500, 'iterations between checkpoints (0: only at the end)')
+    preview_every: int = option(500, 'iterations between held-out previews (0: never)')
+    downscale: int = option(1, 'integer image downscale factor')
+    background: tuple = option((1.0, 1.0, 1.0), 'colour that transparent (RGBA) images are '
+                               'composited over', type=_comma_floats, metavar='R,G,B',
+                               default_help='(default: 1,1,1)')
 
     def __post_init__(self):
-        if self.model not in ('nerfpp', 'nerf'):
+        if self.model not in MODEL_KINDS:
             raise ValueError(f"model must be 'nerfpp' or 'nerf', not '{self.model}'")
         if self.iterations is None and self.minutes is None:
-            self.iterations = 2000
+            self.iterations = DEFAULT_ITERATIONS
+        self.grid_levels, self.background = tuple(self.grid_levels), tuple(self.background)
         for name in ('batch_rays', 'fg_samples', 'bg_samples', 'color_layers', 'color_width'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name} must be >= 1')
@@ -95,6 +136,27 @@ class TrainConfig:
         s = self.sampling
         n = s.fg_samples + s.fine_samples
         return n if self.model == 'nerf' else n + s.bg_samples + s.fine_samples
+
+    def model_normalization(self, dataset_normalization):
+        """The model frame: the dataset's, or for the NeRF baseline one shrunk into
+        :data:`~mi_nerfpp.frame.NERF_CAMERA_RADIUS`."""
+        if self.model == 'nerf':
+            return dataset_normalization.with_camera_radius(NERF_CAMERA_RADIUS)
+        return dataset_normalization
+
+    def resume_conflicts(self, stored: dict) -> list[str]:
+        """The model-shaping options in which a stored config (``dataclasses.asdict`` of a
+        TrainConfig, as in a checkpoint) differs from this one, as readable lines."""
+        now = json.loads(json.dumps(dataclasses.asdict(self)))
+        stored = dict(stored)
+        stored.setdefault('bg_field', stored.get('field'))
+        out = []
+        for f in dataclasses.fields(self):
+            if f.metadata.get('shapes_model') and f.name in stored \
+                    and stored[f.name] != now[f.name]:
+                out.append(f'{flag(TrainConfig, f.name)}: the checkpoint has {stored[f.name]!r}, '
+                           f'this run asks for {now[f.name]!r}')
+        return out
 
 
 class RayBank:
@@ -124,16 +186,13 @@ class RayBank:
                 dr.gather(mi.Color3f, self.rgb, i))
 
 
-def to_model_frame(split, factor):
-    """Cameras scaled about the origin by ``factor`` (1 for NeRF++)."""
-    if factor == 1.0:
-        return split
-    cams = [apply_normalization(c, np.zeros(3), factor) for c in split.cameras]
-    return dataclasses.replace(split, cameras=cams)
-
-
-def mse(a, b):
-    return dr.mean(dr.square(a.x - b.x) + dr.square(a.y - b.y) + dr.square(a.z - b.z)) / 3.0
+def in_model_frame(dataset, normalization):
+    """The dataset's splits with their cameras moved into the model frame of ``normalization``:
+    ``{'train': Split, 'validation': Split, 'test': Split}``."""
+    return {name: dataclasses.replace(split, cameras=reframe_cameras(
+                split.cameras, dataset.normalization, normalization))
+            for name, split in (('train', dataset.train), ('validation', dataset.validation),
+                                ('test', dataset.test))}
 
 
 def psnr_from_mse(m):
@@ -147,20 +206,20 @@ class Trainer:
         self.dataset, self.out, self.cfg = dataset, out_dir, config
         os.makedirs(out_dir, exist_ok=True)
         self.checkpoint_path = os.path.join(out_dir, 'model.npz')
-        self.frame_factor = (NERF_CAMERA_RADIUS / NERFPP_CAMERA_RADIUS
-                             if config.model == 'nerf' else 1.0)
-        self.train = to_model_frame(dataset.train, self.frame_factor)
-        self.validation = to_model_frame(dataset.validation, self.frame_factor)
-        self.test = to_model_frame(dataset.test, self.frame_factor)
+        normalization = config.model_normalization(dataset.normalization)
+        splits = in_model_frame(dataset, normalization)
+        self.train, self.validation, self.test = (splits[k] for k in ('train', 'validation',
+                                                                      'test'))
         self.rays = RayBank(self.train)
         self.iteration, self.elapsed, self.history = 0, 0.0, []
 
         meta, state = {}, {}
         if resume and os.path.exists(self.checkpoint_path):
             self.model, meta, state = load_checkpoint(self.checkpoint_path)
-            if meta.get('config', {}).get('model') != config.model:
-                raise TrainingError(f"{self.checkpoint_path} was trained with --model "
-                                    f"{meta.get('config', {}).get('model')}, not {config.model}")
+            conflicts = config.resume_conflicts(meta.get('config', {}))
+            if conflicts:
+                raise TrainingError(f'{self.checkpoint_path} cannot be resumed with other model '
+                                    f'options: ' + '; '.join(conflicts))
             self.iteration = int(meta['iteration'])
             self.elapsed = float(meta['elapsed'])
             self.history = meta.get('history', [])
@@ -169,7 +228,7 @@ class Trainer:
         else:
             self.model = NeRFPPModel.create(
                 background=config.model == 'nerfpp', seed=config.seed,
-                center=dataset.center, scale=dataset.scale * self.frame_factor,
+                normalization=normalization,
                 color_space=dataset.color_space,
                 fg_config=config.field_config(config.field, 'ball'),
                 bg_config=config.field_config(config.bg_field, 'inverted_sphere'))
@@ -177,20 +236,10 @@ class Trainer:
         if 'rng' in meta:
             self.rng.bit_generator.state = meta['rng']
 
-        self.opt = dr.opt.Adam(lr=config.lr_mlp)
-        for k, v in self.model.parameters().items():
-            self.opt[k] = v
+        self.opt = optim.adam(self.model.parameters(), config.lr_mlp)
         self._restore_optimizer(state)
 
     # ------------------------------------------------------------------ optimizer state
-    def _is_grid(self, key):
-        return '.grid' in key
-
-    def _set_learning_rates(self, progress):
-        decay = self.cfg.lr_final ** min(max(progress, 0.0), 1.0)
-        self.opt.set_learning_rate({k: (self.cfg.lr_grid if self._is_grid(k) else self.cfg.lr_mlp)
-                                    * decay for k in self.opt.keys()})
-
     def _optimizer_state(self):
         state = {}
         for k, (_, _, _, (t, m, v, _)) in self.opt.state.items():
@@ -222,15 +271,15 @@ class Trainer:
     def step(self):
         """One optimization step. Returns ``(loss, fine-pass MSE)`` as Python floats."""
         cfg = self.cfg
-        self._set_learning_rates(self.progress())
+        optim.set_learning_rates(self.opt, self.progress(), cfg.lr_grid, cfg.lr_mlp, cfg.lr_final)
         index = self.rng.integers(0, self.rays.size, cfg.batch_rays)
         seed = mi.UInt32(self.rng.integers(0, 2 ** 32, cfg.batch_rays, dtype=np.uint64)
                          .astype(np.uint32))
         o, d, gt = self.rays.batch(index)
         self.model.set_parameters({k: self.opt[k] for k in self.opt.keys()})
         res = render_rays(o, d, self.model.fg, self.model.bg, cfg.sampling, seed=seed)
-        fine = mse(res.fine.rgb, gt)
-        loss = fine + mse(res.coarse.rgb, gt)
+        fine = optim.mse(res.fine.rgb, gt)
+        loss = fine + optim.mse(res.coarse.rgb, gt)
         if cfg.distortion > 0:
             for vol in (res.fg, res.bg):
                 if vol is not None:
@@ -298,22 +347,18 @@ def samples_per_second(cfg, iterations, seconds):
 
 
 def open_run(run_dir):
-    """A finished or interrupted run: ``(model, meta, config, dataset)``.
+    """A finished or interrupted run: ``(model, meta, config, splits)``.
 
-    The dataset is re-read from where the run found it, with the same options; the
-    returned splits are in the model's frame.
+    The dataset is re-read from where the run found it, with the same options; ``splits``
+    (``{'train', 'validation', 'test'}``) are in the model's frame.
     """
     from .data import load_dataset
     model, meta, _ = load_checkpoint(os.path.join(run_dir, 'model.npz'))
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     cfg = TrainConfig(**{k: v for k, v in meta.get('config', {}).items() if k in fields})
-    cfg.background = tuple(cfg.background)
     root = meta.get('dataset')
     if not root or not os.path.exists(root):
         raise TrainingError(f'{run_dir}/model.npz: its dataset {root!r} is not there any more')
     dataset = load_dataset(root, downscale=cfg.downscale, background=cfg.background)
-    factor = NERF_CAMERA_RADIUS / NERFPP_CAMERA_RADIUS if cfg.model == 'nerf' else 1.0
-    dataset = dataclasses.replace(dataset, **{name: to_model_frame(getattr(dataset, name), factor)
-                                              for name in ('train', 'validation', 'test')})
-    return model, meta, cfg, dataset
-
+    return model, meta, cfg, dataclasses.replace(dataset, **in_model_frame(dataset,
+                                                                           model.normalization))

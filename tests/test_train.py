@@ -11,17 +11,12 @@ import pytest
 from mi_nerfpp.checkpoint import load_checkpoint
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.evaluate import evaluate_split
+from mi_nerfpp.options import values
 from mi_nerfpp.train import TrainConfig, Trainer, TrainingError
-from conftest import make_capture
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SMALL = dict(batch_rays=512, fg_samples=16, bg_samples=16, fine_samples=16,
              checkpoint_every=0, preview_every=0)
-
-
-@pytest.fixture(scope='module')
-def capture(tmp_path_factory):
-    return make_capture(str(tmp_path_factory.mktemp('capture') / 'data'))
 
 
 @pytest.fixture(scope='module')
@@ -98,9 +93,47 @@ def test_nerf_baseline_has_one_volume_in_a_larger_sphere(dataset, tmp_path):
     assert tr.model.bg is None
     radii = [np.linalg.norm(c.center) for c in tr.train.cameras]
     assert max(radii) == pytest.approx(1 / 8, rel=1e-6)
-    assert tr.model.scale == pytest.approx(dataset.scale * 1.1 / 8)
+    assert tr.model.normalization.scale == pytest.approx(dataset.normalization.scale * 1.1 / 8)
     assert tr.cfg.sampling.fg_samples == 32 and tr.cfg.sampling.fine_samples == 32
     tr.run()
+
+
+def test_resume_with_other_model_options_is_refused_naming_the_difference(dataset, tmp_path):
+    Trainer(dataset, str(tmp_path), TrainConfig(iterations=1, **SMALL)).run()
+    for change, flag in ((dict(field='nerf'), '--field'), (dict(bg_field='vanilla'), '--bg-field'),
+                         (dict(grid_levels=(32, 64)), '--grid-levels'),
+                         (dict(model='nerf'), '--model')):
+        with pytest.raises(TrainingError, match=f"cannot be resumed.*{flag}: the checkpoint "
+                                                 f"has"):
+            Trainer(dataset, str(tmp_path), TrainConfig(iterations=2, **SMALL, **change),
+                    resume=True)
+    # Options that do not shape the model may change.
+    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=2, **dict(SMALL, lr_mlp=1e-3)),
+                 resume=True)
+    assert tr.iteration == 1
+
+
+def test_optimize_options_come_from_train_config():
+    import argparse
+    import dataclasses
+
+    from mi_nerfpp.cli import build_parser
+    args = build_parser().parse_args(['optimize'])
+    cfg = TrainConfig(**values(args, TrainConfig))
+    assert dataclasses.asdict(cfg) == dataclasses.asdict(TrainConfig())
+    args = build_parser().parse_args(['optimize', '--samples', '8', '9', '10', '--grid-levels',
+                                      '16', '--background', '0,0.5,1', '--lr-final', '0.5'])
+    cfg = TrainConfig(**values(args, TrainConfig))
+    assert (cfg.fg_samples, cfg.bg_samples, cfg.fine_samples) == (8, 9, 10)
+    assert cfg.grid_levels == (16,) and cfg.background == (0.0, 0.5, 1.0)
+    assert cfg.lr_final == 0.5
+    helps = {a.dest: a.help for a in build_parser()._subparsers._group_actions[0]
+             .choices['optimize']._actions if isinstance(a, argparse.Action)}
+    for f in dataclasses.fields(TrainConfig):
+        assert f.metadata.get('help'), f.name            # every option documents itself
+    assert '(default: 512)' in helps['batch_rays']
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(['optimize', '--iterations', '3', '--minutes', '1'])
 
 
 def test_resume_without_checkpoint_is_an_error(dataset, tmp_path):
@@ -143,6 +176,9 @@ def test_optimize_command_end_to_end(capture, tmp_path):
     import imageio.v3 as iio
     frames = iio.imread(tmp_path / 'orbit.gif')
     assert frames.shape[0] == 3 and frames.shape[1:3] == (24, 32)
+    r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'video', str(out), '--res', '32by24'],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and 'resolution must be WxH' in r.stderr, r.stderr[-2000:]
 
 
 def test_optimize_reports_bad_dataset(tmp_path):

@@ -1,56 +1,26 @@
-"""Rendering dataset views through the ``nerfpp`` integrator, and held-out metrics.
+"""Held-out evaluation of a model: per-view layers and metrics, ``metrics.json``, ``render.xml``.
 
-Views are rendered by Mitsuba with the same integrator a user renders with, from a
-perspective sensor that reproduces the dataset camera (rays through pixel centres).
+Views are rendered through the ``nerfpp`` integrator (:class:`mi_nerfpp.views.ViewRenderer`,
+one scene per split), compared with the dataset images (PSNR, SSIM) and written as layered
+EXRs and PNG previews.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
 
-import mitsuba as mi
 import numpy as np
 
-from .data import Camera, apply_normalization, mitsuba_sensor_dict
-from .exr import split_channels, write_exr
+from .exr import write_exr
 from .files import atomic_write_path
-from .integrator import AOV_NAMES
+from .frame import SCENE_NEAR_CLIP
 from .metrics import psnr, ssim
 from .preview import write_png
 from .render import Sampling
-
-CHANNELS = ['R', 'G', 'B', 'A'] + AOV_NAMES
-
-
-def world_camera(model, camera: Camera) -> Camera:
-    """A camera of the normalized (model) frame placed back in the original world frame."""
-    return apply_normalization(camera, -model.center * model.scale, 1.0 / model.scale)
-
-
-def view_scene(model, camera: Camera, sampling: Sampling, background=True):
-    """A Mitsuba scene that renders ``camera`` (model frame) of ``model`` with the nerfpp integrator."""
-    sensor = mitsuba_sensor_dict(world_camera(model, camera))
-    sensor['sampler'] = {'type': 'stratified', 'sample_count': 1, 'jitter': False}
-    # Mitsuba starts rays on the near plane: keep it at a negligible model-frame distance.
-    sensor['near_clip'] = 1e-4 / model.scale
-    scene = mi.load_dict({
-        'type': 'scene', 'sensor': sensor,
-        'integrator': {'type': 'nerfpp', 'fg_samples': sampling.fg_samples,
-                       'bg_samples': sampling.bg_samples, 'fine_samples': sampling.fine_samples,
-                       'near': sampling.near, 'background': background}})
-    scene.integrator().model = model
-    return scene
-
-
-def render_view(model, camera: Camera, sampling: Sampling, background=True):
-    """All layers of one view: channel name -> (H, W) float32."""
-    img = mi.render(view_scene(model, camera, sampling, background))
-    return split_channels(np.array(img, dtype=np.float32), CHANNELS)
-
-
-def rgb(layers):
-    return np.stack([layers['R'], layers['G'], layers['B']], axis=-1)
+from .scene_xml import write_render_xml
+from .views import ViewRenderer, rgb
 
 
 def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', background=True,
@@ -60,13 +30,14 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
     Returns a dict with per-view PSNR/SSIM, their means and the render time.
     """
     os.makedirs(out_dir, exist_ok=True)
+    renderer = ViewRenderer(model, sampling, background)
     views = []
     t0 = time.perf_counter()
     indices = range(len(split))
     if progress is not None:
         indices = progress(indices, desc=f'evaluate {name}', unit='view', leave=False)
     for i in indices:
-        layers = render_view(model, split.cameras[i], sampling, background)
+        layers = renderer.render(split.cameras[i])
         pred = rgb(layers)
         gt = split.images[i]
         base = os.path.join(out_dir, f'{name}_{i:03d}')
@@ -81,6 +52,27 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
         result['psnr'] = float(np.mean([v['psnr'] for v in views]))
         result['ssim'] = float(np.mean([v['ssim'] for v in views]))
     return result
+
+
+def finish_run(out, model, held_out, cfg, checkpoint_path, metrics):
+    """Evaluate the held-out views; write metrics.json (with ``metrics``) and render.xml.
+
+    ``cfg`` is the run's :class:`~mi_nerfpp.train.TrainConfig`. Returns the metrics written.
+    """
+    from tqdm import tqdm
+
+    metrics = dict(metrics, config=dataclasses.asdict(cfg))
+    background = cfg.model == 'nerfpp'
+    if len(held_out):
+        metrics['test'] = evaluate_split(model, held_out, os.path.join(out, 'test'),
+                                         cfg.sampling, background=background, progress=tqdm)
+        norm = model.normalization
+        write_render_xml(os.path.join(out, 'render.xml'), checkpoint_path,
+                         norm.to_world_camera(held_out.cameras[0]), cfg.sampling,
+                         near_clip=norm.to_world_distance(SCENE_NEAR_CLIP),
+                         background=background)
+    write_json(os.path.join(out, 'metrics.json'), metrics)
+    return metrics
 
 
 def write_json(path, data):

@@ -28,13 +28,16 @@ import OpenEXR
 
 from .files import atomic_write_path
 
-LAYERS = (
-    'R', 'G', 'B', 'A',
+# The one list of channel names: the film's beauty channels, then the nerfpp integrator's AOVs
+# (in the order ``NeRFPPIntegrator.aov_names`` reports and ``mi.render`` returns them).
+BEAUTY = ('R', 'G', 'B', 'A')
+AOVS = (
     'fg.R', 'fg.G', 'fg.B', 'fg.A',
     'bg.R', 'bg.G', 'bg.B',
     'alpha.Y',
     'depth.Z',
 )
+LAYERS = BEAUTY + AOVS
 
 FULL_PRECISION_CHANNELS = frozenset({'depth.Z'})
 

@@ -6,10 +6,9 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import ADIntegrator
 
 from .checkpoint import load_checkpoint
+from .exr import AOVS
 from .model import NeRFPPModel
 from .render import Sampling, render_rays
-
-AOV_NAMES = ['fg.R', 'fg.G', 'fg.B', 'fg.A', 'bg.R', 'bg.G', 'bg.B', 'alpha.Y', 'depth.Z']
 
 
 class NeRFPPIntegrator(ADIntegrator):
@@ -26,13 +25,19 @@ class NeRFPPIntegrator(ADIntegrator):
     checkpoint carries the normalization, so sensors are placed in the
     original world frame.
 
+    The model comes from ``checkpoint``, or from Python: :meth:`set_model` hands
+    the integrator a model already in memory (evaluation does this with the
+    model it trains). Only when neither is given and the integrator is asked
+    to render (or traversed) does it build seeded random fields.
+
     .. pluginparameters::
 
      * - checkpoint
        - |string|
        - Model file written by ``optimize.py`` (.npz), relative paths resolved
          against the scene file's folder. Without it, seeded random fields are
-         rendered. (Default: none)
+         rendered, unless a model is handed over with :meth:`set_model`.
+         (Default: none)
      * - field
        - |string|
        - Field kind of a model without checkpoint: ``grid`` (grid + MLP),
@@ -69,7 +74,8 @@ class NeRFPPIntegrator(ADIntegrator):
     radiance, ``fg.A`` and ``alpha.Y`` foreground opacity ``1 - λ``,
     ``bg.R bg.G bg.B`` background radiance as seen unoccluded, ``depth.Z``
     expected distance along the ray in world units (background at infinity is
-    clamped to 1000 unit-sphere radii). ``beauty = fg + (1 - alpha)·bg``.
+    capped at 1000 unit-sphere radii, see :mod:`mi_nerfpp.render`).
+    ``beauty = fg + (1 - alpha)·bg``.
     """
 
     def __init__(self, props):
@@ -89,17 +95,28 @@ class NeRFPPIntegrator(ADIntegrator):
         self.stratified = props.get('stratified', False)
         self.chunk_rays = props.get('chunk_rays', 1 << 15)
         self.show_progress = False
+        self.random_field = props.get('field', 'grid')
+        self.random_seed = props.get('seed', 0)
+        self._model, self.meta = None, {}
         if self.checkpoint:
             # Relative paths are found next to the scene file (Mitsuba's file resolver).
             path = str(mi.file_resolver().resolve(self.checkpoint))
-            self.model, self.meta, _ = load_checkpoint(path)
-        else:
-            self.model = NeRFPPModel.create(field=props.get('field', 'grid'),
-                                            seed=props.get('seed', 0))
-            self.meta = {}
+            self._model, self.meta, _ = load_checkpoint(path)
+
+    @property
+    def model(self):
+        """The :class:`~mi_nerfpp.model.NeRFPPModel` rendered: the checkpoint's, the one
+        given to :meth:`set_model`, or (built on first use) seeded random fields."""
+        if self._model is None:
+            self._model = NeRFPPModel.create(field=self.random_field, seed=self.random_seed)
+        return self._model
+
+    def set_model(self, model, meta=None):
+        """Render ``model`` (a :class:`~mi_nerfpp.model.NeRFPPModel`) from now on."""
+        self._model, self.meta = model, meta or {}
 
     def aov_names(self):
-        return AOV_NAMES
+        return list(AOVS)
 
     def to_string(self):
         return (f'NeRFPPIntegrator[checkpoint="{self.checkpoint}", {self.sampling}, '
@@ -116,13 +133,13 @@ class NeRFPPIntegrator(ADIntegrator):
     def render_layers(self, o, d, seed):
         """Beauty and AOVs of world-space rays: ``(L: Color3f, aovs: list[Float])``."""
         model = self.model
-        o, d = model.world_to_model(o, d)
+        o, d = model.normalization.to_model_rays(o, d)
         res = render_rays(o, d, model.fg, model.bg if self.background else None,
                           self.sampling, seed)
         fg = res.fg.fine
         bg = res.bg.fine.rgb if res.bg is not None else mi.Color3f(0.0)
         aovs = [fg.rgb.x, fg.rgb.y, fg.rgb.z, fg.opacity, bg.x, bg.y, bg.z, fg.opacity,
-                res.fine.depth / model.scale]
+                model.normalization.to_world_distance(res.fine.depth)]
         return res.fine.rgb, aovs
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
@@ -141,7 +158,7 @@ class NeRFPPIntegrator(ADIntegrator):
         """Primal rendering of many rays, ``chunk_rays`` at a time (bounded memory)."""
         dr.eval(o, d, seed)
         chunk = self.chunk_rays
-        out = [dr.zeros(mi.Float, n) for _ in range(3 + len(AOV_NAMES))]
+        out = [dr.zeros(mi.Float, n) for _ in range(3 + len(AOVS))]
         chunks = range(0, n, chunk)
         if self.show_progress:
             from tqdm import tqdm

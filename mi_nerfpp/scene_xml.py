@@ -40,7 +40,7 @@ TEMPLATE = """<scene version="3.0.0">
 """
 
 
-def write_render_xml(path, checkpoint, camera: Camera, sampling: Sampling, near_clip=1e-3,
+def write_render_xml(path, checkpoint, camera: Camera, sampling: Sampling, near_clip,
                      background=True):
     """Write a scene rendering ``checkpoint`` from ``camera`` (world frame, OpenCV pose).
 

@@ -23,9 +23,27 @@ def layer_channels(seed=0):
 
 # --- EXR ---------------------------------------------------------------------
 
-def test_layers_layout():
+def test_layers_layout(tmp_path):
     assert exr.LAYERS == ('R', 'G', 'B', 'A', 'fg.R', 'fg.G', 'fg.B', 'fg.A',
                           'bg.R', 'bg.G', 'bg.B', 'alpha.Y', 'depth.Z')
+    # The names are what a nerfpp render writes, each on the channel that holds its content:
+    # a wrong name or order breaks the compositing identity or the alpha/depth checks.
+    import mitsuba as mi
+
+    from mi_nerfpp.views import render_to_files
+    from tests.helpers import scene_dict, tiny_model
+    scene = mi.load_dict(scene_dict())
+    scene.integrator().set_model(tiny_model())
+    render_to_files(scene, tmp_path / 'r.exr', progress=False)
+    with OpenEXR.File(str(tmp_path / 'r.exr'), header_only=True) as f:
+        assert {channel.name for channel in f.header()['channels']} == set(exr.LAYERS)
+    c = exr.read_exr(tmp_path / 'r.exr')
+    for ch in 'RGB':
+        np.testing.assert_allclose(c[ch], c[f'fg.{ch}'] + (1 - c['alpha.Y']) * c[f'bg.{ch}'],
+                                   atol=2e-6)
+    np.testing.assert_array_equal(c['fg.A'], c['alpha.Y'])
+    assert np.all(c['A'] == 1) and np.all((c['alpha.Y'] > 0) & (c['alpha.Y'] < 1))
+    assert np.all(c['depth.Z'] > 0)
 
 
 def test_round_trip_float32_is_exact(tmp_path):

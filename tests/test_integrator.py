@@ -4,10 +4,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.integrator import AOV_NAMES, NeRFPPIntegrator
-from conftest import scene_dict, tiny_model
-
-CHANNELS = ['R', 'G', 'B', 'A'] + AOV_NAMES
+from mi_nerfpp.exr import LAYERS as CHANNELS
+from mi_nerfpp.frame import Normalization
+from mi_nerfpp.integrator import NeRFPPIntegrator
+from tests.helpers import scene_dict, tiny_model
 
 
 def layers(img):
@@ -38,7 +38,7 @@ def test_output_channels_and_compositing_identity(tiny_scene):
 
 def test_background_off_renders_foreground_over_black():
     scene = mi.load_dict(scene_dict(background=False))
-    scene.integrator().model = tiny_model()
+    scene.integrator().set_model(tiny_model())
     c = layers(mi.render(scene))
     for ch in 'RGB':
         np.testing.assert_allclose(c[ch], c[f'fg.{ch}'], atol=1e-7)
@@ -54,7 +54,7 @@ def test_chunked_render_matches_single_pass(tiny_scene):
 
 def test_sensor_outside_unit_sphere_renders_finite_values():
     scene = mi.load_dict(scene_dict(origin=(0.0, 0.5, 3.0)))
-    scene.integrator().model = tiny_model()
+    scene.integrator().set_model(tiny_model())
     c = layers(mi.render(scene))
     for name, v in c.items():
         assert np.all(np.isfinite(v)), name
@@ -67,12 +67,12 @@ def test_world_frame_normalization_moves_the_model():
     """A model normalized with (center, scale) renders from world cameras as if unnormalized."""
     # Mitsuba starts camera rays at near_clip (world units): make it negligible in both frames.
     ref = mi.load_dict(scene_dict(origin=(0.1, 0.2, 0.6), near_clip=1e-5))
-    ref.integrator().model = tiny_model()
+    ref.integrator().set_model(tiny_model())
     moved = mi.load_dict(scene_dict(origin=(10 + 0.1 * 4, -2 + 0.2 * 4, 5 + 0.6 * 4),
                                      target=(10, -2, 5), near_clip=1e-5))
     m = tiny_model()
-    m.center, m.scale = np.array([10.0, -2.0, 5.0]), 0.25
-    moved.integrator().model = m
+    m.normalization = Normalization(np.array([10.0, -2.0, 5.0]), 0.25)
+    moved.integrator().set_model(m)
     a, b = layers(mi.render(ref)), layers(mi.render(moved))
     # float32 rays at |x| ~ 10 carry ~1e-6 relative error: compare to 1e-3.
     for ch in ('R', 'G', 'B', 'alpha.Y'):
@@ -107,7 +107,7 @@ def test_gradients_match_central_finite_differences(key):
     # Rays through pixel centres: the primal and the gradient pass (which Mitsuba seeds
     # differently) see the same rays.
     tiny_scene = mi.load_dict(scene_dict(fine_samples=0, jitter=False))
-    tiny_scene.integrator().model = tiny_model()
+    tiny_scene.integrator().set_model(tiny_model())
     integ = tiny_scene.integrator()
     params = mi.traverse(integ)
     shape = params[key].shape
@@ -136,3 +136,15 @@ def test_gradients_match_central_finite_differences(key):
                 vals.append(float(_loss(mi.render(tiny_scene, seed=1), weights).array[0]))
         fd = (vals[0] - vals[1]) / (2 * h)
         assert abs(fd - grad[i]) <= 2e-2 * abs(grad[i]) + 1e-4, (key, i, fd, grad[i])
+
+
+def test_integrator_builds_random_fields_only_when_asked(tmp_path):
+    scene = mi.load_dict(scene_dict())
+    integ = scene.integrator()
+    assert integ._model is None                   # loading the scene built no model
+    m = tiny_model()
+    integ.set_model(m)
+    mi.render(scene)
+    assert integ.model is m                       # the handed model was rendered, no other
+    fresh = mi.load_dict(scene_dict(seed=4, field='nerf')).integrator()
+    assert fresh.model.n_parameters() > 0 and fresh._model is fresh.model

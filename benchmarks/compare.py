@@ -55,8 +55,8 @@ def main():
     a, extra = ap.parse_known_args()
 
     import mi_nerfpp  # noqa: F401
-    from mi_nerfpp.optimize import default_dataset
-    data = a.data or default_dataset()
+    from mi_nerfpp.synth import default_capture
+    data = a.data or default_capture()
     runs = {m: os.path.join(a.out, m) for m in ('nerf', 'nerfpp')}
     metrics = {m: train(data, runs[m], m, a.minutes, a.every, extra) for m in runs}
 

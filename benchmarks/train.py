@@ -17,7 +17,7 @@ import mi_nerfpp  # noqa: F401
 import drjit as dr
 
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.optimize import default_dataset
+from mi_nerfpp.synth import default_capture
 from mi_nerfpp.train import TrainConfig, Trainer
 
 
@@ -35,7 +35,7 @@ def main():
     ap.add_argument('--out', default='/tmp/mi_nerfpp_bench_train')
     a = ap.parse_args()
 
-    dataset = load_dataset(a.data or default_dataset())
+    dataset = load_dataset(a.data or default_capture())
     fg, bg, fine = a.samples
     cfg = TrainConfig(iterations=a.steps + a.warmup, model=a.model, field=a.field,
                       batch_rays=a.batch_rays, fg_samples=fg, bg_samples=bg, fine_samples=fine,

@@ -11,7 +11,6 @@ import numpy as np
 import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SCENE = os.path.join(ROOT, 'scenes', 'gt_bounded.xml')
 FIGURES = os.path.join(ROOT, 'docs', 'results')
 
 
@@ -31,9 +30,9 @@ def parser(doc, name):
 
 def capture(cache, name, **synth):
     """Render (or reuse) the capture ``name`` of the bounded still life under ``cache``."""
-    from mi_nerfpp.synth import synthesize
+    from mi_nerfpp.synth import scene_file, synthesize
     out = os.path.join(cache, name)
-    synthesize(SCENE, out, **synth)
+    synthesize(scene_file('gt_bounded.xml'), out, **synth)
     return out
 
 
@@ -98,8 +97,9 @@ def train(dataset, out, cfg):
 
 def render_views(model, split, sampling, background=True):
     """RGB renders of every view of a split through the ``nerfpp`` integrator."""
-    from mi_nerfpp.evaluate import render_view, rgb
-    return [rgb(render_view(model, cam, sampling, background)) for cam in split.cameras]
+    from mi_nerfpp.views import ViewRenderer, rgb
+    renderer = ViewRenderer(model, sampling, background)
+    return [rgb(renderer.render(cam)) for cam in split.cameras]
 
 
 def markdown_table(header, rows):

@@ -21,7 +21,7 @@ Trajectories
     to 0.3 of the spacing), elevation 5-35 degrees (a low-discrepancy sequence plus jitter),
     distance ``radius`` +-10 %, looking at the origin jittered by ~0.08 world units, up = +Y, no
     roll. Horizontal field of view ``fov`` degrees, square pixels, principal point at the image
-    centre. In the ground-truth scenes (``scenes/gt_*.xml``) every object between 1 and 5 units
+    centre. In the ground-truth scenes (``mi_nerfpp/scenes/gt_*.xml``) every object between 1 and 5 units
     from the origin stays below y = 0 (the cameras' lowest height is ~0.1), so cameras of every
     trajectory with ``radius`` 3-4 are outside every object (checked at the default radius: every
     camera is >= 0.5 units from the nearest surface).
@@ -109,7 +109,6 @@ on 2 CPU cores, both ways: the kernel is reused), so the simpler form is used.
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import os
@@ -121,15 +120,14 @@ import numpy as np
 
 from .data.cameras import (
     Camera,
-    cameras_inside_unit_sphere,
     mitsuba_sensor_dict,
-    normalize_cameras,
     pixel_rays,
 )
 from .data.dataset import SPLITS
 from .data.nerfpp import write_nerfpp
 from .exr import write_exr
 from .files import atomic_write_path
+from .frame import MITSUBA_NEAR_CLIP, Normalization
 from .preview import to_srgb8
 
 TRAJECTORIES = ('orbit', 'truck', 'hemisphere', 'arc')
@@ -137,9 +135,13 @@ CAPTURE_FILE = 'capture.json'
 CAPTURE_FORMAT = 'mi-nerfpp-synth'
 CAPTURE_VERSION = 1
 
+# The default capture (the ``synth`` command's defaults and the embedded default of ``optimize``).
+DEFAULT_SCENE = 'gt_garden.xml'
+DEFAULT_TRAJECTORY = 'orbit'
 DEFAULT_VIEWS = 60
 DEFAULT_RES = (128, 96)
 DEFAULT_SPP = 64
+DEFAULT_SEED = 0
 DEFAULT_FOV = 50.0
 DEFAULT_RADIUS = 3.5
 
@@ -153,7 +155,6 @@ ARC_ELEVATION = (10.0, 40.0)       # degrees, all splits
 ARC_EXTRAPOLATION = (65.0, 90.0)   # degrees of |azimuth|, test views
 ARC_AZIMUTH_JITTER = 0.3           # of the train azimuth spacing
 HELD_OUT_FRACTION = 0.1            # of the views, each for validation and test
-NEAR_CLIP = 0.01                   # Mitsuba's default, set explicitly: depth is corrected by it
 
 TRUCK_FILES = {'train': 'train_cam_dict_norm.json',
                'validation': 'camera_path_cam_dict_norm.json',
@@ -231,7 +232,7 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
     return c2w
 
 
-def orbit_cameras(views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
+def orbit_cameras(views: int, res, seed: int = DEFAULT_SEED, fov: float = DEFAULT_FOV,
                   radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
     """The ``orbit`` trajectory (see the module docstring), split into train/validation/test."""
     width, height = parse_res(res)
@@ -307,7 +308,7 @@ def truck_alignment(radius: float = DEFAULT_RADIUS) -> tuple[np.ndarray, np.ndar
     return R, focus, float(radius / np.median(horizontal))
 
 
-def truck_cameras(views: int, res, seed: int = 0,
+def truck_cameras(views: int, res, seed: int = DEFAULT_SEED,
                   radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
     """The ``truck`` trajectory (see the module docstring), split into train/validation/test."""
     width, height = parse_res(res)
@@ -345,7 +346,7 @@ def _sphere_point(radius: float, azimuth: float, elevation: float) -> np.ndarray
                               np.cos(elevation) * np.cos(azimuth)])
 
 
-def hemisphere_cameras(views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
+def hemisphere_cameras(views: int, res, seed: int = DEFAULT_SEED, fov: float = DEFAULT_FOV,
                        radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
     """The ``hemisphere`` trajectory (see the module docstring), split into
     train/validation/test."""
@@ -371,7 +372,7 @@ def hemisphere_cameras(views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
     }
 
 
-def arc_cameras(views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
+def arc_cameras(views: int, res, seed: int = DEFAULT_SEED, fov: float = DEFAULT_FOV,
                 radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
     """The ``arc`` trajectory (see the module docstring): train on an arc in front of the
     object, validation = interpolated views, test = extrapolated views.
@@ -416,8 +417,8 @@ def arc_cameras(views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
     return splits
 
 
-def make_cameras(trajectory: str, views: int, res, seed: int = 0, fov: float = DEFAULT_FOV,
-                 radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
+def make_cameras(trajectory: str, views: int, res, seed: int = DEFAULT_SEED,
+                 fov: float = DEFAULT_FOV, radius: float = DEFAULT_RADIUS) -> dict[str, list[Camera]]:
     """Cameras of a trajectory, split into train/validation/test (world units of the scene)."""
     if trajectory == 'orbit':
         return orbit_cameras(views, res, seed, fov, radius)
@@ -430,12 +431,26 @@ def make_cameras(trajectory: str, views: int, res, seed: int = 0, fov: float = D
     raise ValueError(f"unknown trajectory '{trajectory}': use one of {', '.join(TRAJECTORIES)}")
 
 
-def foreground_sphere(cameras: list[Camera]) -> tuple[np.ndarray, float]:
-    """``(center, scale)`` of the normalization the dataset reader will apply to these cameras
-    (none, i.e. (0, 1), when they already lie inside the unit sphere)."""
-    if cameras_inside_unit_sphere(cameras):
-        return np.zeros(3), 1.0
-    return normalize_cameras(cameras)
+def scene_file(name: str) -> str:
+    """Path of a ground-truth scene shipped with the package (``mi_nerfpp/scenes/NAME``)."""
+    return str(resources.files(__package__) / 'scenes' / name)
+
+
+def cache_dir() -> str:
+    """Where generated captures are cached: ``$MI_NERFPP_CACHE``, else
+    ``$XDG_CACHE_HOME/mi-nerfpp``, else ``~/.cache/mi-nerfpp``."""
+    if os.environ.get('MI_NERFPP_CACHE'):
+        return os.environ['MI_NERFPP_CACHE']
+    base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
+    return os.path.join(base, 'mi-nerfpp')
+
+
+def default_capture(progress: bool = True) -> str:
+    """Synthesize (once, cached under :func:`cache_dir`) the embedded default capture of
+    :data:`DEFAULT_SCENE` with the default parameters, and return its folder."""
+    out = os.path.join(cache_dir(), 'default')
+    synthesize(scene_file(DEFAULT_SCENE), out, progress=progress)
+    return out
 
 
 # --- rendering ---------------------------------------------------------------------------------
@@ -445,7 +460,7 @@ def _sensor(camera: Camera, spp: int, centre_rays: bool = False):
     import mitsuba as mi
 
     desc = mitsuba_sensor_dict(camera, spp=spp, pixel_format='rgb')
-    desc['near_clip'] = NEAR_CLIP
+    desc['near_clip'] = MITSUBA_NEAR_CLIP
     if centre_rays:
         desc['sampler'] = {'type': 'stratified', 'sample_count': 1, 'jitter': False}
     return mi.load_dict(desc)
@@ -464,12 +479,12 @@ def render_ground_truth(scene, camera: Camera, center, world_radius: float,
     depth = image[..., names.index('dd.y.T')]
     position = image[..., [names.index(f'pp.{c}') for c in 'XYZ']]
     hit = depth > 0
-    # Mitsuba's perspective rays start on the near plane, at NEAR_CLIP / cos(angle to the axis)
-    # from the camera centre; the depth AOV counts from there.
+    # Mitsuba's perspective rays start on the near plane, at MITSUBA_NEAR_CLIP / cos(angle to
+    # the axis) from the camera centre; the depth AOV counts from there.
     px, py = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
     _, dirs = pixel_rays(camera, px, py)
     cos_axis = (dirs @ camera.c2w[:3, 2]).reshape(camera.height, camera.width)
-    depth = np.where(hit, depth + NEAR_CLIP / cos_axis, 0.0)
+    depth = np.where(hit, depth + MITSUBA_NEAR_CLIP / cos_axis, 0.0)
     inside = np.linalg.norm(position - np.asarray(center), axis=-1) <= world_radius
     return {'depth.Z': depth.astype(np.float32),
             'fg.A': (hit & inside).astype(np.float32)}
@@ -525,7 +540,8 @@ def _prepare_output(out: str) -> None:
 
 
 def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
-               spp: int = DEFAULT_SPP, trajectory: str = 'orbit', seed: int = 0,
+               spp: int = DEFAULT_SPP, trajectory: str = DEFAULT_TRAJECTORY,
+               seed: int = DEFAULT_SEED,
                fov: float = DEFAULT_FOV, radius: float = DEFAULT_RADIUS,
                progress: bool = True) -> dict:
     """Render a synthetic NeRF++ capture of a Mitsuba scene (see the module docstring).
@@ -596,7 +612,9 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
         raise RuntimeError(f'{scene_xml}: Mitsuba cannot load the scene: {e}') from e
 
     all_cameras = [cam for split in SPLITS for cam in cameras[split]]
-    center, scale = foreground_sphere(all_cameras)
+    # The normalization the dataset reader will apply: its unit sphere is the foreground.
+    norm = Normalization.for_cameras(all_cameras)
+    center, world_radius = norm.center_array, norm.to_world_distance(1.0)
     info = {
         'format': CAPTURE_FORMAT, 'version': CAPTURE_VERSION, 'complete': False,
         'scene': scene_xml, 'scene_path': os.path.abspath(scene_xml),
@@ -606,8 +624,7 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
         'names': {split: [cam.name for cam in cameras[split]] for split in SPLITS},
         'resolution': [width, height], 'spp': spp, 'seed': seed, 'fov': float(fov),
         'radius': float(radius),
-        'normalization': {'center': [float(v) for v in center], 'scale': float(scale),
-                          'world_radius': float(1.0 / scale)},
+        'normalization': dict(norm.to_config(), world_radius=float(world_radius)),
         'layers': {
             'rgb/*.png': '8-bit sRGB encoding of the linear render (clipped to [0, 1])',
             'gt/*.exr': {
@@ -637,7 +654,7 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
             rgb = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
             images.append(to_srgb8(rgb))
             layers = {'R': rgb[..., 0], 'G': rgb[..., 1], 'B': rgb[..., 2]}
-            layers.update(render_ground_truth(scene, camera, center, 1.0 / scale,
+            layers.update(render_ground_truth(scene, camera, center, world_radius,
                                               aov_integrator))
             write_exr(os.path.join(out, split, 'gt', f'{i:06d}.exr'), layers)
             k += 1
@@ -652,54 +669,3 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
         print(f'wrote {views} views ({counts["train"]} train, {counts["validation"]} validation, '
               f'{counts["test"]} test) to {out} in {info["render_seconds"]:.1f} s')
     return dict(info, cached=False)
-
-
-# --- command line ------------------------------------------------------------------------------
-
-def _res_arg(value: str) -> tuple[int, int]:
-    try:
-        return parse_res(value)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
-def cmd_synth(args) -> None:
-    try:
-        synthesize(args.scene, args.out, views=args.views, res=args.res, spp=args.spp,
-                   trajectory=args.trajectory, seed=args.seed, fov=args.fov, radius=args.radius)
-    except (FileNotFoundError, FileExistsError, ValueError, RuntimeError) as e:
-        raise SystemExit(f'synth: {e}') from e
-
-
-def add_parser(sub) -> argparse.ArgumentParser:
-    """Register ``synth`` on the sub-command parsers of ``python -m mi_nerfpp``."""
-    p = sub.add_parser(
-        'synth', help='render a synthetic NeRF++ capture (images, poses, ground truth) of a '
-                      'Mitsuba scene',
-        description='Render posed views of a Mitsuba scene XML into the NeRF++ dataset layout, '
-                    'with ground-truth depth and foreground masks (DATA/{split}/gt/*.exr) and '
-                    'DATA/capture.json. An identical earlier capture in DATA is reused.')
-    p.add_argument('scene', help='Mitsuba scene XML (e.g. scenes/gt_garden.xml)')
-    p.add_argument('--out', required=True, metavar='DATA', help='output folder')
-    p.add_argument('--views', type=int, default=DEFAULT_VIEWS,
-                   help=f'number of views over all splits (default {DEFAULT_VIEWS}; 80/10/10 '
-                        f'train/validation/test)')
-    p.add_argument('--res', type=_res_arg, default=DEFAULT_RES, metavar='WxH',
-                   help='image size (default %dx%d)' % DEFAULT_RES)
-    p.add_argument('--spp', type=int, default=DEFAULT_SPP,
-                   help=f'samples per pixel (default {DEFAULT_SPP})')
-    p.add_argument('--trajectory', choices=TRAJECTORIES, default='orbit',
-                   help='orbit: jittered ring around the origin; truck: the Tanks and Temples '
-                        'Truck camera poses; hemisphere: random views on the upper hemisphere '
-                        '(elevation 5-75 deg); arc: DTU-like arc in front (train within +-50 '
-                        'deg azimuth; validation = interpolated views, test = extrapolated '
-                        'views at 65-90 deg; needs >= 3 views) (default orbit)')
-    p.add_argument('--seed', type=int, default=0, help='seed of cameras, splits and sampler')
-    p.add_argument('--fov', type=float, default=DEFAULT_FOV,
-                   help=f'horizontal field of view in degrees, ignored by truck '
-                        f'(default {DEFAULT_FOV:g})')
-    p.add_argument('--radius', type=float, default=DEFAULT_RADIUS,
-                   help=f'camera distance from the origin in world units (default '
-                        f'{DEFAULT_RADIUS:g})')
-    p.set_defaults(func=cmd_synth)
-    return p

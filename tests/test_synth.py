@@ -12,9 +12,7 @@ from mi_nerfpp.data import load_dataset, pixel_rays
 from mi_nerfpp.data.cameras import Camera
 from mi_nerfpp.exr import read_exr
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SCENES = os.path.join(ROOT, 'scenes')
-GARDEN = os.path.join(SCENES, 'gt_garden.xml')
+GARDEN = synth.scene_file('gt_garden.xml')
 TINY = dict(views=6, res=(16, 12), spp=4, progress=False)
 
 
@@ -44,8 +42,8 @@ def test_orbit_capture_loads_as_nerfpp_dataset(garden):
             assert cam.fov_x == pytest.approx(50.0)
     # The reader's normalization is the one that defines the foreground sphere of fg.A.
     norm = info['normalization']
-    np.testing.assert_allclose(ds.center, norm['center'], rtol=1e-9)
-    assert ds.scale == pytest.approx(norm['scale'], rel=1e-9)
+    np.testing.assert_allclose(ds.normalization.center, norm['center'], rtol=1e-9)
+    assert ds.normalization.scale == pytest.approx(norm['scale'], rel=1e-9)
     assert norm['world_radius'] == pytest.approx(1.0 / norm['scale'])
     # Images are not blank: the scene is lit and has colour.
     assert 0.05 < np.mean(ds.train.images) < 0.95
@@ -115,18 +113,18 @@ def test_depth_matches_ray_intersection_at_image_centre(garden):
 def test_second_call_is_cached_and_changes_rerender(tmp_path):
     out = tmp_path / 'cap'
     kw = dict(views=3, res=(8, 6), spp=1, progress=False)
-    first = synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out, **kw)
+    first = synth.synthesize(synth.scene_file('gt_bounded.xml'), out, **kw)
     assert not first['cached']
     files = sorted(out.rglob('*.*'))
     mtimes = {p: p.stat().st_mtime_ns for p in files}
-    again = synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out, **kw)
+    again = synth.synthesize(synth.scene_file('gt_bounded.xml'), out, **kw)
     assert again['cached']
     assert {p: p.stat().st_mtime_ns for p in sorted(out.rglob('*.*'))} == mtimes
     # A missing file, or other parameters, re-render over the earlier capture.
     os.remove(out / 'test' / 'gt' / '000000.exr')
-    assert not synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out, **kw)['cached']
+    assert not synth.synthesize(synth.scene_file('gt_bounded.xml'), out, **kw)['cached']
     assert (out / 'test' / 'gt' / '000000.exr').is_file()
-    changed = synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out,
+    changed = synth.synthesize(synth.scene_file('gt_bounded.xml'), out,
                                **dict(kw, views=4))
     assert not changed['cached'] and changed['views'] == {'train': 2, 'validation': 1, 'test': 1}
     assert len(load_dataset(out).train) == 2
@@ -134,7 +132,7 @@ def test_second_call_is_cached_and_changes_rerender(tmp_path):
 
 def test_truck_trajectory(tmp_path):
     out = tmp_path / 'truck'
-    info = synth.synthesize(os.path.join(SCENES, 'gt_bounded.xml'), out, trajectory='truck',
+    info = synth.synthesize(synth.scene_file('gt_bounded.xml'), out, trajectory='truck',
                             views=6, res=(20, 12), spp=1, progress=False)
     assert info['trajectory'] == 'truck'
     assert all(name.startswith('truck_train_') for name in info['names']['train'])
@@ -296,18 +294,18 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
 
 def test_command_line(tmp_path, capsys):
     out = tmp_path / 'cli'
-    assert main(['synth', os.path.join(SCENES, 'gt_plaza.xml'), '--out', str(out),
+    assert main(['synth', synth.scene_file('gt_plaza.xml'), '--out', str(out),
                  '--views', '3', '--res', '8x6', '--spp', '1', '--seed', '2']) == 0
     assert 'wrote 3 views' in capsys.readouterr().out
     assert json.loads((out / 'capture.json').read_text())['seed'] == 2
     arc = tmp_path / 'arc'
-    assert main(['synth', os.path.join(SCENES, 'gt_bounded.xml'), '--out', str(arc),
+    assert main(['synth', synth.scene_file('gt_bounded.xml'), '--out', str(arc),
                  '--views', '3', '--res', '4x3', '--spp', '1', '--trajectory', 'arc']) == 0
     info = json.loads((arc / 'capture.json').read_text())
     assert info['trajectory'] == 'arc' and info['names']['test'] == ['arc_002']
     assert len(load_dataset(arc).test) == 1
     with pytest.raises(SystemExit, match='at least 3 views'):
-        main(['synth', os.path.join(SCENES, 'gt_bounded.xml'), '--out', str(tmp_path / 'a2'),
+        main(['synth', synth.scene_file('gt_bounded.xml'), '--out', str(tmp_path / 'a2'),
               '--views', '2', '--res', '4x3', '--spp', '1', '--trajectory', 'arc'])
     from mi_nerfpp.cli import build_parser
     args = build_parser().parse_args(['synth', GARDEN, '--out', str(out),
@@ -326,3 +324,17 @@ def test_trajectory_data_ships_with_licence():
     for name in synth.TRUCK_FILES.values():
         assert (folder / name).is_file()
     assert 'BSD' in (folder / 'LICENSE-nerfplusplus-BSD-2').read_text()
+
+
+def test_scenes_ship_as_package_data_and_the_cache_is_per_user(monkeypatch, tmp_path):
+    from importlib import resources
+    folder = resources.files('mi_nerfpp') / 'scenes'
+    for name in ('gt_garden.xml', 'gt_plaza.xml', 'gt_bounded.xml', 'render_random.xml',
+                 'envmaps/forest_slope_1k.hdr', 'textures/paving.png'):
+        assert (folder / name).is_file(), name
+    assert synth.scene_file(synth.DEFAULT_SCENE) == str(folder / 'gt_garden.xml')
+    monkeypatch.delenv('MI_NERFPP_CACHE', raising=False)
+    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'xdg'))
+    assert synth.cache_dir() == str(tmp_path / 'xdg' / 'mi-nerfpp')
+    monkeypatch.setenv('MI_NERFPP_CACHE', str(tmp_path / 'mine'))
+    assert synth.cache_dir() == str(tmp_path / 'mine')

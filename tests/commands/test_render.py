@@ -1,5 +1,4 @@
 """`python -m mi_nerfpp render`: multi-layer EXR and PNG preview from a scene XML."""
-import os
 import subprocess
 import sys
 
@@ -7,14 +6,14 @@ import numpy as np
 import OpenEXR
 
 from mi_nerfpp.exr import read_exr
+from mi_nerfpp.synth import scene_file
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_render_command_writes_layered_exr_and_preview(tmp_path):
     out, png = tmp_path / 'out.exr', tmp_path / 'out.png'
     r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'render',
-                        os.path.join(ROOT, 'scenes', 'render_random.xml'), '-o', str(out),
+                        scene_file('render_random.xml'), '-o', str(out),
                         '--preview', str(png), '-D', 'res_x=12', '-D', 'res_y=8'],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr

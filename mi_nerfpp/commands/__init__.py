@@ -1,0 +1,27 @@
+"""The commands of ``python -m mi_nerfpp``: one module per command, each with
+``add_parser(subparsers)`` and ``run(args)``; library code lives in the package modules."""
+from __future__ import annotations
+
+import argparse
+
+from . import evaluate, optimize, render, synth, video
+
+COMMANDS = (render, optimize, synth, evaluate, video)
+
+
+def resolution(value: str) -> tuple[int, int]:
+    """argparse type of ``WxH`` options: a clear message instead of a raw ValueError."""
+    from ..synth import parse_res
+    try:
+        return parse_res(value)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def open_run_or_exit(run_dir):
+    """:func:`mi_nerfpp.train.open_run`, with problems reported as a command-line error."""
+    from ..train import TrainingError, open_run
+    try:
+        return open_run(run_dir)
+    except (TrainingError, ValueError) as e:
+        raise SystemExit(f'error: {e}') from None

@@ -1,0 +1,197 @@
+"""``python optimize.py`` / ``python -m mi_nerfpp optimize``: fit a NeRF++ to posed images.
+
+Progress bar with loss and PSNR, a preview of a held-out view every few hundred
+iterations, checkpoints that resume, and at the end held-out PSNR/SSIM
+(``metrics.json``), per-view EXRs and PNGs, a ready-to-render ``render.xml`` and a
+loss/PSNR-vs-time plot.
+
+Three steps: :func:`inputs` (dataset and :class:`~mi_nerfpp.train.TrainConfig` from the
+command line), :func:`train` (the :class:`~mi_nerfpp.train.Trainer` with a progress bar,
+previews and evaluations along the way) and :func:`report` (held-out evaluation, files and
+the summary printed).
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+# The embedded default (no DATA): the default capture is trained for this budget and also
+# evaluated after these minutes.
+DEFAULT_MINUTES = 10.0
+DEFAULT_EVAL_AT = (2.0, 5.0)
+
+
+def add_parser(sub):
+    from ..options import add_options
+    from ..train import TrainConfig
+    p = sub.add_parser('optimize', help='fit both volumes to a posed-image dataset',
+                       description=__doc__)
+    p.add_argument('data', nargs='?', help='dataset folder (NeRF++ layout, transforms.json or '
+                   'LLFF); default: synthesize and cache the embedded default scene and train '
+                   f'it for {DEFAULT_MINUTES:g} minutes')
+    p.add_argument('--out', help='run folder (default: runs/<dataset name>)')
+    p.add_argument('--resume', action='store_true', help='continue from OUT/model.npz')
+    p.add_argument('--eval-at', type=float, nargs='*', metavar='MIN',
+                   help='also evaluate the held-out views after these minutes of training '
+                   '(default run: ' + ' '.join(f'{m:g}' for m in DEFAULT_EVAL_AT) +
+                   '); recorded in metrics.json as "progress"')
+    add_options(p, TrainConfig)
+    p.set_defaults(func=run)
+    return p
+
+
+@dataclass
+class Inputs:
+    data: str
+    dataset: object
+    cfg: object
+    out: str
+    eval_at: list
+
+
+def inputs(args) -> Inputs:
+    """The dataset, the training config, the run folder and the evaluation times."""
+    from ..data import DatasetError, load_dataset
+    from ..options import values
+    from ..synth import default_capture
+    from ..train import TrainConfig
+
+    options = values(args, TrainConfig)
+    data, eval_at = args.data, args.eval_at
+    if data is None:
+        data = default_capture()
+        if options['iterations'] is None and options['minutes'] is None:
+            options['minutes'] = DEFAULT_MINUTES
+            eval_at = list(DEFAULT_EVAL_AT) if eval_at is None else eval_at
+    if not os.path.exists(data):
+        raise SystemExit(f'{data}: dataset folder not found')
+    try:
+        cfg = TrainConfig(**options)
+        dataset = load_dataset(data, downscale=cfg.downscale, background=cfg.background)
+    except DatasetError as e:
+        raise SystemExit(f'error: {e}') from None
+    except ValueError as e:
+        raise SystemExit(f'optimize: {e}') from None
+    out = args.out or os.path.join('runs', os.path.basename(os.path.normpath(data)))
+    return Inputs(data, dataset, cfg, out, sorted(eval_at or []))
+
+
+def train(trainer, inp: Inputs):
+    """Run ``trainer`` with a progress bar, previews and the evaluations of ``--eval-at``.
+
+    Returns ``(finished, progress_log)``; raises :class:`~mi_nerfpp.train.TrainingError`.
+    """
+    from tqdm import tqdm
+
+    from ..evaluate import evaluate_split
+    from ..preview import write_png
+    from ..views import ViewRenderer, rgb
+
+    cfg, out, eval_at = inp.cfg, inp.out, list(inp.eval_at)
+    background = cfg.model == 'nerfpp'
+    held_out = trainer.validation if len(trainer.validation) else trainer.test
+    test_views = trainer.test if len(trainer.test) else trainer.validation
+    by_time = cfg.iterations is None
+    bar = tqdm(total=round(60 * cfg.minutes) if by_time else cfg.iterations, unit='s' if by_time
+               else 'it', desc='optimize', dynamic_ncols=True, initial=round(trainer.elapsed)
+               if by_time else trainer.iteration)
+    progress_log = []
+    previews = ViewRenderer(trainer.model, cfg.sampling, background) if len(held_out) else None
+
+    def on_step(tr, loss, psnr):
+        bar.update(round(tr.elapsed) - bar.n if by_time else 1)
+        if tr.iteration % 10 == 0:
+            bar.set_postfix(it=tr.iteration, loss=f'{loss:.4f}', psnr=f'{psnr:.2f}')
+        while eval_at and tr.elapsed >= 60 * eval_at[0] and len(test_views):
+            minute = eval_at.pop(0)
+            r = evaluate_split(tr.model, test_views, os.path.join(out, f'test_at_{minute:g}min'),
+                               cfg.sampling, background=background)
+            progress_log.append({'minutes': minute, 'iteration': tr.iteration,
+                                 'psnr': r['psnr'], 'ssim': r['ssim']})
+            bar.write(f'after {minute:g} min ({tr.iteration} iterations): held-out PSNR '
+                      f'{r["psnr"]:.2f} dB, SSIM {r["ssim"]:.3f}')
+
+    def on_preview(tr):
+        if previews is not None:
+            write_png(os.path.join(out, 'preview', f'iter_{tr.iteration:06d}.png'),
+                      rgb(previews.render(held_out.cameras[0])), tr.model.color_space)
+
+    try:
+        return trainer.run(on_step=on_step, on_preview=on_preview), progress_log
+    finally:
+        bar.close()
+
+
+def plot_history(history, path):
+    """Loss and training PSNR against wall time."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    if not history:
+        return
+    it, t, loss, psnr = zip(*history)
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    ax[0].semilogy(t, loss)
+    ax[0].set(xlabel='seconds', ylabel='loss (coarse + fine MSE)')
+    ax[1].plot(t, psnr)
+    ax[1].set(xlabel='seconds', ylabel='training-batch PSNR (dB)')
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def report(trainer, inp: Inputs, progress_log, wall_seconds):
+    """Evaluate the held-out views, write the run's files and print the summary."""
+    from ..evaluate import finish_run
+
+    out = inp.out
+    metrics = finish_run(out, trainer.model, trainer.test if len(trainer.test) else
+                         trainer.validation, inp.cfg, trainer.checkpoint_path,
+                         {'dataset': os.path.abspath(inp.data), 'iterations': trainer.iteration,
+                          'train_seconds': round(trainer.elapsed, 2),
+                          'train_samples_per_second': trainer.samples_per_second(),
+                          'progress': progress_log})
+    plot_history(trainer.history, os.path.join(out, 'training.png'))
+
+    print(f'\ntrained {trainer.iteration} iterations in {trainer.elapsed / 60:.1f} min '
+          f'({metrics["train_samples_per_second"] / 1e6:.2f} M samples/s); '
+          f'wall time {wall_seconds:.0f} s')
+    if 'test' in metrics:
+        print(f'held-out views: PSNR {metrics["test"]["psnr"]:.2f} dB, '
+              f'SSIM {metrics["test"]["ssim"]:.3f} over {len(metrics["test"]["views"])} views')
+    print(f'written to {out}/: model.npz, metrics.json, test/*.exr|png, render.xml, '
+          f'training.png, preview/')
+    if 'test' in metrics:
+        print(f'render a view: python -m mi_nerfpp render {os.path.join(out, "render.xml")} '
+              f'-o view.exr --preview view.png')
+    return metrics
+
+
+def run(args):
+    from ..train import Trainer, TrainingError
+
+    inp = inputs(args)
+    try:
+        trainer = Trainer(inp.dataset, inp.out, inp.cfg, resume=args.resume)
+    except TrainingError as e:
+        raise SystemExit(f'error: {e}') from None
+    ds = inp.dataset
+    print(f'dataset {inp.data} ({ds.format}): {len(ds.train)} train / {len(ds.validation)} '
+          f'validation / {len(ds.test)} test views, {trainer.rays.size} training rays; '
+          f'run folder {inp.out}')
+    t_start = time.perf_counter()
+    try:
+        finished, progress_log = train(trainer, inp)
+    except TrainingError as e:
+        print(f'error: {e}', file=sys.stderr)
+        return 1
+    if not finished:
+        print(f'interrupted at iteration {trainer.iteration}: checkpoint saved to '
+              f'{trainer.checkpoint_path}; continue with --resume')
+        return 130
+    report(trainer, inp, progress_log, time.perf_counter() - t_start)
+    return 0

@@ -1,0 +1,51 @@
+"""``python -m mi_nerfpp synth SCENE.xml --out DATA``: a synthetic capture (:mod:`mi_nerfpp.synth`)."""
+from __future__ import annotations
+
+import argparse
+
+
+def run(args) -> None:
+    from ..synth import synthesize
+    try:
+        synthesize(args.scene, args.out, views=args.views, res=args.res, spp=args.spp,
+                   trajectory=args.trajectory, seed=args.seed, fov=args.fov, radius=args.radius)
+    except (FileNotFoundError, FileExistsError, ValueError, RuntimeError) as e:
+        raise SystemExit(f'synth: {e}') from e
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    """Register ``synth`` on the sub-command parsers of ``python -m mi_nerfpp``."""
+    from ..synth import (DEFAULT_FOV, DEFAULT_RADIUS, DEFAULT_RES, DEFAULT_SEED, DEFAULT_SPP,
+                         DEFAULT_TRAJECTORY, DEFAULT_VIEWS, TRAJECTORIES)
+    from . import resolution
+    p = sub.add_parser(
+        'synth', help='render a synthetic NeRF++ capture (images, poses, ground truth) of a '
+                      'Mitsuba scene',
+        description='Render posed views of a Mitsuba scene XML into the NeRF++ dataset layout, '
+                    'with ground-truth depth and foreground masks (DATA/{split}/gt/*.exr) and '
+                    'DATA/capture.json. An identical earlier capture in DATA is reused.')
+    p.add_argument('scene', help='Mitsuba scene XML (e.g. mi_nerfpp/scenes/gt_garden.xml)')
+    p.add_argument('--out', required=True, metavar='DATA', help='output folder')
+    p.add_argument('--views', type=int, default=DEFAULT_VIEWS,
+                   help=f'number of views over all splits (default {DEFAULT_VIEWS}; 80/10/10 '
+                        f'train/validation/test)')
+    p.add_argument('--res', type=resolution, default=DEFAULT_RES, metavar='WxH',
+                   help='image size (default %dx%d)' % DEFAULT_RES)
+    p.add_argument('--spp', type=int, default=DEFAULT_SPP,
+                   help=f'samples per pixel (default {DEFAULT_SPP})')
+    p.add_argument('--trajectory', choices=TRAJECTORIES, default=DEFAULT_TRAJECTORY,
+                   help='orbit: jittered ring around the origin; truck: the Tanks and Temples '
+                        'Truck camera poses; hemisphere: random views on the upper hemisphere '
+                        '(elevation 5-75 deg); arc: DTU-like arc in front (train within +-50 '
+                        'deg azimuth; validation = interpolated views, test = extrapolated '
+                        'views at 65-90 deg; needs >= 3 views) (default %(default)s)')
+    p.add_argument('--seed', type=int, default=DEFAULT_SEED,
+                   help='seed of cameras, splits and sampler (default %(default)s)')
+    p.add_argument('--fov', type=float, default=DEFAULT_FOV,
+                   help=f'horizontal field of view in degrees, ignored by truck '
+                        f'(default {DEFAULT_FOV:g})')
+    p.add_argument('--radius', type=float, default=DEFAULT_RADIUS,
+                   help=f'camera distance from the origin in world units (default '
+                        f'{DEFAULT_RADIUS:g})')
+    p.set_defaults(func=run)
+    return p

@@ -1,92 +1,20 @@
-"""Shared fixtures: tiny scenes and models that render in milliseconds."""
+"""Shared fixtures (the helpers they are built on are in tests/helpers.py)."""
 import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
 import mitsuba as mi
 import pytest
 
-from mi_nerfpp.model import NeRFPPModel
-
-TINY_GRID = dict(kind='grid', resolutions=[4, 8], channels=3, hidden=8, dir_octaves=1)
-
-
-def tiny_model(seed=0, background=True):
-    return NeRFPPModel.create(seed=seed, background=background,
-                              fg_config=dict(TINY_GRID, domain='ball'),
-                              bg_config=dict(TINY_GRID, domain='inverted_sphere'))
-
-
-def scene_dict(width=8, height=6, origin=(0.1, 0.2, 0.6), target=(0, 0, 0), spp=1, near_clip=0.01,
-               jitter=True, **integrator):
-    """A nerfpp scene; ``jitter=False`` puts every ray through its pixel centre."""
-    return {
-        'type': 'scene',
-        'integrator': dict({'type': 'nerfpp', 'fg_samples': 8, 'bg_samples': 8,
-                            'fine_samples': 8}, **integrator),
-        'sensor': {
-            'type': 'perspective', 'fov': 60, 'near_clip': near_clip,
-            'to_world': mi.ScalarTransform4f().look_at(origin=origin, target=target, up=[0, 1, 0]),
-            'sampler': {'type': 'stratified', 'sample_count': spp, 'jitter': jitter},
-            'film': {'type': 'hdrfilm', 'width': width, 'height': height,
-                     'rfilter': {'type': 'box'}, 'pixel_format': 'rgba'},
-        },
-    }
+from tests.helpers import make_capture, scene_dict, tiny_model
 
 
 @pytest.fixture
 def tiny_scene():
     """A small scene whose integrator holds a tiny seeded model."""
     scene = mi.load_dict(scene_dict())
-    scene.integrator().model = tiny_model()
+    scene.integrator().set_model(tiny_model())
     return scene
 
 
-def orbit_camera(angle, elevation, radius, width, height, focal=0.9):
-    """An OpenCV camera on a circle around the origin, looking at it."""
-    import numpy as np
-    from mi_nerfpp.data import Camera
-    c = radius * np.array([np.cos(angle) * np.cos(elevation), np.sin(elevation),
-                           np.sin(angle) * np.cos(elevation)])
-    z = -c / np.linalg.norm(c)
-    x = np.cross(z, [0.0, -1.0, 0.0])
-    x /= np.linalg.norm(x)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    c2w[:3, 3] = c
-    f = focal * width
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
-    return Camera(K, c2w, width, height)
-
-
-def make_capture(root, views=24, width=32, height=24, spp=8):
-    """Render a small unbounded capture (textured ball, ground, far cube, sky) in the NeRF++ layout.
-
-    Cameras orbit at radius 3 world units, so the reader normalizes them into the unit sphere.
-    Every 6th view is held out for test, the one after it for validation.
-    """
-    import numpy as np
-    from mi_nerfpp.data import mitsuba_sensor_dict, write_nerfpp
-    from mi_nerfpp.preview import to_srgb8
-    scene = mi.load_dict({
-        'type': 'scene', 'integrator': {'type': 'path', 'max_depth': 3},
-        'sky': {'type': 'constant', 'radiance': {'type': 'rgb', 'value': [0.6, 0.7, 0.9]}},
-        'ball': {'type': 'sphere', 'radius': 0.8, 'bsdf': {'type': 'diffuse', 'reflectance': {
-            'type': 'checkerboard', 'to_uv': mi.ScalarTransform4f().scale([4, 4, 1])}}},
-        'ground': {'type': 'rectangle',
-                   'to_world': mi.ScalarTransform4f().translate([0, -1, 0]).rotate([1, 0, 0], -90)
-                   .scale(30),
-                   'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': [0.5, 0.4, 0.2]}}},
-        'far': {'type': 'cube', 'to_world': mi.ScalarTransform4f().translate([8, 1, -6]).scale(2),
-                'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': [0.8, 0.1, 0.1]}}},
-    })
-    rng = np.random.default_rng(0)
-    cams, imgs = [], []
-    for i in range(views):
-        cam = orbit_camera(2 * np.pi * i / views, rng.uniform(0.1, 0.4), 3.0, width, height)
-        img = np.array(mi.render(scene, sensor=mi.load_dict(mitsuba_sensor_dict(cam, spp=spp))))
-        cams.append(cam)
-        imgs.append(to_srgb8(img[..., :3], 'linear').astype(np.float32) / 255)
-    idx = np.arange(views)
-    test, val = idx[::6], idx[1::6]
-    train = np.setdiff1d(idx, np.concatenate([test, val]))
-    write_nerfpp(root, {name: ([cams[i] for i in ids], [imgs[i] for i in ids])
-                        for name, ids in (('train', train), ('validation', val), ('test', test))})
-    return root
+@pytest.fixture(scope='session')
+def capture(tmp_path_factory):
+    """A small unbounded capture in the NeRF++ layout (see :func:`tests.helpers.make_capture`)."""
+    return make_capture(str(tmp_path_factory.mktemp('capture') / 'data'))

@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -32,10 +33,21 @@ def test_experiment_writes_its_table_figure_and_results(tmp_path, script, args, 
     table = (tmp_path / 'fig' / f'{name}.md').read_text().splitlines()
     assert len(table) == 2 + rows + 1            # header, rule, models, black-image reference
     assert table[-1].startswith('| black image')
-    results = json.loads((tmp_path / 'fig' / f'{name}.json').read_text())['results']
+    written = json.loads((tmp_path / 'fig' / f'{name}.json').read_text())
+    results, black = written['results'], written['black_image']
     assert len(results) == rows
-    for r in results.values():
-        for split in r.values():
-            if isinstance(split, dict) and 'psnr' in split:
-                assert split['psnr'] > 0 and -1 <= split['ssim'] <= 1
+    for model, r in results.items():
+        scored = {s: v for s, v in r.items() if isinstance(v, dict) and 'psnr' in v}
+        assert set(scored) == set(black)
+        for s, split in scored.items():
+            assert split['psnr'] > 0 and -1 <= split['ssim'] <= 1
+            # A score of a prediction against the capture: finite (not the ground truth scored
+            # against itself), not the all-black reference, object PSNR scored too.
+            assert np.isfinite(split['psnr']) and split['psnr'] < 60, (model, s, split)
+            assert abs(split['psnr'] - black[s]['psnr']) > 1e-3, (model, s, split)
+            assert np.isfinite(split['psnr_object']) and split['views'] > 0
+        # The table shows the JSON's numbers.
+        row = next(line for line in table if line.startswith(f'| {model} |'))
+        first = next(iter(scored.values()))
+        assert f"{first['psnr']:.2f}" in row, (row, first)
     assert 'wrote' in stdout

@@ -5,7 +5,8 @@ Importing the package
 1. points Dr.Jit at a libLLVM >= 17 when ``DRJIT_LIBLLVM_PATH`` is unset (and
    fails with :class:`LLVMNotFoundError` saying what to install when none exists),
 2. selects the ``llvm_ad_rgb`` variant unless the caller already chose one
-   (``cuda_ad_rgb`` works unchanged),
+   (``cuda_ad_rgb`` is accepted but untested: ``drjit.nn`` inside a Mitsuba plugin is
+   reported to crash on CUDA, mitsuba3 issue 1825),
 3. registers the ``nerfpp`` integrator with Mitsuba.
 """
 from __future__ import annotations

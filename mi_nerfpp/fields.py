@@ -1,6 +1,6 @@
 """Radiance fields: density σ(x) and colour c(x, d) of one volume.
 
-Two domains (DESIGN.md §3):
+Two domains (the two volumes of the paper's §4):
 
 * ``'ball'`` — the foreground, points ``p`` inside the unit sphere (3 inputs);
 * ``'inverted_sphere'`` — the background, ``(x̂, s)`` with ``x̂`` on the unit

@@ -1,4 +1,4 @@
-"""Ray geometry of NeRF++ (paper §4, DESIGN.md §2): the unit sphere and the inverted sphere.
+"""Ray geometry of NeRF++ (paper §4): the unit sphere and the inverted sphere.
 
 Pure functions on Dr.Jit arrays. Rays are ``r(t) = o + t·d`` with ``|d| = 1``.
 

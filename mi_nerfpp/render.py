@@ -16,9 +16,12 @@ colour ``Σ w_i c_i``, opacity ``Σ w_i``, depth ``Σ w_i t_i``.
   light is left is absorbed by the last sample, so the background is opaque.
   Depth of a background sample is ``t(s)`` with ``s`` clamped to
   ``>= 1/MAX_DEPTH_RADIUS``. Light absorbed by the last (infinite) interval is
-  given the distance of the last sample: with ``n`` midpoint samples it sits at
-  radius ``2n`` (128 unit-sphere radii for 64 coarse samples), never beyond
-  ``MAX_DEPTH_RADIUS``.
+  given the distance of the last sample. Without fine samples that is the last
+  coarse midpoint, ``v = 1 - 1/(2n)``: radius ``2n`` (128 unit-sphere radii for
+  64 coarse samples). With fine samples (the default) the last coarse bin, which
+  holds that absorbed weight, reaches ``v = 1`` (``s = 0``) and receives fine
+  samples up to it, so the last sample lies beyond ``MAX_DEPTH_RADIUS`` and the
+  absorbed light is placed at the cap, 1000 unit-sphere radii.
 
 Hierarchical sampling per volume: ``n_coarse`` stratified samples are shaded
 and composited; ``n_fine`` more are drawn from their weights by inverse CDF;

@@ -81,11 +81,12 @@ class NeRFPPIntegrator(ADIntegrator):
     def __init__(self, props):
         super().__init__(props)
         self.checkpoint = props.get('checkpoint', '')
+        default = Sampling()      # the XML defaults live in render.Sampling
         self.sampling = Sampling(
-            fg_samples=props.get('fg_samples', 64),
-            bg_samples=props.get('bg_samples', 64),
-            fine_samples=props.get('fine_samples', 128),
-            near=props.get('near', 0.0))
+            fg_samples=props.get('fg_samples', default.fg_samples),
+            bg_samples=props.get('bg_samples', default.bg_samples),
+            fine_samples=props.get('fine_samples', default.fine_samples),
+            near=props.get('near', default.near))
         for name in ('fg_samples', 'bg_samples'):
             if getattr(self.sampling, name) < 1:
                 raise ValueError(f'nerfpp: {name} must be >= 1')

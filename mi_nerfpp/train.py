@@ -19,6 +19,7 @@ a checkpoint trained with another value cannot be resumed.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import math
 import os
@@ -32,6 +33,7 @@ import numpy as np
 from . import optim
 from .checkpoint import load_checkpoint, save_checkpoint
 from .data import pixel_rays
+from .fields import GridField
 from .frame import NERF_CAMERA_RADIUS, reframe_cameras
 from .model import FIELD_KINDS, NeRFPPModel, default_field_config
 from .options import flag, option
@@ -43,6 +45,11 @@ DEFAULT_ITERATIONS = 2000     # the budget when neither iterations nor minutes i
 
 class TrainingError(RuntimeError):
     """Training cannot go on (diverged, or a resume that does not match)."""
+
+
+def _grid_default(name):
+    """A default of the grid field, read from :class:`~mi_nerfpp.fields.GridField` (its home)."""
+    return inspect.signature(GridField.__init__).parameters[name].default
 
 
 def _comma_floats(text):
@@ -87,14 +94,18 @@ class TrainConfig:
     distortion: float = option(0.0, 'weight of the mip-NeRF 360 distortion loss against '
                                'floaters (0: off; 0.01 measured 0.9 dB worse after 2 minutes '
                                'on the default capture)')
-    grid_levels: tuple = option((32, 128), 'grid field: resolution of each level',
+    grid_levels: tuple = option(tuple(_grid_default('resolutions')),
+                                'grid field: resolution of each level',
                                 metavar='RES', shapes_model=True)
-    grid_channels: int = option(4, 'grid field: channels per level', shapes_model=True)
-    dir_octaves: int = option(4, 'grid field: frequencies of the view-direction encoding',
+    grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
+                                shapes_model=True)
+    dir_octaves: int = option(_grid_default('dir_octaves'),
+                              'grid field: frequencies of the view-direction encoding',
                               shapes_model=True)
-    color_layers: int = option(1, 'grid field: hidden layers of the colour MLP',
-                               shapes_model=True)
-    color_width: int = option(32, 'grid field: width of the colour MLP', shapes_model=True)
+    color_layers: int = option(_grid_default('color_layers'),
+                               'grid field: hidden layers of the colour MLP', shapes_model=True)
+    color_width: int = option(_grid_default('hidden'), 'grid field: width of the colour MLP',
+                              shapes_model=True)
     seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
     checkpoint_every: int = option(500, 'iterations between checkpoints (0: only at the end)')
     preview_every: int = option(500, 'iterations between held-out previews (0: never)')

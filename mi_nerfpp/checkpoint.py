@@ -11,6 +11,8 @@ Keys:
   ``meta`` holds free-form information (iteration, dataset, training config, …);
 * ``param/<name>`` — float32 arrays of the learnable parameters, named as in
   ``NeRFPPModel.parameters()`` (``fg.grid0``, ``bg.color.layers.0.weights``, …);
+* ``occupancy/<volume>`` — the occupancy grid of a volume (``fg``/``bg``) when the model
+  skips empty space; its configuration is in ``config["occupancy"]``;
 * ``state/<name>`` — optional arrays of training state (optimizer moments, RNG)
   that rendering ignores.
 
@@ -29,6 +31,7 @@ from .fields import make_field
 from .files import atomic_write_path
 from .frame import Normalization
 from .model import NeRFPPModel
+from .occupancy import OccupancyGrid
 
 FORMAT = 'mi-nerfpp-checkpoint'
 VERSION = 2
@@ -47,6 +50,8 @@ def save_checkpoint(path, model, meta=None, state=None):
               'config': np.array(json.dumps(config))}
     for k, v in model.parameters().items():
         arrays[f'param/{k}'] = np.asarray(v.numpy(), dtype=np.float32)
+    for k, grid in model.occupancy.items():
+        arrays[f'occupancy/{k}'] = grid.numpy()
     for k, v in (state or {}).items():
         arrays[f'state/{k}'] = np.asarray(v)
     with atomic_write_path(path) as tmp, open(tmp, 'wb') as f:
@@ -79,8 +84,10 @@ def load_checkpoint(path, seed=0):
         config = json.loads(str(z['config']))
         fg = make_field(config['fg'], seed=seed)
         bg = make_field(config['bg'], seed=seed + 1) if config.get('bg') else None
+        occupancy = {k: OccupancyGrid(density=z[f'occupancy/{k}'], **c)
+                     for k, c in config.get('occupancy', {}).items()}
         model = NeRFPPModel(fg, bg, normalization=Normalization.from_config(config),
-                            color_space=config.get('color_space', 'srgb'))
+                            color_space=config.get('color_space', 'srgb'), occupancy=occupancy)
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None
 

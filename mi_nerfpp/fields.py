@@ -117,6 +117,10 @@ class Field:
         """
         raise NotImplementedError
 
+    def density(self, x):
+        """Density σ alone at sample points ``x`` (the domain's inputs, list of Floats)."""
+        raise NotImplementedError
+
     def set_parameters(self, values):
         """Replace parameters by name (arrays with matching shapes)."""
         for k, v in values.items():
@@ -255,7 +259,8 @@ class GridField(Field):
         u, v = direction_to_equirect(mi.Vector3f(x[0], x[1], x[2]))
         return [u, v, x[3]]
 
-    def __call__(self, x, d, ray):
+    def _lookup(self, x):
+        """Density logit and feature vector (all levels) at field inputs ``x``."""
         coords = self._grid_coords(x)
         density = mi.Float(self.density_bias)
         features = []
@@ -271,6 +276,13 @@ class GridField(Field):
             g = list(tex.eval(mi.Point3f(*c)))
             density += g[0]
             features += g[1:]
+        return density, features
+
+    def density(self, x):
+        return ACTIVATIONS[self.density_activation](self._lookup(x)[0])
+
+    def __call__(self, x, d, ray):
+        density, features = self._lookup(x)
         out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves), ray)
         return ACTIVATIONS[self.density_activation](density), mi.Color3f(*[sigmoid(o) for o in out])
 
@@ -316,6 +328,10 @@ class MLPField(Field):
         return dict(kind=self.structure, domain=self.domain, depth=self.depth, width=self.width,
                     pos_octaves=self.pos_octaves, dir_octaves=self.dir_octaves,
                     density_bias=self.density_bias)
+
+    def density(self, x):
+        return softplus(self.trunk(positional_encoding(list(x), self.pos_octaves))[0]
+                        + self.density_bias)
 
     def __call__(self, x, d, ray):
         gx = positional_encoding(list(x), self.pos_octaves)

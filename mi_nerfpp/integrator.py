@@ -136,7 +136,7 @@ class NeRFPPIntegrator(ADIntegrator):
         model = self.model
         o, d = model.normalization.to_model_rays(o, d)
         res = render_rays(o, d, model.fg, model.bg if self.background else None,
-                          self.sampling, seed)
+                          self.sampling, seed, occupancy=model.occupancy)
         fg = res.fg.fine
         bg = res.bg.fine.rgb if res.bg is not None else mi.Color3f(0.0)
         aovs = [fg.rgb.x, fg.rgb.y, fg.rgb.z, fg.opacity, bg.x, bg.y, bg.z, fg.opacity,

@@ -30,9 +30,12 @@ class NeRFPPModel:
     was fitted to sRGB-encoded photos (PNG/JPG), 'linear' for EXR inputs.
     """
 
-    def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb'):
+    def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb',
+                 occupancy=None):
         self.fg, self.bg = fg, bg
         self.normalization = normalization
+        # Volume name ('fg'/'bg') -> OccupancyGrid: empty-space skipping (none: sample everywhere).
+        self.occupancy = dict(occupancy or {})
         self.color_space = color_space
 
     @classmethod
@@ -47,7 +50,21 @@ class NeRFPPModel:
     @property
     def config(self):
         return {'fg': self.fg.config, 'bg': self.bg.config if self.bg else None,
-                'normalization': self.normalization.to_config(), 'color_space': self.color_space}
+                'normalization': self.normalization.to_config(), 'color_space': self.color_space,
+                'occupancy': {k: g.config for k, g in self.occupancy.items()}}
+
+    def enable_occupancy(self, resolution, threshold):
+        """Give every volume a fresh (all occupied) occupancy grid."""
+        from .occupancy import OccupancyGrid
+        self.occupancy = {'fg': OccupancyGrid('ball', resolution, threshold)}
+        if self.bg is not None:
+            self.occupancy['bg'] = OccupancyGrid('inverted_sphere', resolution, threshold)
+
+    def update_occupancy(self, seed, decay=None):
+        """Refresh the occupancy grids from the current fields."""
+        from .occupancy import DEFAULT_DECAY
+        for k, grid in self.occupancy.items():
+            grid.update(self.fg if k == 'fg' else self.bg, seed, DEFAULT_DECAY if decay is None else decay)
 
     def parameters(self):
         """All learnable arrays, named ``fg.<name>`` / ``bg.<name>`` (live references)."""

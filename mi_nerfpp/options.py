@@ -15,6 +15,7 @@ by one option taking one value per field, e.g. ``--samples FG BG FINE``). Tuple 
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
 
 
@@ -52,7 +53,7 @@ def add_options(parser, cls):
             if key in meta:
                 kwargs[key] = meta[key]
         if isinstance(f.default, bool):
-            kwargs['action'] = 'store_true'
+            kwargs['action'] = argparse.BooleanOptionalAction
         elif isinstance(f.default, tuple) and 'type' not in meta:
             kwargs.setdefault('nargs', '+')
             kwargs['type'] = type(f.default[0])

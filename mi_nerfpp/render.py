@@ -36,6 +36,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import geometry as geo
+from .occupancy import DEFAULT_BINS, OccupiedVolume
 from .sampling import flat_index, gather_merged, inverse_cdf, merge_order, stratified, uniforms
 
 MAX_DEPTH_RADIUS = 1000.0
@@ -224,19 +225,27 @@ class Sampling:
     near: float = 0.0
 
 
-def render_rays(o, d, fg_field, bg_field, sampling, seed=None):
+def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None):
     """Render rays ``o + t·d`` (``|d| = 1``) through the foreground and background volumes.
 
     ``bg_field=None`` renders the foreground volume alone (a bounded NeRF).
     ``seed`` (UInt32 per ray) jitters sample placement; None places samples
-    deterministically at strata midpoints.
+    deterministically at strata midpoints. ``occupancy`` (dict ``'fg'``/``'bg'`` ->
+    :class:`~.occupancy.OccupancyGrid`, either may be missing) places samples in
+    occupied space only (:class:`~.occupancy.OccupiedVolume`).
     """
     o, d = dr.detach(mi.Point3f(o)), dr.detach(mi.Vector3f(d))
-    fg = render_volume(Foreground(o, d, sampling.near), fg_field,
+    occupancy = occupancy or {}
+
+    def volume(v, key):
+        grid = occupancy.get(key)
+        return v if grid is None else OccupiedVolume(v, grid, DEFAULT_BINS[grid.domain])
+
+    fg = render_volume(volume(Foreground(o, d, sampling.near), 'fg'), fg_field,
                        sampling.fg_samples, sampling.fine_samples, seed, stream=0)
     bg = None
     if bg_field is not None:
-        bg = render_volume(Background(o, d), bg_field,
+        bg = render_volume(volume(Background(o, d), 'bg'), bg_field,
                            sampling.bg_samples, sampling.fine_samples, seed, stream=2)
     return RenderResult(fg=fg, bg=bg,
                         coarse=composite(fg.coarse, bg.coarse if bg else None),

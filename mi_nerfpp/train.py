@@ -94,6 +94,18 @@ class TrainConfig:
     distortion: float = option(0.0, 'weight of the mip-NeRF 360 distortion loss against '
                                'floaters (0: off; 0.01 measured 0.9 dB worse after 2 minutes '
                                'on the default capture)')
+    opacity_entropy: float = option(0.0, 'weight of the binary-entropy prior on the foreground '
+                                    'opacity of each ray (pushes it to 0 or 1)')
+    entropy_start: float = option(0.0, 'fraction of the run after which the entropy prior applies')
+    tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
+    tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
+    density_bias: float = option(_grid_default('density_bias'),
+                                 'grid field: initial density logit', shapes_model=True)
+    occupancy: bool = option(False, 'skip empty space: an occupancy grid per volume places the '
+                             'samples', shapes_model=True)
+    occupancy_res: int = option(64, 'resolution of the occupancy grids', shapes_model=True)
+    occupancy_threshold: float = option(0.01, 'density below which an occupancy cell is empty')
+    occupancy_every: int = option(16, 'steps between refreshes of the occupancy grids')
     grid_levels: tuple = option(tuple(_grid_default('resolutions')),
                                 'grid field: resolution of each level',
                                 metavar='RES', shapes_model=True)
@@ -132,7 +144,8 @@ class TrainConfig:
             return default_field_config(kind, domain)
         return dict(kind='grid', domain=domain, resolutions=list(self.grid_levels),
                     channels=self.grid_channels, dir_octaves=self.dir_octaves,
-                    color_layers=self.color_layers, hidden=self.color_width)
+                    color_layers=self.color_layers, hidden=self.color_width,
+                    density_bias=self.density_bias)
 
     @property
     def sampling(self):
@@ -243,6 +256,8 @@ class Trainer:
                 color_space=dataset.color_space,
                 fg_config=config.field_config(config.field, 'ball'),
                 bg_config=config.field_config(config.bg_field, 'inverted_sphere'))
+            if config.occupancy:
+                self.model.enable_occupancy(config.occupancy_res, config.occupancy_threshold)
         self.rng = np.random.default_rng(config.seed)
         if 'rng' in meta:
             self.rng.bit_generator.state = meta['rng']
@@ -287,18 +302,38 @@ class Trainer:
         seed = mi.UInt32(self.rng.integers(0, 2 ** 32, cfg.batch_rays, dtype=np.uint64)
                          .astype(np.uint32))
         o, d, gt = self.rays.batch(index)
+        if self.model.occupancy and self.iteration % cfg.occupancy_every == 0:
+            self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+            self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
         self.model.set_parameters({k: self.opt[k] for k in self.opt.keys()})
-        res = render_rays(o, d, self.model.fg, self.model.bg, cfg.sampling, seed=seed)
+        res = render_rays(o, d, self.model.fg, self.model.bg, cfg.sampling, seed=seed,
+                          occupancy=self.model.occupancy)
         fine = optim.mse(res.fine.rgb, gt)
         loss = fine + optim.mse(res.coarse.rgb, gt)
         if cfg.distortion > 0:
             for vol in (res.fg, res.bg):
                 if vol is not None:
                     loss += cfg.distortion * dr.mean(distortion(vol.weights, vol.position, vol.n))
+        if cfg.opacity_entropy > 0 and self.progress() >= cfg.entropy_start:
+            a = dr.clip(res.fg.fine.opacity, 1e-4, 1.0 - 1e-4)
+            loss += cfg.opacity_entropy * dr.mean(-(a * dr.log(a) + (1.0 - a) * dr.log(1.0 - a)))
+        if cfg.tv > 0:
+            loss += cfg.tv * self._tv_loss()
         dr.backward(loss)
         self.opt.step()
         self.iteration += 1
         return float(loss.array[0]), float(fine.array[0])
+
+    def _tv_loss(self):
+        """Total variation of every grid level, estimated on random cells (see :func:`grid_tv`)."""
+        total = mi.Float(0.0)
+        for k in self.opt.keys():
+            if self._is_grid(k):
+                shape = self.opt[k].shape
+                cells = shape[0] * shape[1] * shape[2]
+                idx = mi.UInt32(self.rng.integers(0, cells, min(self.cfg.tv_cells, cells)))
+                total += grid_tv(self.opt[k], idx)
+        return total
 
     def save(self):
         self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
@@ -351,6 +386,24 @@ class Trainer:
     def samples_per_second(self):
         """Field evaluations per second of training so far (coarse + fine, both volumes)."""
         return samples_per_second(self.cfg, self.iteration, self.elapsed)
+
+
+def grid_tv(grid, cells):
+    """Mean squared difference between cells and their +x, +y, +z neighbours (clamped at the
+    border), over the cell indices ``cells`` of a (Z, Y, X, C) grid tensor, per channel."""
+    Z, Y, X, C = grid.shape
+    x = cells % X
+    y = (cells // X) % Y
+    z = cells // (X * Y)
+    total = mi.Float(0.0)
+    for c in range(C):
+        def at(zz, yy, xx):
+            return dr.gather(mi.Float, grid.array, ((zz * Y + yy) * X + xx) * C + c)
+        v = at(z, y, x)
+        for n in (at(z, y, dr.minimum(x + 1, X - 1)), at(z, dr.minimum(y + 1, Y - 1), x),
+                  at(dr.minimum(z + 1, Z - 1), y, x)):
+            total += dr.mean(dr.square(n - v))
+    return total / C
 
 
 def samples_per_second(cfg, iterations, seconds):

@@ -1,0 +1,166 @@
+"""Empty-space skipping: an occupancy grid per volume and the sample coordinate it induces.
+
+An :class:`OccupancyGrid` covers the domain of one volume's field with coarse cells
+(the unit ball: ``R³`` cells over ``[-1, 1]³``; the inverted sphere: longitude ×
+colatitude × ``s`` cells, ``R × R/2 × R/4``) and holds, per cell, a running maximum
+of the field's density at jittered points in the cell (instant-ngp's density
+grid: ``d ← max(decay·d, σ(x))``, refreshed every few training steps). A cell is
+*occupied* when its density exceeds ``threshold``.
+
+:class:`OccupiedVolume` wraps a volume of :mod:`.render` and replaces its ray
+parameter ``v`` by ``u ∈ [0, 1]``, the fraction of the ray's *occupied length*
+before the point: ``K`` bins of equal length along ``[lo, hi]`` are looked up in
+the grid, an empty bin counts ``EMPTY_WEIGHT`` of its length, and ``u`` is the
+normalized cumulative sum. Stratified and hierarchical samples drawn uniformly in
+``u`` therefore land in occupied space, and the quadrature interval of a sample,
+``Δu·L_occ``, is the occupied length it stands for: empty space contributes
+(almost) nothing, whatever the field holds there. That is the convention of
+instant-ngp and nerfacc (density in empty cells is zero), expressed in the fixed
+sample layout that the rest of :mod:`.render` uses, so training and the
+integrator share one sampler.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .geometry import direction_to_equirect
+from .sampling import flat_index
+
+# Weight of an empty bin's length in the occupied-length coordinate: small enough
+# that empty space absorbs nothing visible, non-zero so that a ray through empty
+# space alone still has a well-defined, monotonic coordinate.
+EMPTY_WEIGHT = 1e-3
+DEFAULT_RESOLUTION = 64
+DEFAULT_THRESHOLD = 0.01     # density (per unit of the volume's parameter) below which a cell is empty
+DEFAULT_DECAY = 0.95
+DEFAULT_BINS = {'ball': 128, 'inverted_sphere': 64}
+# Density a new grid starts with: every cell occupied until the first update from the field.
+INITIAL_DENSITY = 1e4
+
+
+class OccupancyGrid:
+    """Occupied cells of one volume's domain (see module docs)."""
+
+    def __init__(self, domain, resolution=DEFAULT_RESOLUTION, threshold=DEFAULT_THRESHOLD,
+                 density=None):
+        if domain not in ('ball', 'inverted_sphere'):
+            raise ValueError(f"unknown occupancy domain '{domain}'")
+        if resolution < 4:
+            raise ValueError(f'occupancy resolution must be >= 4, got {resolution}')
+        self.domain, self.resolution, self.threshold = domain, int(resolution), float(threshold)
+        r = self.resolution
+        # (Z, Y, X): the last axis varies fastest in the flat index.
+        self.shape = (r, r, r) if domain == 'ball' else (max(r // 4, 4), max(r // 2, 4), r)
+        n = int(np.prod(self.shape))
+        # A new grid takes the field's density at its first update (no running maximum).
+        self.fresh = density is None
+        if density is None:
+            self.density = dr.full(mi.Float, INITIAL_DENSITY, n)
+        else:
+            density = np.asarray(density, dtype=np.float32).ravel()
+            if density.size != n:
+                raise ValueError(f'occupancy grid of {self.shape} needs {n} values, got {density.size}')
+            self.density = mi.Float(density)
+
+    @property
+    def config(self):
+        return {'domain': self.domain, 'resolution': self.resolution, 'threshold': self.threshold}
+
+    def _coords(self, x):
+        """Field inputs -> coordinates in [0, 1]³ ordered (X, Y, Z) like :attr:`shape` reversed."""
+        if self.domain == 'ball':
+            return [dr.fma(c, 0.5, 0.5) for c in x]
+        u, v = direction_to_equirect(mi.Vector3f(x[0], x[1], x[2]))
+        return [u, v, x[3]]
+
+    def cell(self, x):
+        """Flat cell index of field inputs ``x`` (list of Floats), clamped to the grid."""
+        Z, Y, X = self.shape
+        idx = [mi.UInt32(dr.clip(mi.Int32(dr.floor(c * n)), 0, n - 1))
+               for c, n in zip(self._coords(x), (X, Y, Z))]
+        return (idx[2] * Y + idx[1]) * X + idx[0]
+
+    def occupied(self, x):
+        """Whether the cells of ``x`` are occupied (Bool per point)."""
+        return dr.gather(mi.Float, self.density, self.cell(x)) > self.threshold
+
+    def fraction(self):
+        """Fraction of occupied cells."""
+        return float(dr.mean(mi.Float(self.density > self.threshold)).array[0])
+
+    def cell_points(self, xi):
+        """Field inputs of one point per cell, at fraction ``xi`` (Point3f of [0,1]³) within it."""
+        Z, Y, X = self.shape
+        i = dr.arange(mi.UInt32, X * Y * Z)
+        cx, cy, cz = i % X, (i // X) % Y, i // (X * Y)
+        c = [(mi.Float(cx) + xi.x) / X, (mi.Float(cy) + xi.y) / Y, (mi.Float(cz) + xi.z) / Z]
+        if self.domain == 'ball':
+            return [dr.fma(v, 2.0, -1.0) for v in c]
+        lon = (c[0] - 0.5) * (2.0 * dr.pi)
+        sin_t, cos_t = dr.sincos(c[1] * dr.pi)
+        sin_p, cos_p = dr.sincos(lon)
+        return [sin_t * cos_p, sin_t * sin_p, cos_t, c[2]]
+
+    def update(self, field, seed, decay=DEFAULT_DECAY):
+        """``density ← max(decay·density, σ(x))`` at one jittered point per cell."""
+        n = dr.width(self.density)
+        rng = mi.PCG32(size=n, initstate=seed)
+        xi = mi.Point3f(rng.next_float32(), rng.next_float32(), rng.next_float32())
+        with dr.suspend_grad():
+            sigma = field.density(self.cell_points(xi))
+        sigma = dr.detach(sigma)
+        self.density = sigma if self.fresh else dr.maximum(self.density * decay, sigma)
+        self.fresh = False
+        dr.eval(self.density)
+
+    def numpy(self):
+        return self.density.numpy().reshape(self.shape)
+
+
+class OccupiedVolume:
+    """A volume of :mod:`.render` re-parametrized by occupied length (see module docs)."""
+
+    def __init__(self, volume, grid, bins):
+        self.base, self.bins = volume, int(bins)
+        self.infinite_last = volume.infinite_last
+        self.d = volume.d
+        n_rays = dr.width(volume.lo)
+        ray, k = flat_index(n_rays, self.bins)
+        lo, hi = dr.gather(mi.Float, volume.lo, ray), dr.gather(mi.Float, volume.hi, ray)
+        width = (hi - lo) * (1.0 / self.bins)
+        mid = dr.fma(mi.Float(k) + 0.5, width, lo)
+        mass = width * dr.select(grid.occupied(volume.inputs(ray, mid)), 1.0, EMPTY_WEIGHT)
+        self.mass = dr.maximum(mass, 1e-12)
+        self.cdf = dr.block_prefix_sum(self.mass, self.bins, exclusive=True)
+        self.total = dr.block_sum(self.mass, self.bins)
+        dr.eval(self.mass, self.cdf, self.total)
+        self.lo = dr.zeros(mi.Float, n_rays)
+        self.hi = dr.ones(mi.Float, n_rays)
+
+    def base_parameter(self, ray, u):
+        """The wrapped volume's parameter ``v`` at occupied-length fraction ``u``."""
+        K = self.bins
+        target = u * dr.gather(mi.Float, self.total, ray)
+        base = ray * K
+        first_above = dr.binary_search(
+            0, K, lambda k: dr.gather(mi.Float, self.cdf, base + k, k < K) <= target)
+        b = base + mi.UInt32(dr.maximum(mi.Int32(first_above) - 1, 0))
+        frac = dr.clip((target - dr.gather(mi.Float, self.cdf, b)) / dr.gather(mi.Float, self.mass, b),
+                       0.0, 1.0)
+        lo = dr.gather(mi.Float, self.base.lo, ray)
+        hi = dr.gather(mi.Float, self.base.hi, ray)
+        return dr.fma((mi.Float(b - base) + frac) * (1.0 / K), hi - lo, lo)
+
+    def inputs(self, ray, u):
+        return self.base.inputs(ray, self.base_parameter(ray, u))
+
+    def delta_scale(self, ray):
+        return dr.gather(mi.Float, self.total, ray) * self.base.delta_scale(ray)
+
+    def distance(self, ray, u):
+        return self.base.distance(ray, self.base_parameter(ray, u))
+
+    def normalized(self, ray, u):
+        return u

@@ -253,6 +253,26 @@ class GridField(Field):
                     color_layers=self.color_layers, density_bias=self.density_bias,
                     density_activation=self.density_activation)
 
+    def upsample(self, level, resolution):
+        """Resample grid ``level`` to ``resolution`` by trilinear interpolation of the current grid
+        (coarse-to-fine training): the field is unchanged up to interpolation error."""
+        shape = self._grid_shape(int(resolution))
+        Z, Y, X = shape
+        i = dr.arange(mi.UInt32, X * Y * Z)
+        # Cell centres of the new grid in texture coordinates (x, y, z) = (X, Y, Z) axes.
+        p = mi.Point3f((mi.Float(i % X) + 0.5) / X, (mi.Float((i // X) % Y) + 0.5) / Y,
+                       (mi.Float(i // (X * Y)) + 0.5) / Z)
+        tex = self.textures[level]
+        with dr.suspend_grad():
+            tex.set_tensor(dr.detach(self.params[f'grid{level}']))
+            values = tex.eval(p)
+        data = dr.zeros(mi.Float, X * Y * Z * self.channels)
+        for c, v in enumerate(values):
+            dr.scatter(data, v, i * self.channels + c)
+        self.resolutions[level] = int(resolution)
+        self.params[f'grid{level}'] = mi.TensorXf(data, shape + (self.channels,))
+        tex.set_tensor(self.params[f'grid{level}'])
+
     def _grid_coords(self, x):
         if self.domain == 'ball':
             return [dr.fma(c, 0.5, 0.5) for c in x]

@@ -41,6 +41,10 @@ from .sampling import flat_index, gather_merged, inverse_cdf, merge_order, strat
 
 MAX_DEPTH_RADIUS = 1000.0
 INFINITE_DELTA = 1e10
+# Early ray termination between the volumes: where the foreground lets less than this
+# fraction of light through (λ), the background is not rendered. Colours are in [0, 1],
+# so the composite changes by at most this much.
+OCCLUDED_TRANSMITTANCE = 1e-4
 
 
 @dataclass
@@ -225,14 +229,38 @@ class Sampling:
     near: float = 0.0
 
 
-def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None):
+def _render_visible_background(o, d, fg, render, seed):
+    """The background of the rays that the foreground does not occlude, zero elsewhere."""
+    n_rays = dr.width(fg.fine.opacity)
+    dr.eval(fg.fine.opacity)
+    visible = dr.compress(1.0 - fg.fine.opacity > OCCLUDED_TRANSMITTANCE)
+
+    def expand(shading):
+        out = Shading(rgb=dr.zeros(mi.Color3f, n_rays), opacity=dr.zeros(mi.Float, n_rays),
+                      depth=dr.zeros(mi.Float, n_rays))
+        if shading is not None:
+            for name in ('rgb', 'opacity', 'depth'):
+                dr.scatter(getattr(out, name), getattr(shading, name), visible)
+        return out
+
+    if dr.width(visible) == 0:
+        return VolumeRender(expand(None), expand(None), None, None, 0)
+    sub = render(dr.gather(mi.Point3f, o, visible), dr.gather(mi.Vector3f, d, visible),
+                 None if seed is None else dr.gather(mi.UInt32, seed, visible))
+    return VolumeRender(expand(sub.coarse), expand(sub.fine), None, None, sub.n)
+
+
+def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
+                skip_occluded=False):
     """Render rays ``o + t·d`` (``|d| = 1``) through the foreground and background volumes.
 
     ``bg_field=None`` renders the foreground volume alone (a bounded NeRF).
     ``seed`` (UInt32 per ray) jitters sample placement; None places samples
     deterministically at strata midpoints. ``occupancy`` (dict ``'fg'``/``'bg'`` ->
     :class:`~.occupancy.OccupancyGrid`, either may be missing) places samples in
-    occupied space only (:class:`~.occupancy.OccupiedVolume`).
+    occupied space only (:class:`~.occupancy.OccupiedVolume`). ``skip_occluded`` (primal
+    rendering only) renders the background only for rays whose foreground transmittance
+    ``λ`` exceeds :data:`OCCLUDED_TRANSMITTANCE`; elsewhere its layers are zero.
     """
     o, d = dr.detach(mi.Point3f(o)), dr.detach(mi.Vector3f(d))
     occupancy = occupancy or {}
@@ -244,7 +272,11 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None):
     fg = render_volume(volume(Foreground(o, d, sampling.near), 'fg'), fg_field,
                        sampling.fg_samples, sampling.fine_samples, seed, stream=0)
     bg = None
-    if bg_field is not None:
+    if bg_field is not None and skip_occluded:
+        bg = _render_visible_background(o, d, fg, lambda o, d, seed: render_volume(
+            volume(Background(o, d), 'bg'), bg_field, sampling.bg_samples,
+            sampling.fine_samples, seed, stream=2), seed)
+    elif bg_field is not None:
         bg = render_volume(volume(Background(o, d), 'bg'), bg_field,
                            sampling.bg_samples, sampling.fine_samples, seed, stream=2)
     return RenderResult(fg=fg, bg=bg,

@@ -109,6 +109,9 @@ class TrainConfig:
     grid_levels: tuple = option(tuple(_grid_default('resolutions')),
                                 'grid field: resolution of each level',
                                 metavar='RES', shapes_model=True)
+    coarse_to_fine: tuple = option((), 'grid field: fractions of the run at which the grids '
+                                   'double in resolution (they start at RES / 2^n)', type=float,
+                                   nargs='*', metavar='F', shapes_model=True)
     grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
                                 shapes_model=True)
     dir_octaves: int = option(_grid_default('dir_octaves'),
@@ -142,7 +145,8 @@ class TrainConfig:
         """The field config of one volume: the grid options apply to grid fields only."""
         if kind != 'grid':
             return default_field_config(kind, domain)
-        return dict(kind='grid', domain=domain, resolutions=list(self.grid_levels),
+        start = [max(r >> len(self.coarse_to_fine), 4) for r in self.grid_levels]
+        return dict(kind='grid', domain=domain, resolutions=start,
                     channels=self.grid_channels, dir_octaves=self.dir_octaves,
                     color_layers=self.color_layers, hidden=self.color_width,
                     density_bias=self.density_bias)
@@ -297,6 +301,7 @@ class Trainer:
     def step(self):
         """One optimization step. Returns ``(loss, fine-pass MSE)`` as Python floats."""
         cfg = self.cfg
+        self._coarse_to_fine()
         optim.set_learning_rates(self.opt, self.progress(), cfg.lr_grid, cfg.lr_mlp, cfg.lr_final)
         index = self.rng.integers(0, self.rays.size, cfg.batch_rays)
         seed = mi.UInt32(self.rng.integers(0, 2 ** 32, cfg.batch_rays, dtype=np.uint64)
@@ -324,11 +329,25 @@ class Trainer:
         self.iteration += 1
         return float(loss.array[0]), float(fine.array[0])
 
+    def _coarse_to_fine(self):
+        """Double the grids' resolution at each ``coarse_to_fine`` fraction of the run passed."""
+        due = sum(self.progress() >= f for f in self.cfg.coarse_to_fine)
+        for volume, field in (('fg', self.model.fg), ('bg', self.model.bg)):
+            if field is None or field.kind != 'grid':
+                continue
+            for level, final in enumerate(self.cfg.grid_levels):
+                target = max(final >> (len(self.cfg.coarse_to_fine) - due), 4)
+                if field.resolutions[level] < target:
+                    key = f'{volume}.grid{level}'
+                    field.set_parameters({f'grid{level}': dr.detach(self.opt[key])})
+                    field.upsample(level, target)
+                    self.opt[key] = field.params[f'grid{level}']   # new shape: fresh Adam moments
+
     def _tv_loss(self):
         """Total variation of every grid level, estimated on random cells (see :func:`grid_tv`)."""
         total = mi.Float(0.0)
         for k in self.opt.keys():
-            if self._is_grid(k):
+            if optim.is_grid(k):
                 shape = self.opt[k].shape
                 cells = shape[0] * shape[1] * shape[2]
                 idx = mi.UInt32(self.rng.integers(0, cells, min(self.cfg.tv_cells, cells)))

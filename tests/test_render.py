@@ -369,3 +369,31 @@ def test_distortion_loss_matches_pairwise_definition():
     spread = np.full((1, n), 0.1)
     assert np.array(distortion(F(w1.ravel()), F(m[0]), n))[0] < \
         np.array(distortion(F(spread.ravel()), F(m[0]), n))[0]
+
+
+def test_skipping_the_occluded_background_changes_the_composite_by_at_most_its_threshold():
+    """Early termination between the volumes: rays whose foreground transmittance λ is below
+    OCCLUDED_TRANSMITTANCE get no background; the composite moves by at most λ·C_bg ≤ 1e-4
+    (colours ≤ 1), and rays that see the background render it exactly as before."""
+    from mi_nerfpp.render import OCCLUDED_TRANSMITTANCE
+
+    def half_opaque(x, d, ray):          # opaque for x > 0, clear elsewhere
+        n = dr.width(x[0])
+        return dr.select(x[0] > 0.0, 200.0, 0.0), mi.Color3f(*[dr.full(mi.Float, c, n) for c in (1, 0, 0)])
+
+    o, d = rays(256, seed=3)
+    sampling = Sampling(32, 16, 16)
+    bg_field = constant_field(0.7, (0.1, 0.9, 1.0))
+    full = render_rays(o, d, half_opaque, bg_field, sampling)
+    skip = render_rays(o, d, half_opaque, bg_field, sampling, skip_occluded=True)
+    lam = 1.0 - npf(full.fg.fine.opacity)
+    occluded = lam <= OCCLUDED_TRANSMITTANCE
+    assert 0.1 < occluded.mean() < 0.9
+    np.testing.assert_allclose(npf(skip.fine.rgb, 256), npf(full.fine.rgb, 256), atol=OCCLUDED_TRANSMITTANCE)
+    assert (npf(skip.bg.fine.rgb, 256)[:, occluded] == 0).all()
+    np.testing.assert_allclose(npf(skip.bg.fine.rgb, 256)[:, ~occluded],
+                               npf(full.bg.fine.rgb, 256)[:, ~occluded], atol=1e-6)
+    # All rays occluded: no background is rendered at all.
+    o_in = mi.Point3f(0.5, 0.0, 0.0)
+    none = render_rays(o_in, mi.Vector3f(1, 0, 0), half_opaque, bg_field, sampling, skip_occluded=True)
+    assert npf(none.bg.fine.opacity)[0] == 0.0

@@ -52,3 +52,28 @@ def ssim(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> float:
     win_size = _ssim_win_size(*pred.shape[:2])
     return float(structural_similarity(
         pred, gt, win_size=win_size, channel_axis=-1, data_range=data_range))
+
+
+def separation(alpha: np.ndarray, alpha_gt: np.ndarray, depth: np.ndarray | None = None,
+               depth_gt: np.ndarray | None = None, soft: tuple[float, float] = (0.05, 0.95)) -> dict:
+    """How cleanly a render splits foreground from background, against ground truth.
+
+    ``alpha``: the foreground opacity (``fg.A``); ``alpha_gt``: the true mask (1 where the
+    visible surface lies in the foreground sphere, as ``synth`` writes it). Returns
+    ``alpha_error`` (mean absolute difference), ``leak`` (mean opacity where the mask is 0:
+    the veil a compositor would lay over a new plate), ``soft_fraction`` (pixels with
+    ``soft[0] < alpha < soft[1]``) and, given depths, ``depth_error`` (median relative
+    error where the mask is 1). A quantity with no pixels to average is NaN.
+    """
+    alpha, alpha_gt = np.asarray(alpha, np.float64), np.asarray(alpha_gt, np.float64)
+    if alpha.shape != alpha_gt.shape:
+        raise ValueError(f'alpha shapes differ: {alpha.shape} vs {alpha_gt.shape}')
+    empty, full = alpha_gt == 0, alpha_gt == 1
+    out = {'alpha_error': float(np.mean(np.abs(alpha - alpha_gt))),
+           'leak': float(np.mean(alpha[empty])) if empty.any() else float('nan'),
+           'soft_fraction': float(np.mean((alpha > soft[0]) & (alpha < soft[1])))}
+    if depth is not None and depth_gt is not None:
+        valid = full & (np.asarray(depth_gt) > 0)
+        rel = np.abs(np.asarray(depth, np.float64) - depth_gt) / np.where(valid, depth_gt, 1.0)
+        out['depth_error'] = float(np.median(rel[valid])) if valid.any() else float('nan')
+    return out

@@ -89,3 +89,19 @@ def test_shape_mismatch(fn):
         fn(np.zeros((8, 8, 3)), np.zeros((8, 9, 3)))
     with pytest.raises(ValueError, match='H x W x C'):
         fn(np.zeros((8, 8)), np.zeros((8, 8)))
+
+
+def test_separation_against_a_hand_computed_example():
+    from mi_nerfpp.metrics import separation
+    gt = np.array([[1.0, 1.0, 0.0, 0.0]])
+    alpha = np.array([[1.0, 0.5, 0.1, 0.0]])
+    depth_gt = np.array([[2.0, 4.0, 0.0, 0.0]])
+    depth = np.array([[2.2, 4.0, 9.0, 9.0]])
+    s = separation(alpha, gt, depth, depth_gt)
+    assert s['alpha_error'] == pytest.approx((0.5 + 0.1) / 4)
+    assert s['leak'] == pytest.approx(0.05)
+    assert s['soft_fraction'] == pytest.approx(0.5)          # 0.5 and 0.1
+    assert s['depth_error'] == pytest.approx(0.05)           # median of 0.1 and 0
+    assert np.isnan(separation(alpha[:, :2], gt[:, :2])['leak'])
+    with pytest.raises(ValueError, match='alpha shapes'):
+        separation(alpha, gt[:, :2])

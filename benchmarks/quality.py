@@ -62,8 +62,8 @@ def main():
     a = ap.parse_args(argv)
 
     import mi_nerfpp  # noqa: F401
-    from mi_nerfpp.optimize import default_dataset
-    data = a.data or default_dataset()
+    from mi_nerfpp.synth import default_capture
+    data = a.data or default_capture()
     eval_at = [m for m in a.eval_at if m < a.minutes]
     cmd = [sys.executable, '-m', 'mi_nerfpp', 'optimize', data, '--out', a.out, '--minutes',
            str(a.minutes), '--preview-every', '0', '--eval-at', *map(str, eval_at)] + extra

@@ -96,10 +96,11 @@ def train(dataset, out, cfg):
 
 
 def render_views(model, split, sampling, background=True):
-    """RGB renders of every view of a split through the ``nerfpp`` integrator."""
-    from mi_nerfpp.views import ViewRenderer, rgb
+    """RGB renders of every view of a split through the ``nerfpp`` integrator, in the encoding
+    of the model's training images (comparable with them)."""
+    from mi_nerfpp.views import ViewRenderer, encoded_rgb
     renderer = ViewRenderer(model, sampling, background)
-    return [rgb(renderer.render(cam)) for cam in split.cameras]
+    return [encoded_rgb(renderer.render(cam), model.color_space) for cam in split.cameras]
 
 
 def markdown_table(header, rows):

@@ -20,7 +20,7 @@ from .metrics import psnr, ssim
 from .preview import write_png
 from .render import Sampling
 from .scene_xml import write_render_xml
-from .views import ViewRenderer, rgb
+from .views import ViewRenderer, encoded_rgb
 
 
 def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', background=True,
@@ -37,11 +37,11 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
     if progress is not None:
         indices = progress(indices, desc=f'evaluate {name}', unit='view', leave=False)
     for i in indices:
-        layers = renderer.render(split.cameras[i])
-        pred = rgb(layers)
+        layers, attributes = renderer.render(split.cameras[i], with_attributes=True)
+        pred = encoded_rgb(layers, model.color_space)
         gt = split.images[i]
         base = os.path.join(out_dir, f'{name}_{i:03d}')
-        write_exr(base + '.exr', layers)
+        write_exr(base + '.exr', layers, attributes=attributes)
         write_png(base + '.png', pred, model.color_space)
         views.append({'view': i, 'image': os.path.basename(split.image_paths[i]),
                       'psnr': float(psnr(np.clip(pred, 0, 1), gt)),

@@ -3,18 +3,30 @@
 Renders are written as one single-part scanline EXR whose channel names follow
 the ``layer.channel`` convention that Nuke, Blender and Natron read as layers:
 
-==========  ==========================  ==========================================
-layer       channels                    content
-==========  ==========================  ==========================================
-(beauty)    ``R G B A``                 the full image
-``fg``      ``fg.R fg.G fg.B fg.A``     premultiplied foreground radiance, opacity
-``bg``      ``bg.R bg.G bg.B``          background radiance as seen unoccluded
-``alpha``   ``alpha.Y``                 foreground opacity (same as ``fg.A``)
-``depth``   ``depth.Z``                 expected distance along the ray
-==========  ==========================  ==========================================
+============  ==========================  ============================================
+layer         channels                    content
+============  ==========================  ============================================
+(beauty)      ``R G B A``                 the full image; ``A`` is 1 where the
+                                          background volume is rendered, else ``fg.A``
+``fg``        ``fg.R fg.G fg.B fg.A``     premultiplied foreground radiance, opacity
+                                          (the one foreground alpha, in [0, 1])
+``bg``        ``bg.R bg.G bg.B``          background radiance as seen unoccluded
+``depth``     ``depth.Z``                 camera-space z (distance along the view
+                                          axis, world units, positive in front) where
+                                          the accumulated opacity reaches 0.5
+``distance``  ``distance.Y``              expected distance along the ray (world
+                                          units), blended over both volumes: not a
+                                          surface, not for Z-based tools
+============  ==========================  ============================================
 
-Pixels are float32, or float16 with ``half=True``; depth always stays float32
-because half precision cannot hold scene-scale distances accurately.
+Colour is scene-linear with Rec.709 primaries and D65 white (the ``chromaticities``
+attribute), so ``R G B = fg + (1 - fg.A)·bg`` holds in linear light. Every channel list
+is written whatever the film's pixel format. Pixels are float32, or float16 with
+``half=True``; depth layers always stay float32 because half precision cannot hold
+scene-scale distances accurately. Header attributes: :func:`compositing_attributes`
+(colour space, depth convention, software) and, for renders of a camera, the standard
+``worldToCamera`` / ``worldToNDC`` matrices and the field of view and near plane
+(:func:`mi_nerfpp.views.camera_attributes`).
 
 This module must not import drjit or mitsuba.
 """
@@ -34,12 +46,29 @@ BEAUTY = ('R', 'G', 'B', 'A')
 AOVS = (
     'fg.R', 'fg.G', 'fg.B', 'fg.A',
     'bg.R', 'bg.G', 'bg.B',
-    'alpha.Y',
     'depth.Z',
+    'distance.Y',
 )
 LAYERS = BEAUTY + AOVS
 
-FULL_PRECISION_CHANNELS = frozenset({'depth.Z'})
+FULL_PRECISION_CHANNELS = frozenset({'depth.Z', 'distance.Y'})
+
+# Rec.709 / sRGB primaries and D65 white point: red xy, green xy, blue xy, white xy.
+REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+COLOR_SPACE = 'lin_rec709'
+DEPTH_CONVENTION = ('depth.Z: camera-space z of the point where the accumulated opacity '
+                    'reaches 0.5, i.e. distance along the view axis, world units, positive in '
+                    'front of the camera (not 1/z); distance.Y: expected distance along the ray')
+
+
+def compositing_attributes() -> dict:
+    """Header attributes of every render: colour space, depth convention, software."""
+    from . import __version__
+    return {'chromaticities': REC709_CHROMATICITIES,
+            'oiio:ColorSpace': COLOR_SPACE,
+            'colorSpace': 'scene-linear Rec.709 (sRGB primaries, D65)',
+            'depthConvention': DEPTH_CONVENTION,
+            'software': f'mi-nerfpp {__version__}'}
 
 HALF_MAX = float(np.finfo(np.float16).max)
 
@@ -103,8 +132,12 @@ def _prepare_channels(channels: Mapping[str, np.ndarray], half: bool) -> dict[st
 
 
 def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray],
-              half: bool = False, compression: str = 'zip') -> None:
+              half: bool = False, compression: str = 'zip',
+              attributes: Mapping | None = None) -> None:
     """Write ``{name: H x W array}`` as a single-part scanline EXR, atomically.
+
+    ``attributes`` are extra header attributes (str, float, int, tuples of
+    floats, 4x4 float32 matrices).
 
     Raises :class:`ValueError` for an empty mapping, arrays that are not 2-D
     or differ in shape, non-finite values (naming the channel), values that
@@ -114,13 +147,20 @@ def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray],
     if compression not in COMPRESSIONS:
         raise ValueError(
             f"unknown EXR compression '{compression}', expected one of {sorted(COMPRESSIONS)}")
-    header = {'compression': COMPRESSIONS[compression], 'type': OpenEXR.scanlineimage}
+    header = dict(attributes or {})
+    header.update(compression=COMPRESSIONS[compression], type=OpenEXR.scanlineimage)
     # A new dict: OpenEXR.File replaces the values of the dict it is given
     # with Channel objects, so the caller's mapping must not reach it.
     pixels = _prepare_channels(channels, half)
     with atomic_write_path(path) as tmp:
         with OpenEXR.File(header, pixels) as exr_file:
             exr_file.write(tmp)
+
+
+def read_header(path: str | os.PathLike) -> dict:
+    """The header attributes of a single-part EXR."""
+    with OpenEXR.File(os.fspath(path), header_only=True) as exr_file:
+        return dict(exr_file.header())
 
 
 def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:

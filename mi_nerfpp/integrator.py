@@ -1,14 +1,56 @@
 """The Mitsuba integrator ``nerfpp``: NeRF++ rendering with compositing layers as AOVs."""
 from __future__ import annotations
 
+import os
+
 import drjit as dr
 import mitsuba as mi
 from mitsuba.ad.integrators.common import ADIntegrator
 
 from .checkpoint import load_checkpoint
 from .exr import AOVS
-from .model import NeRFPPModel
-from .render import Sampling, render_rays
+from .model import FIELD_KINDS, NeRFPPModel
+from .render import Sampling, render_rays, surface_distance
+
+# Largest number of camera rays (film pixels x samples per pixel) one render may trace: memory
+# grows by roughly 100 bytes per ray, so this bounds a render to about 2 GB. Raise it with the
+# ``max_samples`` parameter on a machine with more memory.
+MAX_FILM_SAMPLES = 1 << 24
+
+_XML_TAGS = {int: 'integer', float: 'float', bool: 'boolean', str: 'string'}
+
+
+class _ParameterReader:
+    """Reads the integrator's XML parameters once, each with its type and range checked."""
+
+    def __init__(self, props):
+        self.props, self.known = props, set()
+
+    def __call__(self, name, kind, default, minimum=None, choices=None):
+        self.known.add(name)
+        if name not in self.props:
+            return default
+        value = self.props.get(name)
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
+            raise ValueError(
+                f"nerfpp: parameter '{name}' must be a {_XML_TAGS[kind]} "
+                f"(<{_XML_TAGS[kind]} name=\"{name}\" value=\"...\"/>), got {value!r}")
+        if kind in (int, float) and not value == value:
+            raise ValueError(f"nerfpp: parameter '{name}' is NaN")
+        if minimum is not None and value < minimum:
+            raise ValueError(f"nerfpp: parameter '{name}' must be >= {minimum}, got {value}")
+        if choices is not None and value not in choices:
+            raise ValueError(f"nerfpp: parameter '{name}' must be one of "
+                             f"{', '.join(choices)}, got {value!r}")
+        return value
+
+    def reject_unknown(self):
+        unknown = sorted(set(self.props.unqueried()) - self.known)
+        if unknown:
+            raise ValueError(f"nerfpp: unknown parameter(s) {', '.join(unknown)}; the nerfpp "
+                             f"integrator takes {', '.join(sorted(self.known))}")
 
 
 class NeRFPPIntegrator(ADIntegrator):
@@ -75,41 +117,57 @@ class NeRFPPIntegrator(ADIntegrator):
        - |int|
        - Primal renders are evaluated in chunks of this many rays to bound
          memory. (Default: 32768)
+     * - max_samples
+       - |int|
+       - Largest film (pixels times samples per pixel) a render accepts; larger
+         ones are refused before any memory is taken. (Default: 16777216,
+         :data:`MAX_FILM_SAMPLES`)
 
-    AOVs (after ``R, G, B, A``): ``fg.R fg.G fg.B`` premultiplied foreground
-    radiance, ``fg.A`` and ``alpha.Y`` foreground opacity ``1 - λ``,
-    ``bg.R bg.G bg.B`` background radiance as seen unoccluded (0 behind opaque foreground unless
-    ``occluded_background``), ``depth.Z``
-    expected distance along the ray in world units (background at infinity is
-    capped at 1000 unit-sphere radii, see :mod:`mi_nerfpp.render`).
-    ``beauty = fg + (1 - alpha)·bg``.
+    Unknown parameters, values of the wrong type and out-of-range values are
+    refused with a message naming the parameter.
+
+    Radiance is scene-linear (Rec.709 primaries), also for models fitted to
+    sRGB photos (:meth:`~mi_nerfpp.model.NeRFPPModel.radiance_fields`).
+    AOVs (after ``R, G, B, A``, see :mod:`mi_nerfpp.exr`): ``fg.R fg.G fg.B``
+    premultiplied foreground radiance, ``fg.A`` foreground opacity ``1 - λ`` in
+    [0, 1], ``bg.R bg.G bg.B`` background radiance as seen unoccluded (0 behind
+    opaque foreground unless ``occluded_background``), ``depth.Z`` camera-space
+    z (distance along the view axis, world units) of the point where the
+    accumulated opacity of the composite reaches 0.5, ``distance.Y`` the
+    expected distance along the ray (blended over both volumes; background at
+    infinity capped at 1000 unit-sphere radii, see :mod:`mi_nerfpp.render`).
+    ``beauty = fg + (1 - fg.A)·bg``.
     """
 
     def __init__(self, props):
         super().__init__(props)
-        self.checkpoint = props.get('checkpoint', '')
         default = Sampling()      # the XML defaults live in render.Sampling
+        read = _ParameterReader(props)
+        self.checkpoint = read('checkpoint', str, '')
         self.sampling = Sampling(
-            fg_samples=props.get('fg_samples', default.fg_samples),
-            bg_samples=props.get('bg_samples', default.bg_samples),
-            fine_samples=props.get('fine_samples', default.fine_samples),
-            near=props.get('near', default.near))
-        for name in ('fg_samples', 'bg_samples'):
-            if getattr(self.sampling, name) < 1:
-                raise ValueError(f'nerfpp: {name} must be >= 1')
-        if self.sampling.fine_samples < 0:
-            raise ValueError('nerfpp: fine_samples must be >= 0')
-        self.background = props.get('background', True)
-        self.stratified = props.get('stratified', False)
-        self.occluded_background = props.get('occluded_background', False)
-        self.chunk_rays = props.get('chunk_rays', 1 << 15)
+            fg_samples=read('fg_samples', int, default.fg_samples, minimum=1),
+            bg_samples=read('bg_samples', int, default.bg_samples, minimum=1),
+            fine_samples=read('fine_samples', int, default.fine_samples, minimum=0),
+            near=read('near', float, default.near, minimum=0.0))
+        self.background = read('background', bool, True)
+        self.stratified = read('stratified', bool, False)
+        self.occluded_background = read('occluded_background', bool, False)
+        self.chunk_rays = read('chunk_rays', int, 1 << 15, minimum=1)
+        self.max_samples = read('max_samples', int, MAX_FILM_SAMPLES, minimum=1)
+        self.random_field = read('field', str, 'grid', choices=FIELD_KINDS)
+        self.random_seed = read('seed', int, 0, minimum=0)
+        read.reject_unknown()
         self.show_progress = False
-        self.random_field = props.get('field', 'grid')
-        self.random_seed = props.get('seed', 0)
         self._model, self.meta = None, {}
+        self._view = None
         if self.checkpoint:
             # Relative paths are found next to the scene file (Mitsuba's file resolver).
             path = str(mi.file_resolver().resolve(self.checkpoint))
+            if not os.path.isfile(path):
+                raise ValueError(
+                    f"nerfpp: checkpoint '{self.checkpoint}' not found (looked for "
+                    f"{os.path.abspath(path)}; relative paths are resolved against the scene "
+                    f"file's folder)")
             self._model, self.meta, _ = load_checkpoint(path)
 
     @property
@@ -139,17 +197,42 @@ class NeRFPPIntegrator(ADIntegrator):
         # Fields read their parameter dict on every evaluation: nothing to rebuild.
         pass
 
+    def prepare(self, sensor, seed=0, spp=0, aovs=[]):
+        """Refuses films beyond ``max_samples`` and a sample count of 0 before Mitsuba
+        allocates anything, and notes the camera frame for the depth layer."""
+        size = sensor.film().crop_size()
+        count = spp or sensor.sampler().sample_count()
+        if count < 1:
+            raise ValueError('nerfpp: the sampler has sample_count 0: give it at least 1 '
+                             '(<integer name="sample_count" value="1"/>) or pass spp >= 1')
+        rays = int(size[0]) * int(size[1]) * int(count)
+        if rays > self.max_samples:
+            raise ValueError(
+                f'nerfpp: a {size[0]}x{size[1]} film at {count} samples per pixel traces '
+                f'{rays} rays, more than max_samples={self.max_samples} (about 100 bytes each): '
+                f'render a smaller film or crop, or raise the integrator\'s max_samples')
+        self._view = camera_axis(sensor)
+        return super().prepare(sensor, seed, spp, aovs)
+
     def render_layers(self, o, d, seed, primal=False):
         """Beauty and AOVs of world-space rays: ``(L: Color3f, aovs: list[Float])``."""
         model = self.model
-        o, d = model.normalization.to_model_rays(o, d)
-        res = render_rays(o, d, model.fg, model.bg if self.background else None,
+        norm = model.normalization
+        fg_field, bg_field = model.radiance_fields()
+        res = render_rays(*norm.to_model_rays(o, d), fg_field,
+                          bg_field if self.background else None,
                           self.sampling, seed, occupancy=model.occupancy,
                           skip_occluded=primal and not self.occluded_background)
         fg = res.fg.fine
         bg = res.bg.fine.rgb if res.bg is not None else mi.Color3f(0.0)
-        aovs = [fg.rgb.x, fg.rgb.y, fg.rgb.z, fg.opacity, bg.x, bg.y, bg.z, fg.opacity,
-                model.normalization.to_world_distance(res.fine.depth)]
+        surface = norm.to_world_distance(surface_distance(res))
+        if self._view is None:        # no sensor known: the distance along the ray
+            depth = surface
+        else:
+            center, axis = self._view
+            depth = dr.dot(o - center, axis) + surface * dr.dot(dr.normalize(d), axis)
+        aovs = [fg.rgb.x, fg.rgb.y, fg.rgb.z, dr.clip(fg.opacity, 0.0, 1.0), bg.x, bg.y, bg.z,
+                depth, norm.to_world_distance(res.fine.depth)]
         return res.fine.rgb, aovs
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
@@ -187,6 +270,14 @@ class NeRFPPIntegrator(ADIntegrator):
                 dr.scatter(buf, value, i, valid)
             dr.eval(out)
         return mi.Color3f(*out[:3]), out[3:]
+
+
+def camera_axis(sensor):
+    """``(centre, view axis)`` of a sensor in the world frame (Mitsuba cameras look along +z)."""
+    import numpy as np
+    m = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
+    return mi.ScalarPoint3f(*m[:3, 3]), mi.ScalarVector3f(*axis)
 
 
 def register():

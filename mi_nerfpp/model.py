@@ -20,14 +20,29 @@ def default_field_config(kind, domain):
     return {'kind': kind, 'domain': domain}
 
 
+class LinearRadiance:
+    """A field whose sRGB-encoded colour output is decoded to linear light."""
+
+    def __init__(self, field):
+        self.field = field
+
+    def __call__(self, *args, **kwargs):
+        sigma, rgb = self.field(*args, **kwargs)
+        return sigma, dr.srgb_to_linear(rgb)
+
+
 class NeRFPPModel:
     """Foreground field (unit ball), optional background field (inverted sphere), normalization.
 
     ``normalization`` (:class:`~mi_nerfpp.frame.Normalization`) maps the world to the model frame.
 
     ``bg=None`` is a bounded NeRF: one volume, nothing behind it.
-    ``color_space`` says what the radiance values mean: 'srgb' when the model
-    was fitted to sRGB-encoded photos (PNG/JPG), 'linear' for EXR inputs.
+    ``color_space`` is the encoding of the images the model was fitted to: 'srgb' for photos
+    (PNG/JPG), 'linear' for EXR inputs. Rendering is scene-linear either way: the colour a
+    field outputs at a sample is in that encoding and is decoded to linear light *per sample*
+    (:meth:`radiance_fields`), so compositing - along the ray, between the volumes and by an
+    artist merging the layers - happens in linear light and ``beauty = fg + (1 - α)·bg`` holds
+    exactly. Training takes the loss on the sRGB-encoded composite of an sRGB model.
     """
 
     def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb',
@@ -46,6 +61,13 @@ class NeRFPPModel:
         if background:
             bg = make_field(bg_config or default_field_config(field, 'inverted_sphere'), seed=seed + 1)
         return cls(fg, bg, **kwargs)
+
+    def radiance_fields(self):
+        """``(fg, bg)`` as :func:`~mi_nerfpp.render.render_rays` takes them: fields whose
+        colour is linear radiance (an sRGB model's colour is decoded sample by sample)."""
+        if self.color_space == 'linear':
+            return self.fg, self.bg
+        return LinearRadiance(self.fg), None if self.bg is None else LinearRadiance(self.bg)
 
     @property
     def config(self):

@@ -63,6 +63,8 @@ class VolumeRender:
     weights: mi.Float          # w_i of the fine pass, flat layout with n samples per ray
     position: mi.Float         # sample positions normalized to [0, 1] along the volume
     n: int
+    distance: mi.Float = None  # distance along the ray of each sample (same layout as weights)
+    rays: mi.UInt32 = None     # the rays the per-sample arrays belong to (None: every ray)
 
 
 @dataclass
@@ -182,7 +184,8 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0):
     dr.eval(sigma_c, rgb_c)
     coarse, w_c = quadrature(volume, v_c, sigma_c, rgb_c, n_coarse)
     if n_fine == 0:
-        return VolumeRender(coarse, coarse, w_c, volume.normalized(ray_c, v_c), n_coarse)
+        return VolumeRender(coarse, coarse, w_c, volume.normalized(ray_c, v_c), n_coarse,
+                            volume.distance(ray_c, v_c))
 
     v_f = inverse_cdf(v_c, w_c, volume.lo, volume.hi, n_coarse, n_fine,
                       uniforms(seed, n_fine, stream + 1))
@@ -198,7 +201,7 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0):
     n = n_coarse + n_fine
     fine, w = quadrature(volume, v, sigma, rgb, n)
     ray, _ = flat_index(n_rays, n)
-    return VolumeRender(coarse, fine, w, volume.normalized(ray, v), n)
+    return VolumeRender(coarse, fine, w, volume.normalized(ray, v), n, volume.distance(ray, v))
 
 
 def distortion(w, m, n):
@@ -247,7 +250,8 @@ def _render_visible_background(o, d, fg, render, seed):
         return VolumeRender(expand(None), expand(None), None, None, 0)
     sub = render(dr.gather(mi.Point3f, o, visible), dr.gather(mi.Vector3f, d, visible),
                  None if seed is None else dr.gather(mi.UInt32, seed, visible))
-    return VolumeRender(expand(sub.coarse), expand(sub.fine), None, None, sub.n)
+    return VolumeRender(expand(sub.coarse), expand(sub.fine), sub.weights, sub.position, sub.n,
+                        sub.distance, rays=visible)
 
 
 def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
@@ -282,3 +286,44 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
     return RenderResult(fg=fg, bg=bg,
                         coarse=composite(fg.coarse, bg.coarse if bg else None),
                         fine=composite(fg.fine, bg.fine if bg else None))
+
+
+def _crossing(weights, distance, n, level):
+    """Per ray: the distance of the first sample at which the accumulated weight reaches
+    ``level`` (a per-ray Float), and whether it does. The quadrature gives a sample's whole
+    interval the sample's distance, so this is the surface as the composite sees it."""
+    n_rays = dr.width(weights) // n
+    ray, _ = flat_index(n_rays, n)
+    target = dr.gather(mi.Float, level, ray)
+    after = dr.block_prefix_sum(weights, n, exclusive=False)
+    hit = (after >= target) & (after - weights < target)
+    t = dr.block_sum(dr.select(hit, distance, 0.0), n)
+    found = dr.block_sum(dr.select(hit, 1.0, 0.0), n) > 0.0
+    return t, found
+
+
+def surface_distance(res: RenderResult, level=0.5):
+    """Per ray: the distance at which the accumulated opacity of the fine composite (foreground,
+    then ``λ·`` background) reaches ``level`` - a robust surface estimate, unlike the expected
+    depth, which lands between surfaces at soft edges and in haze. Rays whose composite never
+    reaches ``level`` (a foreground-only render over nothing) get the foreground's expected
+    depth, or the :data:`MAX_DEPTH_RADIUS` cap where it is empty."""
+    fg = res.fg
+    alpha = dr.detach(fg.fine.opacity)
+    t_fg, found_fg = _crossing(dr.detach(fg.weights), fg.distance, fg.n,
+                               dr.full(mi.Float, level, dr.width(alpha)))
+    empty = dr.maximum(res.fine.opacity, 0.0) <= 1e-6
+    fallback = dr.select(empty, MAX_DEPTH_RADIUS, res.fine.depth / dr.maximum(res.fine.opacity,
+                                                                               1e-6))
+    depth = dr.select(found_fg, t_fg, fallback)
+    bg = res.bg
+    if bg is None or bg.weights is None:
+        return depth
+    # The background's share of the level, in its own accumulated weight (it is opaque).
+    bg_level = (level - alpha) / dr.maximum(1.0 - alpha, 1e-12)
+    rays = bg.rays if bg.rays is not None else dr.arange(mi.UInt32, dr.width(alpha))
+    t_bg, found_bg = _crossing(dr.detach(bg.weights), bg.distance, bg.n,
+                               dr.gather(mi.Float, bg_level, rays))
+    behind = dr.full(mi.Float, MAX_DEPTH_RADIUS, dr.width(alpha))
+    dr.scatter(behind, dr.select(found_bg, t_bg, MAX_DEPTH_RADIUS), rays)
+    return dr.select(alpha >= level, depth, behind)

@@ -311,10 +311,12 @@ class Trainer:
             self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
             self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
         self.model.set_parameters({k: self.opt[k] for k in self.opt.keys()})
-        res = render_rays(o, d, self.model.fg, self.model.bg, cfg.sampling, seed=seed,
+        res = render_rays(o, d, *self.model.radiance_fields(), cfg.sampling, seed=seed,
                           occupancy=self.model.occupancy)
-        fine = optim.mse(res.fine.rgb, gt)
-        loss = fine + optim.mse(res.coarse.rgb, gt)
+        # Radiance is linear; the loss compares it in the encoding of the images.
+        encode = dr.linear_to_srgb if self.model.color_space == 'srgb' else (lambda c: c)
+        fine = optim.mse(encode(res.fine.rgb), gt)
+        loss = fine + optim.mse(encode(res.coarse.rgb), gt)
         if cfg.distortion > 0:
             for vol in (res.fg, res.bg):
                 if vol is not None:

@@ -10,17 +10,71 @@ import mitsuba as mi
 import numpy as np
 
 from .data import Camera, mitsuba_sensor_dict
-from .exr import BEAUTY, LAYERS, split_channels, write_exr
+from .exr import AOVS, BEAUTY, compositing_attributes, write_exr
 from .frame import VIEW_NEAR_CLIP
 from .integrator import NeRFPPIntegrator
 from .preview import write_png
 from .render import Sampling
 
 
-def film_channel_names(film, integrator):
-    """Channel names of ``mi.render``'s output for this film and integrator."""
-    base = list(BEAUTY if mi.has_flag(film.flags(), mi.FilmFlags.Alpha) else BEAUTY[:3])
-    return base + list(integrator.aov_names())
+def render_layers(image, integrator):
+    """``mi.render``'s output (H, W, C) as the layer dict of :data:`~mi_nerfpp.exr.LAYERS`,
+    whatever the film's pixel format: ``A`` is 1 where the background volume is rendered
+    (it is opaque), else the foreground alpha."""
+    image = np.asarray(image, dtype=np.float32)
+    base = image.shape[2] - len(AOVS)
+    if base not in (3, 4):
+        raise ValueError(f"the film gives {base} colour channel(s): set its pixel_format to "
+                         f"'rgb' or 'rgba'")
+    layers = {name: image[..., i] for i, name in enumerate(BEAUTY[:3])}
+    layers.update({name: image[..., base + i] for i, name in enumerate(AOVS)})
+    background = getattr(integrator, 'background', True)
+    layers['A'] = np.ones_like(layers['R']) if background else layers['fg.A'].copy()
+    return {name: layers[name] for name in BEAUTY + AOVS}
+
+
+def camera_attributes(sensor) -> dict:
+    """Standard EXR camera attributes of a Mitsuba perspective sensor, in the world frame.
+
+    ``worldToCamera``: world to a camera frame with x right, y up and the camera looking
+    down -z (the OpenGL/Nuke convention). ``worldToNDC``: world to normalized device
+    coordinates, x and y in [-1, 1] from the left/bottom to the right/top edge of the image
+    after the division by w (z: -1 at the near plane, 1 at the far plane). Both are stored as
+    Imath writes them, for row vectors (``p' = p·M``), i.e. transposed. Also ``fovX``/``fovY``
+    (degrees, through the image edges), ``clipNear``/``clipFar`` (world units).
+    """
+    to_world = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    world_to_mitsuba = np.linalg.inv(to_world)   # Mitsuba camera: x left, y up, z forward
+    flip = np.diag([-1.0, 1.0, -1.0, 1.0])
+    world_to_camera = flip @ world_to_mitsuba
+
+    def slope(u, v):
+        """(x/z, y/z) in Mitsuba camera space of the ray through film position (u, v)."""
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(u, v), mi.Point2f(0.5))
+        d = world_to_mitsuba[:3, :3] @ np.array(ray.d, dtype=np.float64).reshape(3)
+        return d[0] / d[2], d[1] / d[2]
+
+    s0, s1 = slope(0.0, 0.5)[0], slope(1.0, 0.5)[0]
+    t0, t1 = slope(0.5, 0.0)[1], slope(0.5, 1.0)[1]
+    near, far = float(sensor.near_clip()), float(sensor.far_clip())
+    projection = np.array([
+        [2 / (s1 - s0), 0, -2 * s0 / (s1 - s0) - 1, 0],
+        [0, -2 / (t1 - t0), 1 + 2 * t0 / (t1 - t0), 0],
+        [0, 0, (far + near) / (far - near), -2 * far * near / (far - near)],
+        [0, 0, 1, 0]])
+    world_to_ndc = projection @ world_to_mitsuba
+
+    def fov(a, b):
+        return float(np.degrees(abs(np.arctan(a) - np.arctan(b))))
+
+    return {'worldToCamera': np.ascontiguousarray(world_to_camera.T, dtype=np.float32),
+            'worldToNDC': np.ascontiguousarray(world_to_ndc.T, dtype=np.float32),
+            'fovX': fov(s0, s1), 'fovY': fov(t0, t1), 'clipNear': near, 'clipFar': far}
+
+
+def exr_attributes(sensor) -> dict:
+    """All header attributes of a render of ``sensor``."""
+    return dict(compositing_attributes(), **camera_attributes(sensor))
 
 
 def render_to_files(scene, out, spp=0, preview=None, seed=0, progress=True):
@@ -29,22 +83,31 @@ def render_to_files(scene, out, spp=0, preview=None, seed=0, progress=True):
     Returns the image as a dict of channel name -> HxW float32 array.
     """
     integrator = scene.integrator()
-    if isinstance(integrator, NeRFPPIntegrator):
-        integrator.show_progress = progress
-    film = scene.sensors()[0].film()
-    image = np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float32)
-    channels = split_channels(image, film_channel_names(film, integrator))
-    write_exr(out, channels)
+    if not isinstance(integrator, NeRFPPIntegrator):
+        raise ValueError("the scene's integrator is not 'nerfpp': use "
+                         "<integrator type=\"nerfpp\"> for layered output")
+    integrator.show_progress = progress
+    sensor = scene.sensors()[0]
+    channels = render_layers(mi.render(scene, spp=spp, seed=seed), integrator)
+    write_exr(out, channels, attributes=exr_attributes(sensor))
     if preview:
-        color_space = (integrator.model.color_space if isinstance(integrator, NeRFPPIntegrator)
-                       else 'linear')
-        write_png(preview, rgb(channels), color_space)
+        write_png(preview, rgb(channels), 'linear')
     return channels
 
 
 def rgb(layers):
-    """The beauty of a layer dict as an (H, W, 3) array."""
+    """The beauty of a layer dict as an (H, W, 3) array (scene-linear)."""
     return np.stack([layers[c] for c in BEAUTY[:3]], axis=-1)
+
+
+def encoded_rgb(layers, color_space):
+    """The beauty in the encoding of a model's training images (``'srgb'``: clipped to [0, 1]
+    and sRGB-encoded, as the photos are; ``'linear'``: as rendered), to compare with them."""
+    from .preview import srgb_oetf
+    image = rgb(layers)
+    if color_space == 'srgb':
+        return srgb_oetf(np.clip(image, 0.0, 1.0)).astype(np.float32)
+    return image
 
 
 class ViewRenderer:
@@ -69,10 +132,12 @@ class ViewRenderer:
         desc['near_clip'] = norm.to_world_distance(VIEW_NEAR_CLIP)
         return mi.load_dict(desc)
 
-    def render(self, camera: Camera):
-        """All layers of one view: channel name -> (H, W) float32."""
-        img = mi.render(self.scene, sensor=self.sensor(camera))
-        return split_channels(np.array(img, dtype=np.float32), LAYERS)
+    def render(self, camera: Camera, with_attributes=False):
+        """All layers of one view: channel name -> (H, W) float32 (and the EXR header
+        attributes of the view with ``with_attributes``)."""
+        sensor = self.sensor(camera)
+        layers = render_layers(mi.render(self.scene, sensor=sensor), self.scene.integrator())
+        return (layers, exr_attributes(sensor)) if with_attributes else layers
 
 
 def render_view(model, camera: Camera, sampling: Sampling, background=True):

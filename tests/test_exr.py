@@ -18,6 +18,7 @@ def layer_channels(seed=0):
     channels = {name: rng.uniform(0.0, 2.0, (H, W)).astype(np.float32)
                 for name in exr.LAYERS}
     channels['depth.Z'] = rng.uniform(0.5, 3000.0, (H, W)).astype(np.float32)
+    channels['distance.Y'] = rng.uniform(0.5, 3000.0, (H, W)).astype(np.float32)
     return channels
 
 
@@ -25,7 +26,7 @@ def layer_channels(seed=0):
 
 def test_layers_layout(tmp_path):
     assert exr.LAYERS == ('R', 'G', 'B', 'A', 'fg.R', 'fg.G', 'fg.B', 'fg.A',
-                          'bg.R', 'bg.G', 'bg.B', 'alpha.Y', 'depth.Z')
+                          'bg.R', 'bg.G', 'bg.B', 'depth.Z', 'distance.Y')
     # The names are what a nerfpp render writes, each on the channel that holds its content:
     # a wrong name or order breaks the compositing identity or the alpha/depth checks.
     import mitsuba as mi
@@ -39,11 +40,10 @@ def test_layers_layout(tmp_path):
         assert {channel.name for channel in f.header()['channels']} == set(exr.LAYERS)
     c = exr.read_exr(tmp_path / 'r.exr')
     for ch in 'RGB':
-        np.testing.assert_allclose(c[ch], c[f'fg.{ch}'] + (1 - c['alpha.Y']) * c[f'bg.{ch}'],
+        np.testing.assert_allclose(c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'],
                                    atol=2e-6)
-    np.testing.assert_array_equal(c['fg.A'], c['alpha.Y'])
-    assert np.all(c['A'] == 1) and np.all((c['alpha.Y'] > 0) & (c['alpha.Y'] < 1))
-    assert np.all(c['depth.Z'] > 0)
+    assert np.all(c['A'] == 1) and np.all((c['fg.A'] > 0) & (c['fg.A'] < 1))
+    assert np.all(c['depth.Z'] > 0) and np.all(c['distance.Y'] > 0)
 
 
 def test_round_trip_float32_is_exact(tmp_path):
@@ -65,7 +65,7 @@ def test_round_trip_half_within_half_precision(tmp_path):
     back = exr.read_exr(path)
     for name in exr.LAYERS:
         assert back[name].dtype == np.float32
-        if name == 'depth.Z':
+        if name in exr.FULL_PRECISION_CHANNELS:
             np.testing.assert_array_equal(back[name], channels[name])
         else:
             np.testing.assert_allclose(back[name], channels[name], rtol=2 ** -11, err_msg=name)
@@ -77,6 +77,7 @@ def test_half_stores_half_pixels_but_full_float_depth(tmp_path):
     with OpenEXR.File(str(path), separate_channels=True) as f:
         types = {name: channel.type() for name, channel in f.channels().items()}
     assert types.pop('depth.Z') == OpenEXR.FLOAT
+    assert types.pop('distance.Y') == OpenEXR.FLOAT
     assert set(types.values()) == {OpenEXR.HALF}
 
 

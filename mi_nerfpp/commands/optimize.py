@@ -116,7 +116,7 @@ def train(trainer, inp: Inputs):
     def on_preview(tr):
         if previews is not None:
             write_png(os.path.join(out, 'preview', f'iter_{tr.iteration:06d}.png'),
-                      rgb(previews.render(held_out.cameras[0])), tr.model.color_space)
+                      rgb(previews.render(held_out.cameras[0])), 'linear')
 
     try:
         return trainer.run(on_step=on_step, on_preview=on_preview), progress_log

@@ -40,7 +40,7 @@ def run(args):
             raise SystemExit(f'{dataset.root} has no test cameras: use --path orbit')
     out = args.output or os.path.join(args.run, 'video.mp4')
     renderer = ViewRenderer(model, cfg.sampling, cfg.model == 'nerfpp')
-    frames = [to_srgb8(np.clip(rgb(renderer.render(cam)), 0, 1), model.color_space)
+    frames = [to_srgb8(np.clip(rgb(renderer.render(cam)), 0, 1), 'linear')
               for cam in tqdm(cameras, desc='video', unit='frame')]
     try:
         write_video(out, frames, fps=args.fps)

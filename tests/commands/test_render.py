@@ -19,13 +19,13 @@ def test_render_command_writes_layered_exr_and_preview(tmp_path):
     assert r.returncode == 0, r.stderr
     assert str(out) in r.stdout
     names = set(OpenEXR.File(str(out)).channels().keys())
-    assert names == {'RGBA', 'fg', 'bg', 'alpha.Y', 'depth.Z'}   # OpenEXR groups R,G,B,A and layers
+    assert names == {'RGBA', 'fg', 'bg', 'depth.Z', 'distance.Y'}   # OpenEXR groups R,G,B,A and layers
     c = read_exr(out)
     assert set(c) == {'R', 'G', 'B', 'A', 'fg.R', 'fg.G', 'fg.B', 'fg.A', 'bg.R', 'bg.G', 'bg.B',
-                      'alpha.Y', 'depth.Z'}
+                      'depth.Z', 'distance.Y'}
     assert c['R'].shape == (8, 12)
     for ch in 'RGB':
-        np.testing.assert_allclose(c[ch], c[f'fg.{ch}'] + (1 - c['alpha.Y']) * c[f'bg.{ch}'],
+        np.testing.assert_allclose(c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'],
                                    atol=2e-6)
     assert png.stat().st_size > 0
 

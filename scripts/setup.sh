@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Idempotent set-up: libLLVM >= 17 (Dr.Jit's CPU backend), a virtual environment in .venv,
+# Idempotent set-up: libLLVM >= 17 (Dr.Jit's CPU backend), oiiotool (compositing tests),
+# a virtual environment in .venv,
 # and this package installed in it (editable, with test extras).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -17,6 +18,19 @@ if [ -z "${DRJIT_LIBLLVM_PATH:-}" ] && ! have_llvm; then
     else
         echo "setup: no libLLVM >= 17 found and no apt-get: install LLVM >= 17 and set DRJIT_LIBLLVM_PATH" >&2
         exit 1
+    fi
+fi
+
+# oiiotool (OpenImageIO): the tests composite the EXR layers with it, as a real client.
+if ! command -v oiiotool >/dev/null 2>&1; then
+    if command -v apt-get >/dev/null 2>&1; then
+        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        echo "setup: installing openimageio-tools (oiiotool, used by the compositing tests)"
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq openimageio-tools >/dev/null
+    else
+        echo "setup: oiiotool not found and no apt-get: install OpenImageIO's oiiotool, or set" \
+             "MI_NERFPP_NO_OIIOTOOL=1 to skip the compositing checks that use it" >&2
     fi
 fi
 

@@ -28,19 +28,32 @@ import sys
 import numpy as np
 
 
+def ray_distance_to_z(distance, camera):
+    """Distances along the pixel-centre rays of a pinhole camera -> camera-space z."""
+    h, w = distance.shape
+    v, u = np.mgrid[0:h, 0:w] + 0.5
+    x, y, _ = np.linalg.inv(camera.K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    return distance / np.sqrt(x * x + y * y + 1.0).reshape(h, w)
+
+
 def score(data, test_dir):
     from mi_nerfpp.data import load_dataset
     from mi_nerfpp.exr import read_exr
     from mi_nerfpp.metrics import psnr, separation, ssim
-    test = load_dataset(data).test
+    from mi_nerfpp.views import encoded_rgb
+    dataset = load_dataset(data)
+    test, test_color_space = dataset.test, dataset.color_space
     gts = sorted(glob.glob(os.path.join(data, 'test', 'gt', '*.exr')))
     rows = []
     for i, gt_path in enumerate(gts):
         layers = read_exr(os.path.join(test_dir, f'test_{i:03d}.exr'))
         gt = read_exr(gt_path)
-        pred = np.clip(np.stack([layers[c] for c in 'RGB'], -1), 0, 1)
+        # Renders are scene-linear; compare in the encoding of the dataset images.
+        pred = np.clip(encoded_rgb(layers, test_color_space), 0, 1)
         row = {'psnr': psnr(pred, test.images[i]), 'ssim': ssim(pred, test.images[i])}
-        row.update(separation(layers['fg.A'], gt['fg.A'], layers['depth.Z'], gt['depth.Z']))
+        # The ground truth holds ray distances; depth.Z is camera-space z.
+        row.update(separation(layers['fg.A'], gt['fg.A'], layers['depth.Z'],
+                              ray_distance_to_z(gt['depth.Z'], test.cameras[i])))
         rows.append(row)
     mean = {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}
     mean['worst_psnr'] = min(r['psnr'] for r in rows)

@@ -7,6 +7,35 @@ import uuid
 from typing import Iterator
 
 
+def check_writable_folder(folder: str | os.PathLike, what: str = 'folder') -> None:
+    """Create ``folder`` if needed and prove it writable with a probe file (permissions alone
+    do not tell: a read-only mount or a root user). Raises OSError naming the folder."""
+    folder = os.fspath(folder)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        probe = os.path.join(folder, f'.write-test.{uuid.uuid4().hex}')
+        with open(probe, 'wb') as f:
+            f.write(b'0')
+        os.remove(probe)
+    except OSError as e:
+        raise OSError(e.errno, f'cannot write to this {what} ({e.strerror}): choose a '
+                      f'writable place', folder) from None
+
+
+def remove_stale_temporaries(folder: str | os.PathLike, name: str) -> list[str]:
+    """Delete the temporary files that :func:`atomic_write_path` left for ``name`` in
+    ``folder`` when a process was killed mid-write. Returns the paths removed."""
+    base, ext = os.path.splitext(name)
+    removed = []
+    for entry in os.listdir(folder):
+        if entry.startswith(f'.{base}.') and entry.endswith(f'.tmp{ext}'):
+            path = os.path.join(folder, entry)
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(path)
+                removed.append(path)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
     """Yield a temporary path next to ``path``; move it onto ``path`` on success.

@@ -35,8 +35,8 @@ class _ParameterReader:
             value = float(value)
         if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
             raise ValueError(
-                f"nerfpp: parameter '{name}' must be a {_XML_TAGS[kind]} "
-                f"(<{_XML_TAGS[kind]} name=\"{name}\" value=\"...\"/>), got {value!r}")
+                f"nerfpp: parameter '{name}' must be given as <{_XML_TAGS[kind]} "
+                f"name=\"{name}\" value=\"...\"/>, got {type(value).__name__} {value!r}")
         if kind in (int, float) and not value == value:
             raise ValueError(f"nerfpp: parameter '{name}' is NaN")
         if minimum is not None and value < minimum:
@@ -162,12 +162,15 @@ class NeRFPPIntegrator(ADIntegrator):
         self._view = None
         if self.checkpoint:
             # Relative paths are found next to the scene file (Mitsuba's file resolver).
-            path = str(mi.file_resolver().resolve(self.checkpoint))
+            resolver = mi.file_resolver()
+            path = str(resolver.resolve(self.checkpoint))
             if not os.path.isfile(path):
+                places = [os.path.abspath(os.path.join(str(resolver[i]), self.checkpoint))
+                          for i in range(len(resolver))] or [os.path.abspath(path)]
                 raise ValueError(
                     f"nerfpp: checkpoint '{self.checkpoint}' not found (looked for "
-                    f"{os.path.abspath(path)}; relative paths are resolved against the scene "
-                    f"file's folder)")
+                    f"{', '.join(dict.fromkeys(places))}; relative paths are resolved against "
+                    f"the scene file's folder)")
             self._model, self.meta, _ = load_checkpoint(path)
 
     @property

@@ -18,11 +18,13 @@ a checkpoint trained with another value cannot be resumed.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import inspect
 import json
 import math
 import os
+import signal
 import time
 from dataclasses import dataclass
 
@@ -34,6 +36,7 @@ from . import optim
 from .checkpoint import load_checkpoint, save_checkpoint
 from .data import pixel_rays
 from .fields import GridField
+from .files import remove_stale_temporaries
 from .frame import NERF_CAMERA_RADIUS, reframe_cameras
 from .model import FIELD_KINDS, NeRFPPModel, default_field_config
 from .options import flag, option
@@ -135,11 +138,48 @@ class TrainConfig:
         if self.iterations is None and self.minutes is None:
             self.iterations = DEFAULT_ITERATIONS
         self.grid_levels, self.background = tuple(self.grid_levels), tuple(self.background)
-        for name in ('batch_rays', 'fg_samples', 'bg_samples', 'color_layers', 'color_width'):
-            if getattr(self, name) < 1:
-                raise ValueError(f'{name} must be >= 1')
+        self._validate()
         if self.bg_field is None:
             self.bg_field = self.field
+
+    def _validate(self):
+        """Every option checked where it is read: one message naming the flag and the value."""
+        def bad(name, need):
+            value = getattr(self, name)
+            shown = ' '.join(map(str, value)) if isinstance(value, tuple) else value
+            raise ValueError(f'{flag(TrainConfig, name)} must be {need}, got {shown}')
+
+        def finite(v):
+            return isinstance(v, (int, float)) and math.isfinite(v)
+
+        at_least_one = ('batch_rays', 'fg_samples', 'bg_samples', 'color_layers', 'color_width',
+                        'downscale', 'grid_channels', 'occupancy_res', 'occupancy_every',
+                        'tv_cells')
+        for name in at_least_one:
+            if getattr(self, name) < 1:
+                bad(name, 'at least 1')
+        for name in ('fine_samples', 'checkpoint_every', 'preview_every', 'dir_octaves', 'seed'):
+            if getattr(self, name) < 0:
+                bad(name, '0 or more')
+        for name in ('lr_grid', 'lr_mlp', 'lr_final'):
+            if not (finite(getattr(self, name)) and getattr(self, name) > 0):
+                bad(name, 'a positive finite number')
+        for name in ('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'density_bias',
+                     'occupancy_threshold'):
+            v = getattr(self, name)
+            if not finite(v) or (name != 'density_bias' and v < 0):
+                bad(name, 'a finite number' if name == 'density_bias' else
+                    'a finite number >= 0')
+        if self.minutes is not None and not (finite(self.minutes) and self.minutes > 0):
+            bad('minutes', 'a positive number of minutes')
+        if self.iterations is not None and self.iterations < 1:
+            bad('iterations', 'at least 1')
+        if not self.grid_levels or min(self.grid_levels) < 2:
+            bad('grid_levels', 'one or more resolutions of at least 2')
+        if not all(finite(f) and 0 < f < 1 for f in self.coarse_to_fine):
+            bad('coarse_to_fine', 'fractions between 0 and 1')
+        if len(self.background) != 3 or not all(finite(c) for c in self.background):
+            bad('background', 'three finite numbers R,G,B')
 
     def field_config(self, kind, domain):
         """The field config of one volume: the grid options apply to grid fields only."""
@@ -234,6 +274,7 @@ class Trainer:
         self.dataset, self.out, self.cfg = dataset, out_dir, config
         os.makedirs(out_dir, exist_ok=True)
         self.checkpoint_path = os.path.join(out_dir, 'model.npz')
+        remove_stale_temporaries(out_dir, 'model.npz')    # left by a process killed mid-save
         normalization = config.model_normalization(dataset.normalization)
         splits = in_model_frame(dataset, normalization)
         self.train, self.validation, self.test = (splits[k] for k in ('train', 'validation',
@@ -244,10 +285,11 @@ class Trainer:
         meta, state = {}, {}
         if resume and os.path.exists(self.checkpoint_path):
             self.model, meta, state = load_checkpoint(self.checkpoint_path)
-            conflicts = config.resume_conflicts(meta.get('config', {}))
+            conflicts = (config.resume_conflicts(meta.get('config', {}))
+                         + data_conflicts(meta.get('data', {}), self.data_summary()))
             if conflicts:
                 raise TrainingError(f'{self.checkpoint_path} cannot be resumed with other model '
-                                    f'options: ' + '; '.join(conflicts))
+                                    f'options or data: ' + '; '.join(conflicts))
             self.iteration = int(meta['iteration'])
             self.elapsed = float(meta['elapsed'])
             self.history = meta.get('history', [])
@@ -262,6 +304,7 @@ class Trainer:
                 bg_config=config.field_config(config.bg_field, 'inverted_sphere'))
             if config.occupancy:
                 self.model.enable_occupancy(config.occupancy_res, config.occupancy_threshold)
+        self.saved_iteration = self.iteration if resume else None
         self.rng = np.random.default_rng(config.seed)
         if 'rng' in meta:
             self.rng.bit_generator.state = meta['rng']
@@ -356,13 +399,29 @@ class Trainer:
                 total += grid_tv(self.opt[k], idx)
         return total
 
+    def data_summary(self):
+        """What a checkpoint records of its training data, to refuse resuming on other data."""
+        return {'dataset': os.path.abspath(self.dataset.root), 'train_views': len(self.train),
+                'training_rays': self.rays.size}
+
     def save(self):
+        """Write the checkpoint atomically. A failed write (disk full, read-only) raises
+        :class:`TrainingError` at once; the previous checkpoint stays as it was."""
         self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
         meta = {'iteration': self.iteration, 'elapsed': self.elapsed,
                 'rng': self.rng.bit_generator.state, 'history': self.history,
-                'config': dataclasses.asdict(self.cfg), 'dataset': self.dataset.root}
-        save_checkpoint(self.checkpoint_path, self.model, meta=meta,
-                        state=self._optimizer_state())
+                'config': dataclasses.asdict(self.cfg), 'dataset': self.dataset.root,
+                'data': self.data_summary()}
+        try:
+            save_checkpoint(self.checkpoint_path, self.model, meta=meta,
+                            state=self._optimizer_state())
+        except OSError as e:
+            kept = ('nothing was saved before' if self.saved_iteration is None else
+                    f'the previous checkpoint (iteration {self.saved_iteration}) is intact')
+            raise TrainingError(f'cannot save the checkpoint {self.checkpoint_path} at iteration '
+                                f'{self.iteration}: {e.strerror or e}; {kept}. Free space or '
+                                f'choose a writable --out, then --resume') from e
+        self.saved_iteration = self.iteration
 
     def done(self):
         return ((self.cfg.iterations is not None and self.iteration >= self.cfg.iterations)
@@ -376,6 +435,9 @@ class Trainer:
         loss, leaving the last good checkpoint in place. Returns False if interrupted.
         """
         last_good = self.iteration
+        # A scheduler's SIGTERM stops training like Ctrl-C: the checkpoint is saved.
+        terminate = _raise_interrupt if _in_main_thread() else None
+        previous = signal.signal(signal.SIGTERM, terminate) if terminate else None
         try:
             while not self.done():
                 t0 = time.perf_counter()
@@ -399,14 +461,49 @@ class Trainer:
                         self.iteration % self.cfg.preview_every == 0:
                     on_preview(self)
         except KeyboardInterrupt:
-            self.save()
+            with _signals_deferred(terminate is not None):    # a second Ctrl-C must not
+                self.save()                                   # break the save
             return False
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
         self.save()
         return True
 
     def samples_per_second(self):
         """Field evaluations per second of training so far (coarse + fine, both volumes)."""
         return samples_per_second(self.cfg, self.iteration, self.elapsed)
+
+
+def _in_main_thread():
+    import threading
+    return threading.current_thread() is threading.main_thread()
+
+
+@contextlib.contextmanager
+def _signals_deferred(enabled):
+    """SIGINT and SIGTERM ignored inside (main thread only), their handlers restored after."""
+    if not enabled:
+        yield
+        return
+    saved = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(f'signal {signum}')
+
+
+def data_conflicts(stored: dict, now: dict) -> list[str]:
+    """How the training data of a checkpoint (:meth:`Trainer.data_summary`) differs from now."""
+    names = {'dataset': 'dataset', 'train_views': 'training views',
+             'training_rays': 'training rays (images, sizes or --downscale)'}
+    return [f'{names[k]}: the checkpoint was trained on {stored[k]!r}, this run has {now[k]!r}'
+            for k in names if k in stored and stored[k] != now[k]]
 
 
 def grid_tv(grid, cells):

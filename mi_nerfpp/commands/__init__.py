@@ -18,6 +18,17 @@ def resolution(value: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def positive_int(value: str) -> int:
+    """argparse type of counts that must be at least 1."""
+    try:
+        number = int(value)
+    except ValueError:
+        number = 0
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"expects a whole number of at least 1, got '{value}'")
+    return number
+
+
 def open_run_or_exit(run_dir):
     """:func:`mi_nerfpp.train.open_run`, with problems reported as a command-line error."""
     from ..train import TrainingError, open_run

@@ -33,6 +33,9 @@ def add_parser(sub):
                    f'it for {DEFAULT_MINUTES:g} minutes')
     p.add_argument('--out', help='run folder (default: runs/<dataset name>)')
     p.add_argument('--resume', action='store_true', help='continue from OUT/model.npz')
+    p.add_argument('--overwrite', action='store_true',
+                   help='replace the trained run in OUT (model.npz, metrics.json, test/, ...); '
+                        'without it, training into a folder that holds a run is refused')
     p.add_argument('--eval-at', type=float, nargs='*', metavar='MIN',
                    help='also evaluate the held-out views after these minutes of training '
                    '(default run: ' + ' '.join(f'{m:g}' for m in DEFAULT_EVAL_AT) +
@@ -66,16 +69,31 @@ def inputs(args) -> Inputs:
             options['minutes'] = DEFAULT_MINUTES
             eval_at = list(DEFAULT_EVAL_AT) if eval_at is None else eval_at
     if not os.path.exists(data):
-        raise SystemExit(f'{data}: dataset folder not found')
-    try:
-        cfg = TrainConfig(**options)
-        dataset = load_dataset(data, downscale=cfg.downscale, background=cfg.background)
-    except DatasetError as e:
-        raise SystemExit(f'error: {e}') from None
-    except ValueError as e:
-        raise SystemExit(f'optimize: {e}') from None
+        raise DatasetError(f'{data}: dataset folder not found')
+    cfg = TrainConfig(**options)      # validates every option (ValueError naming the flag)
     out = args.out or os.path.join('runs', os.path.basename(os.path.normpath(data)))
+    check_run_folder(out, resume=args.resume, overwrite=getattr(args, 'overwrite', False))
+    dataset = load_dataset(data, downscale=cfg.downscale, background=cfg.background)
     return Inputs(data, dataset, cfg, out, sorted(eval_at or []))
+
+
+def check_run_folder(out, resume, overwrite):
+    """Refuse, before any work, a run folder that cannot hold the run or would lose one.
+
+    ``out`` must be a folder (or not exist yet) that can be written; a folder that holds a
+    trained run (``model.npz``) is only continued (``--resume``) or replaced (``--overwrite``).
+    Raises ValueError / OSError with what to do.
+    """
+    from ..files import check_writable_folder
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ValueError(f'--out {out} is an existing file, not a folder: choose another --out')
+    checkpoint = os.path.join(out, 'model.npz')
+    if os.path.exists(checkpoint) and not (resume or overwrite):
+        raise ValueError(f'{out} already holds a trained run ({checkpoint}): continue it with '
+                         f'--resume, replace it with --overwrite, or choose another --out')
+    if resume and overwrite:
+        raise ValueError('--resume and --overwrite exclude each other')
+    check_writable_folder(out, what='run folder (--out)')
 
 
 def train(trainer, inp: Inputs):
@@ -163,8 +181,12 @@ def report(trainer, inp: Inputs, progress_log, wall_seconds):
     if 'test' in metrics:
         print(f'held-out views: PSNR {metrics["test"]["psnr"]:.2f} dB, '
               f'SSIM {metrics["test"]["ssim"]:.3f} over {len(metrics["test"]["views"])} views')
-    print(f'written to {out}/: model.npz, metrics.json, test/*.exr|png, render.xml, '
-          f'training.png, preview/')
+    written = ['model.npz', 'metrics.json', 'training.png']
+    if 'test' in metrics:
+        written[2:2] = ['test/*.exr|png', 'render.xml']
+    if os.path.isdir(os.path.join(out, 'preview')):
+        written.append('preview/')
+    print(f'written to {out}/: ' + ', '.join(written))
     if 'test' in metrics:
         print(f'render a view: python -m mi_nerfpp render {os.path.join(out, "render.xml")} '
               f'-o view.exr --preview view.png')
@@ -175,10 +197,7 @@ def run(args):
     from ..train import Trainer, TrainingError
 
     inp = inputs(args)
-    try:
-        trainer = Trainer(inp.dataset, inp.out, inp.cfg, resume=args.resume)
-    except TrainingError as e:
-        raise SystemExit(f'error: {e}') from None
+    trainer = Trainer(inp.dataset, inp.out, inp.cfg, resume=args.resume)
     ds = inp.dataset
     print(f'dataset {inp.data} ({ds.format}): {len(ds.train)} train / {len(ds.validation)} '
           f'validation / {len(ds.test)} test views, {trainer.rays.size} training rays; '
@@ -191,7 +210,7 @@ def run(args):
         return 1
     if not finished:
         print(f'interrupted at iteration {trainer.iteration}: checkpoint saved to '
-              f'{trainer.checkpoint_path}; continue with --resume')
+              f'{trainer.checkpoint_path}; continue with --resume', file=sys.stderr)
         return 130
     report(trainer, inp, progress_log, time.perf_counter() - t_start)
     return 0

@@ -33,8 +33,16 @@ def run(args):
 
     from ..views import render_to_files
 
+    from ..files import check_writable_folder
+
     if not os.path.isfile(args.scene):
-        raise SystemExit(f'{args.scene}: scene file not found')
+        raise SystemExit(f'error: render: {args.scene}: scene file not found')
+    if args.spp < 0:
+        raise ValueError(f'--spp must be 0 (the scene\'s sampler) or more, got {args.spp}')
+    for path in filter(None, (args.output, args.preview)):
+        if os.path.isdir(path):
+            raise ValueError(f'{path} is a folder: give a file name to write')
+        check_writable_folder(os.path.dirname(os.path.abspath(path)), 'output folder')
     t0 = time.perf_counter()
     scene = mi.load_file(args.scene, **_defines(args.define))
     render_to_files(scene, args.output, spp=args.spp, preview=args.preview, seed=args.seed)

@@ -5,14 +5,14 @@ import os
 
 
 def add_parser(sub):
-    from . import resolution
+    from . import positive_int, resolution
     p = sub.add_parser('video', help='render a novel-view video of a training run')
     p.add_argument('run', help='run folder written by optimize (holds model.npz)')
     p.add_argument('-o', '--output', help='.mp4 or .gif (default: RUN/video.mp4)')
     p.add_argument('--path', choices=['orbit', 'test'], default='orbit',
                    help="an orbit around the scene, or the dataset's test cameras")
-    p.add_argument('--frames', type=int, default=60, help='orbit frames (default 60)')
-    p.add_argument('--fps', type=int, default=24)
+    p.add_argument('--frames', type=positive_int, default=60, help='orbit frames (default 60)')
+    p.add_argument('--fps', type=positive_int, default=24)
     p.add_argument('--res', type=resolution, metavar='WxH',
                    help='WxH (default: the training images)')
     p.set_defaults(func=run)

@@ -85,6 +85,9 @@ class Frame:
     intrinsics_source: str | None = None
 
 
+MIN_IMAGE_SIZE = 3    # the smallest SSIM window (mi_nerfpp.metrics.SSIM_MIN_WIN_SIZE)
+
+
 def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.0)) -> Split:
     """Load and validate the images and cameras of one split.
 
@@ -119,6 +122,11 @@ def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.
             except ValueError as e:
                 raise DatasetError(f'{frame.image_path}: {e}; use a smaller downscale') from e
             camera = camera.downscaled(downscale)
+        if min(image.shape[:2]) < MIN_IMAGE_SIZE:
+            raise DatasetError(
+                f'{frame.image_path}: image is {image.shape[1]}x{image.shape[0]} pixels after '
+                f'downscale {downscale}; training and evaluation (SSIM) need at least '
+                f'{MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE}: use larger images or a smaller --downscale')
         cameras.append(camera)
         paths.append(frame.image_path)
         images.append(image)

@@ -6,6 +6,8 @@ Every image is returned as ``float32`` of shape (H, W, 3):
   16-bit PNGs go through ``mi.Bitmap`` because Pillow (behind imageio) truncates 16-bit colour
   PNGs to 8 bits.
 - EXR values are returned as stored (linear, possibly above 1).
+- JPEG/PNG EXIF orientation is applied (the pixels come out as a viewer shows them).
+- Non-finite pixels (NaN, inf: EXR only) are refused, naming the file and a pixel.
 - Grayscale is repeated into three channels.
 - An alpha channel is composited over a background colour: PNG/JPEG alpha is straight,
   ``rgb * a + bg * (1 - a)``; EXR colour is premultiplied by alpha (OpenEXR's convention, and
@@ -45,6 +47,13 @@ def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
         raise
     except Exception as e:  # noqa: BLE001 - decoders raise many types; all mean "unreadable"
         raise DatasetError(f'{path}: cannot read image ({type(e).__name__}: {e})') from e
+    bad = ~np.isfinite(color).all(axis=2)
+    if alpha is not None:
+        bad |= ~np.isfinite(alpha[..., 0])
+    if bad.any():
+        y, x = np.argwhere(bad)[0]
+        raise DatasetError(f'{path}: {int(bad.sum())} pixel(s) are NaN or infinite (the first '
+                           f'at x={x}, y={y}): fix or remove this image')
     if alpha is not None:
         bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
         color = (color if premultiplied else color * alpha) + bg * (1.0 - alpha)
@@ -103,7 +112,7 @@ def _read_ldr(path: str) -> np.ndarray:
     if _png_bit_depth(path) == 16:
         import mitsuba as mi
         return np.array(mi.Bitmap(path))
-    return iio.imread(path, plugin='pillow')
+    return iio.imread(path, plugin='pillow', rotate=True)     # rotate: EXIF orientation
 
 
 def _to_unit_range(pixels: np.ndarray) -> np.ndarray:

@@ -61,10 +61,19 @@ def read_llff(path, downscale: int = 1, background=(1.0, 1.0, 1.0),
     path = os.fspath(path)
     root = os.path.dirname(path) if os.path.isfile(path) else path
     poses_path = os.path.join(root, POSES_FILE)
+    expected = ('an N x 17 float array (3x5 pose + 2 bounds per image) saved with numpy.save, '
+                "as LLFF's imgs2poses.py writes it")
     try:
-        poses_bounds = np.load(poses_path)
-    except (OSError, ValueError) as e:
-        raise DatasetError(f'{poses_path}: cannot read ({e})') from e
+        poses_bounds = np.load(poses_path, allow_pickle=False)
+    except FileNotFoundError:
+        raise DatasetError(f'{poses_path}: not found') from None
+    except (OSError, ValueError, EOFError) as e:
+        raise DatasetError(f'{poses_path}: not a NumPy array file ({type(e).__name__}); expected '
+                           f'{expected}') from None
+    if not isinstance(poses_bounds, np.ndarray) or not np.issubdtype(poses_bounds.dtype,
+                                                                      np.number):
+        raise DatasetError(f'{poses_path}: holds {getattr(poses_bounds, "dtype", "no")} data; '
+                           f'expected {expected}')
     if poses_bounds.ndim != 2 or poses_bounds.shape[1] != 17:
         raise DatasetError(f'{poses_path}: expected an N x 17 array (3x5 pose + 2 bounds per '
                            f'image), got shape {poses_bounds.shape}')

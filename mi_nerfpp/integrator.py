@@ -200,7 +200,7 @@ class NeRFPPIntegrator(ADIntegrator):
         # Fields read their parameter dict on every evaluation: nothing to rebuild.
         pass
 
-    def prepare(self, sensor, seed=0, spp=0, aovs=[]):
+    def prepare(self, sensor, seed=0, spp=0, aovs=()):
         """Refuses films beyond ``max_samples`` and a sample count of 0 before Mitsuba
         allocates anything, and notes the camera frame for the depth layer."""
         size = sensor.film().crop_size()
@@ -215,7 +215,7 @@ class NeRFPPIntegrator(ADIntegrator):
                 f'{rays} rays, more than max_samples={self.max_samples} (about 100 bytes each): '
                 f'render a smaller film or crop, or raise the integrator\'s max_samples')
         self._view = camera_axis(sensor)
-        return super().prepare(sensor, seed, spp, aovs)
+        return super().prepare(sensor, seed, spp, list(aovs))
 
     def render_layers(self, o, d, seed, primal=False):
         """Beauty and AOVs of world-space rays: ``(L: Color3f, aovs: list[Float])``."""

@@ -2,7 +2,9 @@
 
 One training step: draw a batch of random rays across all training images, render
 them with :func:`mi_nerfpp.render.render_rays` (the same code the integrator uses),
-take the squared error of the coarse and the fine composite against the pixels,
+take the squared error of the coarse and the fine composite against the pixels (radiance is
+composited in linear light; for sRGB photos the composite is sRGB-encoded before the loss,
+see :meth:`~mi_nerfpp.model.NeRFPPModel.radiance_fields`),
 back-propagate with Dr.Jit and take an Adam step (``drjit.opt``). Learning rates
 decay exponentially to ``lr_final`` times their start over the run (:mod:`.optim`, shared
 with :mod:`.ambiguity`).

@@ -157,10 +157,13 @@ def test_sigterm_and_sigint_save_a_checkpoint(capture, tmp_path, sig):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130, err
-    assert 'checkpoint saved to' in err and '--resume' in err
+    import re
+    stopped = re.search(r'interrupted at iteration (\d+): checkpoint saved to (\S+); continue '
+                        r'with --resume', err)
+    assert stopped, err
     from mi_nerfpp.checkpoint import load_checkpoint
     _, meta, _ = load_checkpoint(out / 'model.npz')
-    assert meta['iteration'] > 0
+    assert meta['iteration'] == int(stopped.group(1))
 
 
 # ----------------------------------------------------------------------------- data

@@ -5,6 +5,7 @@ Keys:
 * ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 2);
 * ``config`` — JSON: ``{"fg": <field config>, "bg": <field config or null>,
   "normalization": {"center": [x, y, z], "scale": s}, "color_space": "srgb"|"linear",
+  "composite": "linear"|"srgb" (where samples are composited; missing: "srgb", older files),
   "meta": {...}}``. ``normalization`` is the scene normalization
   ``x_model = (x_world - center)·scale`` (:class:`~mi_nerfpp.frame.Normalization`; version 1
   files stored ``center`` and ``scale`` at the top level and are still read);
@@ -87,7 +88,9 @@ def load_checkpoint(path, seed=0):
         occupancy = {k: OccupancyGrid(density=z[f'occupancy/{k}'], **c)
                      for k, c in config.get('occupancy', {}).items()}
         model = NeRFPPModel(fg, bg, normalization=Normalization.from_config(config),
-                            color_space=config.get('color_space', 'srgb'), occupancy=occupancy)
+                            color_space=config.get('color_space', 'srgb'), occupancy=occupancy,
+                            # written before issue 11: sRGB models composited encoded colour
+                            composite=config.get('composite', 'srgb'))
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None
 

@@ -227,16 +227,23 @@ class NeRFPPIntegrator(ADIntegrator):
                           self.sampling, seed, occupancy=model.occupancy,
                           skip_occluded=primal and not self.occluded_background)
         fg = res.fg.fine
+        L, fg_rgb, alpha = res.fine.rgb, fg.rgb, dr.clip(fg.opacity, 0.0, 1.0)
         bg = res.bg.fine.rgb if res.bg is not None else mi.Color3f(0.0)
+        if model.composite == 'srgb' and model.color_space == 'srgb':
+            # A checkpoint from before linear compositing: decode its layers to linear light
+            # (the foreground unpremultiplied first); fg over bg is then exact only where
+            # alpha is 0 or 1.
+            L, bg = dr.srgb_to_linear(L), dr.srgb_to_linear(bg)
+            fg_rgb = alpha * dr.srgb_to_linear(fg_rgb / dr.maximum(alpha, 1e-6))
         surface = norm.to_world_distance(surface_distance(res))
         if self._view is None:        # no sensor known: the distance along the ray
             depth = surface
         else:
             center, axis = self._view
             depth = dr.dot(o - center, axis) + surface * dr.dot(dr.normalize(d), axis)
-        aovs = [fg.rgb.x, fg.rgb.y, fg.rgb.z, dr.clip(fg.opacity, 0.0, 1.0), bg.x, bg.y, bg.z,
+        aovs = [fg_rgb.x, fg_rgb.y, fg_rgb.z, alpha, bg.x, bg.y, bg.z,
                 depth, norm.to_world_distance(res.fine.depth)]
-        return res.fine.rgb, aovs
+        return L, aovs
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
         o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))

@@ -43,15 +43,24 @@ class NeRFPPModel:
     (:meth:`radiance_fields`), so compositing - along the ray, between the volumes and by an
     artist merging the layers - happens in linear light and ``beauty = fg + (1 - α)·bg`` holds
     exactly. Training takes the loss on the sRGB-encoded composite of an sRGB model.
+
+    ``composite`` says where the samples were composited when the model was trained:
+    ``'linear'`` (every model trained since issue 11) or ``'srgb'`` (older sRGB checkpoints,
+    which summed encoded colours). An ``'srgb'`` model keeps rendering as it was trained (its
+    fields are not decoded, :meth:`radiance_fields`); the integrator then decodes its layers
+    to linear light, where the compositing identity holds only approximately at soft edges.
     """
 
     def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb',
-                 occupancy=None):
+                 occupancy=None, composite='linear'):
         self.fg, self.bg = fg, bg
         self.normalization = normalization
         # Volume name ('fg'/'bg') -> OccupancyGrid: empty-space skipping (none: sample everywhere).
         self.occupancy = dict(occupancy or {})
         self.color_space = color_space
+        if composite not in ('linear', 'srgb'):
+            raise ValueError(f"composite must be 'linear' or 'srgb', not {composite!r}")
+        self.composite = 'linear' if color_space == 'linear' else composite
 
     @classmethod
     def create(cls, field='grid', background=True, seed=0, fg_config=None, bg_config=None, **kwargs):
@@ -65,14 +74,23 @@ class NeRFPPModel:
     def radiance_fields(self):
         """``(fg, bg)`` as :func:`~mi_nerfpp.render.render_rays` takes them: fields whose
         colour is linear radiance (an sRGB model's colour is decoded sample by sample)."""
-        if self.color_space == 'linear':
+        if self.color_space == 'linear' or self.composite == 'srgb':
             return self.fg, self.bg
         return LinearRadiance(self.fg), None if self.bg is None else LinearRadiance(self.bg)
+
+    @property
+    def loss_encoding(self):
+        """The map from :func:`~mi_nerfpp.render.render_rays`' composite of
+        :meth:`radiance_fields` to the encoding of the training images."""
+        if self.color_space == 'srgb' and self.composite == 'linear':
+            return dr.linear_to_srgb
+        return lambda c: c
 
     @property
     def config(self):
         return {'fg': self.fg.config, 'bg': self.bg.config if self.bg else None,
                 'normalization': self.normalization.to_config(), 'color_space': self.color_space,
+                'composite': self.composite,
                 'occupancy': {k: g.config for k, g in self.occupancy.items()}}
 
     def enable_occupancy(self, resolution, threshold):

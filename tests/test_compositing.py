@@ -190,3 +190,38 @@ def test_oiiotool_composite_over_a_linear_plate(tmp_path):
     for ch, p in zip('RGB', plate):
         np.testing.assert_allclose(comp[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * p, atol=1e-6)
     assert comp['R'][6, 8] == pytest.approx(0.21404114, rel=1e-5)     # the decoded sphere
+
+
+def test_checkpoint_from_before_linear_compositing_renders_as_trained(tmp_path):
+    """Older sRGB checkpoints summed encoded colour: they render as trained, decoded after."""
+    import json
+
+    from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
+    from mi_nerfpp.preview import srgb_oetf
+    path = tmp_path / 'old.npz'
+    save_checkpoint(path, tiny_model())
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    config = json.loads(str(arrays['config']))
+    del config['composite']                              # as written before issue 11
+    arrays['config'] = np.array(json.dumps(config))
+    np.savez(path, **arrays)
+    legacy, _, _ = load_checkpoint(path)
+    assert legacy.composite == 'srgb' and load_checkpoint_composite(tmp_path) == 'linear'
+
+    def beauty(model):
+        scene = mi.load_dict(scene_dict(jitter=False))
+        scene.integrator().set_model(model)
+        return render(scene, tmp_path)
+    trained = beauty(NeRFPPModel(legacy.fg, legacy.bg, color_space='linear'))  # no decoding
+    c = beauty(legacy)
+    for ch in 'RGB':
+        np.testing.assert_allclose(srgb_oetf(c[ch]), trained[ch], atol=2e-5)
+        np.testing.assert_allclose(srgb_oetf(c[f'bg.{ch}']), trained[f'bg.{ch}'], atol=2e-5)
+
+
+def load_checkpoint_composite(tmp_path):
+    """What a checkpoint written now records (for the test above)."""
+    from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
+    save_checkpoint(tmp_path / 'new.npz', tiny_model())
+    return load_checkpoint(tmp_path / 'new.npz')[0].composite

@@ -310,3 +310,33 @@ def test_render_output_that_is_a_folder_is_refused(capsys, tmp_path):
     scene.write_text(SCENE.format(integrator='', spp=1, w=4, h=3))
     status, _, err = run_cli(capsys, 'render', scene, '-o', tmp_path)
     assert status == 1 and 'is a folder: give a file name' in one_clear_line(err)
+
+
+def test_resume_with_another_compositing_space_is_refused(capsys, capture, tmp_path):
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out, '--composite', 'srgb')[0] == 0
+    from mi_nerfpp.checkpoint import load_checkpoint
+    assert load_checkpoint(out / 'model.npz')[0].composite == 'srgb'
+    status, _, err = _train(capsys, capture, out, '--resume')
+    line = one_clear_line(err)
+    assert status == 1 and "--composite: the checkpoint has 'srgb', this run asks for " \
+        "'linear'" in line
+    assert _train(capsys, capture, out, '--resume', '--composite', 'srgb',
+                  '--iterations', '3')[0] == 0
+
+
+def test_resume_of_a_checkpoint_from_before_linear_compositing(capsys, capture, tmp_path):
+    """A pre-issue-11 sRGB checkpoint (no 'composite' entry) resumes only as 'srgb'."""
+    import json
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out, '--composite', 'srgb')[0] == 0
+    path = out / 'model.npz'
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    config = json.loads(str(arrays['config']))
+    del config['composite'], config['meta']['config']['composite']
+    arrays['config'] = np.array(json.dumps(config))
+    np.savez(path, **arrays)
+    status, _, err = _train(capsys, capture, out, '--resume')
+    line = one_clear_line(err)
+    assert status == 1 and "--composite: the checkpoint composites in 'srgb'" in line

@@ -7,6 +7,7 @@ Every image is returned as ``float32`` of shape (H, W, 3):
   PNGs to 8 bits.
 - EXR values are returned as stored (linear, possibly above 1).
 - Grayscale is repeated into three channels.
+- A JPEG/PNG's EXIF orientation is applied (photos taken upright come back upright).
 - An alpha channel is composited over a background colour: PNG/JPEG alpha is straight,
   ``rgb * a + bg * (1 - a)``; EXR colour is premultiplied by alpha (OpenEXR's convention, and
   what Mitsuba writes), ``rgb + bg * (1 - a)``.
@@ -21,6 +22,7 @@ import numpy as np
 from .errors import DatasetError
 
 _PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
+_EXIF_ORIENTATION = 0x0112
 
 
 def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
@@ -103,7 +105,30 @@ def _read_ldr(path: str) -> np.ndarray:
     if _png_bit_depth(path) == 16:
         import mitsuba as mi
         return np.array(mi.Bitmap(path))
-    return iio.imread(path, plugin='pillow')
+    return iio.imread(path, plugin='pillow', rotate=True)
+
+
+def image_size(path) -> tuple[int, int]:
+    """(width, height) of an image as :func:`read_image` returns it (EXIF orientation applied),
+    from the file header where Pillow can read it, without decoding the pixels.
+
+    Raises:
+        DatasetError: the file cannot be read.
+    """
+    path = os.fspath(path)
+    if not path.lower().endswith('.exr'):
+        try:
+            from PIL import Image
+            with Image.open(path) as img:
+                width, height = img.size
+                # EXIF orientations 5-8 turn the image by 90 degrees.
+                if img.getexif().get(_EXIF_ORIENTATION, 1) in (5, 6, 7, 8):
+                    width, height = height, width
+            return width, height
+        except Exception:  # noqa: BLE001 - not readable by Pillow: decode it below
+            pass
+    height, width = read_image(path).shape[:2]
+    return width, height
 
 
 def _to_unit_range(pixels: np.ndarray) -> np.ndarray:

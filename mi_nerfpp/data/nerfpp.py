@@ -17,7 +17,7 @@ import os
 import numpy as np
 
 from .cameras import Camera
-from .dataset import SPLITS, Dataset, Frame, make_dataset, make_split
+from .dataset import SPLITS, Dataset, Frame, make_dataset, make_splits
 from .errors import DatasetError
 from .images import write_png
 
@@ -30,12 +30,13 @@ def is_nerfpp(root) -> bool:
     return os.path.isdir(os.path.join(root, 'train', 'pose'))
 
 
-def read_nerfpp(root, downscale: int = 1, background=(1.0, 1.0, 1.0)) -> Dataset:
+def read_nerfpp(root, downscale: int | None = 1, background=(1.0, 1.0, 1.0)) -> Dataset:
     """Read a NeRF++ layout folder (see the module docstring).
 
     Args:
         root: the dataset folder.
         downscale: integer factor to shrink images by (area averaging); intrinsics follow.
+            None: chosen from the image size (:func:`~mi_nerfpp.data.dataset.auto_downscale`).
         background: RGB colour transparent pixels are composited over.
 
     Raises:
@@ -46,9 +47,10 @@ def read_nerfpp(root, downscale: int = 1, background=(1.0, 1.0, 1.0)) -> Dataset
     if not os.path.isdir(os.path.join(root, 'train')):
         raise DatasetError(f'{os.path.join(root, "train")}: missing train split folder; a NeRF++ '
                            f'dataset needs ROOT/train/{{rgb,pose,intrinsics}}/')
-    splits = {name: make_split(_split_frames(os.path.join(root, name)), downscale, background)
-              for name in SPLITS}
-    return make_dataset('nerfpp', root, **splits, train_source=os.path.join(root, 'train'))
+    splits, downscale = make_splits(
+        {name: _split_frames(os.path.join(root, name)) for name in SPLITS}, downscale, background)
+    return make_dataset('nerfpp', root, **splits, train_source=os.path.join(root, 'train'),
+                        downscale=downscale)
 
 
 def write_nerfpp(root, splits: dict[str, tuple[list[Camera], list[np.ndarray]]]) -> None:

@@ -28,9 +28,10 @@ def add_parser(sub):
     from ..train import TrainConfig
     p = sub.add_parser('optimize', help='fit both volumes to a posed-image dataset',
                        description=__doc__)
-    p.add_argument('data', nargs='?', help='dataset folder (NeRF++ layout, transforms.json or '
-                   'LLFF); default: synthesize and cache the embedded default scene and train '
-                   f'it for {DEFAULT_MINUTES:g} minutes')
+    p.add_argument('data', nargs='?', help='dataset folder (NeRF++ layout, transforms.json, '
+                   'LLFF or COLMAP) or a folder of photos without poses (structure from motion '
+                   'runs first, cached in OUT/sfm); default: synthesize and cache the embedded '
+                   f'default scene and train it for {DEFAULT_MINUTES:g} minutes')
     p.add_argument('--out', help='run folder (default: runs/<dataset name>)')
     p.add_argument('--resume', action='store_true', help='continue from OUT/model.npz')
     p.add_argument('--eval-at', type=float, nargs='*', metavar='MIN',
@@ -67,6 +68,8 @@ def inputs(args) -> Inputs:
             eval_at = list(DEFAULT_EVAL_AT) if eval_at is None else eval_at
     if not os.path.exists(data):
         raise SystemExit(f'{data}: dataset folder not found')
+    out = args.out or os.path.join('runs', os.path.basename(os.path.normpath(data)))
+    data = photos_to_dataset(data, os.path.join(out, 'sfm'))
     try:
         cfg = TrainConfig(**options)
         dataset = load_dataset(data, downscale=cfg.downscale, background=cfg.background)
@@ -74,8 +77,33 @@ def inputs(args) -> Inputs:
         raise SystemExit(f'error: {e}') from None
     except ValueError as e:
         raise SystemExit(f'optimize: {e}') from None
-    out = args.out or os.path.join('runs', os.path.basename(os.path.normpath(data)))
+    if cfg.downscale is None:
+        cfg.downscale = dataset.downscale
+        train = dataset.train.cameras[0]
+        print(f'downscale {cfg.downscale} chosen from the image size: {len(dataset.train)} '
+              f'train images of {train.width}x{train.height} after it (pass --downscale to '
+              f'choose)')
     return Inputs(data, dataset, cfg, out, sorted(eval_at or []))
+
+
+def photos_to_dataset(data: str, sfm_out: str) -> str:
+    """``data`` if it is a dataset; for a folder of photos without poses, the NeRF++ dataset
+    structure from motion writes to ``sfm_out`` (run once, then reused)."""
+    from ..data import DatasetError, detect_format
+    from ..sfm import SfmError, is_photo_folder, run_sfm
+    try:
+        detect_format(data)
+        return data
+    except DatasetError:
+        if not is_photo_folder(data):
+            return data  # load_dataset reports what is wrong
+    print(f'{data}: a folder of photos without poses; running structure from motion '
+          f'(COLMAP) into {sfm_out}')
+    try:
+        run_sfm(data, sfm_out)
+    except (SfmError, FileExistsError) as e:
+        raise SystemExit(f'error: {e}') from None
+    return sfm_out
 
 
 def train(trainer, inp: Inputs):

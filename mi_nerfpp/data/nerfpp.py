@@ -87,11 +87,18 @@ def write_nerfpp(root, splits: dict[str, tuple[list[Camera], list[np.ndarray]]])
             os.makedirs(folder, exist_ok=True)
         for i, (cam, img) in enumerate(zip(cameras, images)):
             stem = f'{i:06d}'
-            intrinsics = np.eye(4)
-            intrinsics[:3, :3] = cam.K
             write_png(os.path.join(folders[0], stem + '.png'), img)
-            _write_matrix(os.path.join(folders[1], stem + '.txt'), cam.c2w)
-            _write_matrix(os.path.join(folders[2], stem + '.txt'), intrinsics)
+            write_camera(os.path.join(root, name), stem, cam)
+
+
+def write_camera(split_folder, stem: str, camera: Camera) -> None:
+    """Write ``pose/STEM.txt`` and ``intrinsics/STEM.txt`` of one camera into a split folder
+    (the folders are created if needed; the image ``rgb/STEM.*`` is the caller's)."""
+    intrinsics = np.eye(4)
+    intrinsics[:3, :3] = camera.K
+    for sub, matrix in (('pose', camera.c2w), ('intrinsics', intrinsics)):
+        os.makedirs(os.path.join(split_folder, sub), exist_ok=True)
+        _write_matrix(os.path.join(split_folder, sub, stem + '.txt'), matrix)
 
 
 def _split_frames(folder: str) -> list[Frame]:

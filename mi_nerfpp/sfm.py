@@ -44,6 +44,7 @@ DEFAULT_MAX_IMAGE_SIZE = 3200     # COLMAP's default for feature extraction
 DEFAULT_OVERLAP = 10              # sequential matching: neighbours of each frame
 RETRY_BELOW = 0.8                 # registration rate under which mapping is retried relaxed
 RELAXED_INIT = dict(init_min_tri_angle=4.0, init_min_num_inliers=50)
+MIN_PAIR_INLIERS = 15             # COLMAP's default minimum of a verified pair
 FEATURE_CHUNK = 8                 # images per feature-extraction call (progress granularity)
 _EXIF_ORIENTATION = 0x0112
 
@@ -218,7 +219,11 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
             raise SfmError(f'{photos}: COLMAP feature matching failed ({e})') from e
         b.update(1)
     with pycolmap.Database.open(database) as db:
-        report['verified_pairs'] = int(db.num_verified_image_pairs())
+        _, geometries = db.read_two_view_geometries()
+        # Photo pairs whose matches passed geometric verification (COLMAP keeps a record,
+        # possibly empty, for every pair it tried).
+        report['verified_pairs'] = sum(len(g.inlier_matches) >= MIN_PAIR_INLIERS
+                                       for g in geometries)
         report['cameras'] = int(db.num_cameras())
     if n_pairs is not None:
         report['pairs'] = n_pairs
@@ -231,8 +236,8 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
     if model_dir is None or registered < 2:
         raise SfmError(
             f'{photos}: COLMAP could not reconstruct the scene: no pair of photos had enough '
-            f'matched features to start from ({report["verified_pairs"]} photo pairs matched). '
-            + ADVICE)
+            f'matched features to start from ({report["verified_pairs"]} photo pairs with '
+            f'{MIN_PAIR_INLIERS}+ verified matches of {len(listed)} photos). ' + ADVICE)
 
     t = time.perf_counter()
     with bar('undistortion', 1, 'stage') as b:

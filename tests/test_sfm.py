@@ -110,6 +110,10 @@ def test_normalization_places_the_dataset_in_the_colmap_frame(sfm):
     np.testing.assert_allclose(np.mean([c.center for c in cams], 0), 0.0, atol=1e-9)
     for cam in cams:
         np.testing.assert_allclose(norm.to_world_camera(cam).c2w, colmap[cam.name], atol=1e-9)
+    # The sparse points are reported (not used): the share inside the foreground sphere.
+    assert report['points3D'] == len(model.points) > 100
+    inside = np.linalg.norm(norm.to_model_point(model.points), axis=1) < 1.0
+    assert report['points_in_foreground'] == pytest.approx(inside.mean())
 
 
 def test_second_run_is_cached_and_optimize_reuses_it(photos, sfm, capsys):

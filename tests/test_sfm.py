@@ -129,8 +129,30 @@ def test_second_run_is_cached_and_optimize_reuses_it(photos, sfm, capsys):
     assert photos_to_dataset(out, '/nonexistent') == out
     assert photos_to_dataset(photos[0], out) == out
     assert os.path.getmtime(database) == stamp
-    # Other options do redo it.
-    assert run_sfm(photos[0], out, progress=False, hold=0)['views']['test'] == 0
+
+
+def test_sequential_matching_of_frames_in_order(photos, sfm, tmp_path):
+    """The photos renamed in the order of the camera path, as video frames are: sequential
+    matching (each frame with the next 5) registers a good part of them (measured 9 of 20;
+    the arc's ends are the far-apart test views). Run into the earlier output, which other
+    photos and options replace."""
+    report, out = sfm
+    folder = tmp_path / 'frames'
+    os.makedirs(folder)
+    order = []
+    for name in os.listdir(photos[0]):
+        split, index = os.path.splitext(name)[0].split('_')
+        c = np.loadtxt(os.path.join(photos[1], split, 'pose', index + '.txt')).reshape(4, 4)
+        order.append((np.arctan2(c[0, 3], c[2, 3]), name))
+    for i, (_, name) in enumerate(sorted(order)):
+        shutil.copy(os.path.join(photos[0], name), folder / f'frame_{i:03d}.png')
+    again = run_sfm(folder, out, progress=False, hold=0, matching='sequential', overlap=5)
+    assert again['cached'] is False and again['params']['matching'] == 'sequential'
+    assert len(again['registered']) >= 6
+    assert sorted(again['registered'] + again['unregistered']) == sorted(os.listdir(folder))
+    assert again['views'] == {'train': len(again['registered']), 'test': 0}
+    assert len(os.listdir(os.path.join(out, 'train', 'rgb'))) == len(again['registered'])
+    assert not os.path.exists(os.path.join(out, 'test'))
 
 
 def test_sfm_errors_say_what_to_do(tmp_path):

@@ -37,9 +37,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help='sequential matching: frames each frame is matched with '
                         '(default %(default)s)')
     p.add_argument('--camera', choices=CAMERA_MODES, default='auto',
-                   help='which photos share intrinsics: auto (COLMAP: same size and EXIF '
-                        'focal length), single (one camera took all), per-image '
-                        '(default %(default)s)')
+                   help='which photos share intrinsics: single (one camera took all), '
+                        'per-image, or auto: single when all photos have one size and one EXIF '
+                        'camera and focal length, else per-image (default %(default)s)')
     p.add_argument('--hold', type=int, default=DEFAULT_HOLD,
                    help='every N-th registered photo is a test view (0: none) '
                         '(default %(default)s)')

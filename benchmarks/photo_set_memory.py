@@ -23,21 +23,15 @@ def write_photo_set(out, views, width, height):
 
     from mi_nerfpp.data import Camera
     from mi_nerfpp.data.nerfpp import write_camera
+    from mi_nerfpp.synth import intrinsics_from_fov, look_at
     if os.path.isdir(os.path.join(out, 'train', 'rgb')):
         return
     rng = np.random.default_rng(0)
-    f = 0.9 * width
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    K = intrinsics_from_fov(60.0, width, height)
     coarse = rng.uniform(0, 255, size=(height // 40, width // 40, 3)).astype(np.uint8)
     for i in range(views):
         angle = 2 * np.pi * i / views
-        c = 3.0 * np.array([np.cos(angle), 0.3, np.sin(angle)])
-        z = -c / np.linalg.norm(c)
-        x = np.cross(z, [0.0, -1.0, 0.0])
-        x /= np.linalg.norm(x)
-        c2w = np.eye(4)
-        c2w[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-        c2w[:3, 3] = c
+        c2w = look_at(3.0 * np.array([np.cos(angle), 0.3, np.sin(angle)]), (0.0, 0.0, 0.0))
         split = os.path.join(out, 'test' if i % 8 == 0 else 'train')
         os.makedirs(os.path.join(split, 'rgb'), exist_ok=True)
         img = Image.fromarray(np.roll(coarse, i, axis=1)).resize((width, height))

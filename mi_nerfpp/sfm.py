@@ -235,9 +235,10 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
     seconds['mapping'] = time.perf_counter() - t
     if model_dir is None or registered < 2:
         raise SfmError(
-            f'{photos}: COLMAP could not reconstruct the scene: no pair of photos had enough '
-            f'matched features to start from ({report["verified_pairs"]} photo pairs with '
-            f'{MIN_PAIR_INLIERS}+ verified matches of {len(listed)} photos). ' + ADVICE)
+            f'{photos}: COLMAP could not reconstruct the scene: it found no pair of photos to '
+            f'start from ({report["verified_pairs"]} pairs of the {len(listed)} photos have '
+            f'{MIN_PAIR_INLIERS} or more geometrically verified matches; a start needs '
+            f'{RELAXED_INIT["init_min_num_inliers"]}-100 and enough parallax). ' + ADVICE)
 
     t = time.perf_counter()
     with bar('undistortion', 1, 'stage') as b:

@@ -53,9 +53,9 @@ class Normalization:
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def for_cameras(cls, cameras) -> Normalization:
+    def for_cameras(cls, cameras, always: bool = False) -> Normalization:
         """NeRF++'s normalization of a capture, or the identity when every camera centre
-        already lies strictly inside the unit sphere.
+        already lies strictly inside the unit sphere (unless ``always``).
 
         Otherwise the mean camera centre goes to the origin and the farthest camera to radius
         :data:`NERFPP_CAMERA_RADIUS`.
@@ -66,7 +66,7 @@ class Normalization:
         if not cameras:
             raise ValueError('normalization: no cameras given')
         centers = np.stack([cam.center for cam in cameras])
-        if np.all(np.linalg.norm(centers, axis=1) < 1.0):
+        if not always and np.all(np.linalg.norm(centers, axis=1) < 1.0):
             return cls()
         center = centers.mean(axis=0)
         radius = np.linalg.norm(centers - center, axis=1).max()

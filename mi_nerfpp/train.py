@@ -129,7 +129,9 @@ class TrainConfig:
     seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
     checkpoint_every: int = option(500, 'iterations between checkpoints (0: only at the end)')
     preview_every: int = option(500, 'iterations between held-out previews (0: never)')
-    downscale: int = option(1, 'integer image downscale factor')
+    downscale: int = option(None, 'integer image downscale factor (default: the smallest that '
+                            'keeps the training images under 4.2 M pixels in all, announced)',
+                            type=int)
     background: tuple = option((1.0, 1.0, 1.0), 'colour that transparent (RGBA) images are '
                                'composited over', type=_comma_floats, metavar='R,G,B',
                                default_help='(default: 1,1,1)')

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from . import evaluate, optimize, render, synth, video
+from . import colmap, evaluate, optimize, render, synth, video
 
-COMMANDS = (render, optimize, synth, evaluate, video)
+COMMANDS = (render, optimize, synth, evaluate, video, colmap)
 
 
 def resolution(value: str) -> tuple[int, int]:

@@ -28,9 +28,10 @@ def add_parser(sub):
     from ..train import TrainConfig
     p = sub.add_parser('optimize', help='fit both volumes to a posed-image dataset',
                        description=__doc__)
-    p.add_argument('data', nargs='?', help='dataset folder (NeRF++ layout, transforms.json or '
-                   'LLFF); default: synthesize and cache the embedded default scene and train '
-                   f'it for {DEFAULT_MINUTES:g} minutes')
+    p.add_argument('data', nargs='?', help='dataset folder (NeRF++ layout, transforms.json, '
+                   'LLFF or COLMAP) or a folder of photos without poses (structure from motion '
+                   'runs first, cached in OUT/sfm); default: synthesize and cache the embedded '
+                   f'default scene and train it for {DEFAULT_MINUTES:g} minutes')
     p.add_argument('--out', help='run folder (default: runs/<dataset name>)')
     p.add_argument('--resume', action='store_true', help='continue from OUT/model.npz')
     p.add_argument('--overwrite', action='store_true',
@@ -73,7 +74,14 @@ def inputs(args) -> Inputs:
     cfg = TrainConfig(**options)      # validates every option (ValueError naming the flag)
     out = args.out or os.path.join('runs', os.path.basename(os.path.normpath(data)))
     check_run_folder(out, resume=args.resume, overwrite=getattr(args, 'overwrite', False))
+    data = photos_to_dataset(data, os.path.join(out, 'sfm'))
     dataset = load_dataset(data, downscale=cfg.downscale, background=cfg.background)
+    if cfg.downscale is None:
+        cfg.downscale = dataset.downscale
+        train = dataset.train.cameras[0]
+        print(f'downscale {cfg.downscale} chosen from the image size: {len(dataset.train)} '
+              f'train images of {train.width}x{train.height} after it (pass --downscale to '
+              f'choose)')
     return Inputs(data, dataset, cfg, out, sorted(eval_at or []))
 
 
@@ -94,6 +102,23 @@ def check_run_folder(out, resume, overwrite):
     if resume and overwrite:
         raise ValueError('--resume and --overwrite exclude each other')
     check_writable_folder(out, what='run folder (--out)')
+
+
+def photos_to_dataset(data: str, sfm_out: str) -> str:
+    """``data`` if it is a dataset; for a folder of photos without poses, the NeRF++ dataset
+    structure from motion writes to ``sfm_out`` (run once, then reused)."""
+    from ..data import DatasetError, detect_format
+    from ..sfm import is_photo_folder, run_sfm
+    try:
+        detect_format(data)
+        return data
+    except DatasetError:
+        if not is_photo_folder(data):
+            return data  # load_dataset reports what is wrong
+    print(f'{data}: a folder of photos without poses; running structure from motion '
+          f'(COLMAP) into {sfm_out}')
+    run_sfm(data, sfm_out)       # SfmError: reported at the command boundary
+    return sfm_out
 
 
 def train(trainer, inp: Inputs):

@@ -7,6 +7,7 @@ Modules:
     nerfpp   -- the NeRF++ layout (read and write)
     blender  -- ``transforms.json`` (Blender / NeRF synthetic, instant-ngp, nerfstudio)
     llff     -- ``poses_bounds.npy``
+    colmap   -- COLMAP sparse models (``sparse/0/`` + ``images/``)
     formats  -- :func:`load_dataset`, which detects the format
 """
 from .blender import read_transforms
@@ -20,15 +21,17 @@ from .cameras import (
     pixel_rays,
     project,
 )
-from .dataset import Dataset, Split
+from .colmap import read_colmap
+from .dataset import Dataset, Split, auto_downscale
 from .errors import DatasetError
 from .formats import detect_format, load_dataset
-from .images import downscale_image, read_image, write_png
+from .images import downscale_image, image_size, read_image, write_png
 from .llff import llff_to_opencv, read_llff
 from .nerfpp import read_nerfpp, write_nerfpp
 
 __all__ = [
-    'Camera', 'Dataset', 'DatasetError', 'Split', 'detect_format', 'downscale_image',
+    'Camera', 'Dataset', 'DatasetError', 'Split', 'auto_downscale', 'detect_format',
+    'downscale_image', 'image_size', 'read_colmap',
     'llff_to_opencv', 'load_dataset', 'mitsuba_sensor_dict', 'mitsuba_to_opencv',
     'opencv_to_mitsuba', 'opencv_to_opengl', 'opengl_to_opencv',
     'pixel_rays', 'project', 'read_image', 'read_llff', 'read_nerfpp', 'read_transforms',

@@ -27,7 +27,7 @@ import warnings
 import numpy as np
 
 from .cameras import opengl_to_opencv
-from .dataset import Dataset, Frame, make_dataset, make_split
+from .dataset import Dataset, Frame, make_dataset, make_splits
 from .errors import DatasetError
 
 SPLIT_FILES = {'train': 'transforms_train.json', 'validation': 'transforms_val.json',
@@ -48,7 +48,7 @@ def is_transforms(path) -> bool:
                for name in (SPLIT_FILES['train'], SINGLE_FILE))
 
 
-def read_transforms(path, downscale: int = 1, background=(1.0, 1.0, 1.0),
+def read_transforms(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
                     llff_hold: int = 8) -> Dataset:
     """Read a ``transforms.json`` dataset (see the module docstring).
 
@@ -87,8 +87,9 @@ def read_transforms(path, downscale: int = 1, background=(1.0, 1.0, 1.0),
         train_source = single_file
     else:
         raise DatasetError(f'{path}: found neither {SPLIT_FILES["train"]} nor {SINGLE_FILE}')
-    splits = {name: make_split(f, downscale, background) for name, f in frames.items()}
-    return make_dataset('blender', folder, **splits, train_source=train_source)
+    splits, downscale = make_splits(frames, downscale, background)
+    return make_dataset('blender', folder, **splits, train_source=train_source,
+                        downscale=downscale)
 
 
 def _read_frames(json_path: str) -> list[Frame]:

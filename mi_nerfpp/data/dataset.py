@@ -16,9 +16,14 @@ import numpy as np
 from ..frame import Normalization
 from .cameras import Camera
 from .errors import DatasetError
-from .images import downscale_image, read_image
+from .images import downscale_image, image_size, read_image
 
 SPLITS = ('train', 'validation', 'test')
+
+# The automatic downscale (``downscale=None``) keeps the training images under this many pixels
+# in all: the training ray bank holds ~40 bytes per pixel (origin, direction, colour in
+# float32, and the float64 arrays it is built from), so ~4 M rays stay well under 1 GB.
+AUTO_DOWNSCALE_PIXELS = 2 ** 22
 
 
 @dataclass
@@ -45,11 +50,13 @@ class Dataset:
 
     Attributes:
         train, validation, test: the splits (validation and test may be empty).
-        format: the reader that produced it: 'nerfpp', 'blender' or 'llff'.
+        format: the reader that produced it: 'nerfpp', 'blender', 'llff' or 'colmap'.
         root: the folder (or file) it was read from.
         color_space: 'srgb' (PNG/JPEG pixel values) or 'linear' (EXR).
         normalization: the :class:`~mi_nerfpp.frame.Normalization` already applied to every
             camera; the identity when the cameras were inside the unit sphere as read.
+        downscale: the factor the images were shrunk by (chosen by :func:`auto_downscale`
+            when the reader was given ``downscale=None``).
     """
 
     train: Split
@@ -59,6 +66,7 @@ class Dataset:
     root: str
     color_space: str
     normalization: Normalization
+    downscale: int = 1
 
 
 @dataclass
@@ -133,8 +141,32 @@ def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.
     return Split(cameras=cameras, image_paths=paths, images=images)
 
 
+def auto_downscale(sizes, budget: int = AUTO_DOWNSCALE_PIXELS) -> int:
+    """The smallest integer factor that brings images of ``sizes`` ((width, height) each)
+    under ``budget`` pixels in all; 1 if they already are (or there are none)."""
+    factor = 1
+    while sum((w // factor) * (h // factor) for w, h in sizes) > budget:
+        factor += 1
+    return factor
+
+
+def make_splits(frames: dict[str, list[Frame]], downscale: int | None = 1,
+                background=(1.0, 1.0, 1.0)) -> tuple[dict[str, Split], int]:
+    """:func:`make_split` of each split of ``frames`` (split name -> frames), all shrunk by one
+    factor: ``downscale``, or when it is None :func:`auto_downscale` of the train images (their
+    sizes read from the file headers, before any image is decoded).
+
+    Returns:
+        ``({split name: Split}, factor used)``.
+    """
+    if downscale is None:
+        downscale = auto_downscale([image_size(f.image_path) for f in frames.get('train', [])])
+    splits = {name: make_split(frames.get(name, []), downscale, background) for name in SPLITS}
+    return splits, downscale
+
+
 def make_dataset(format: str, root: str, train: Split, validation: Split, test: Split,
-                 train_source: str) -> Dataset:
+                 train_source: str, downscale: int = 1) -> Dataset:
     """Assemble the splits, normalizing all cameras into the unit sphere when needed.
 
     One normalization (NeRF++'s rule, :meth:`Normalization.for_cameras`) computed over the cameras of
@@ -164,7 +196,8 @@ def make_dataset(format: str, root: str, train: Split, validation: Split, test: 
     for split in splits.values():
         split.cameras = [normalization.to_model_camera(cam) for cam in split.cameras]
     return Dataset(**splits, format=format, root=os.fspath(root),
-                   color_space='linear' if all(is_exr) else 'srgb', normalization=normalization)
+                   color_space='linear' if all(is_exr) else 'srgb', normalization=normalization,
+                   downscale=int(downscale))
 
 
 def _check_pose(c2w: np.ndarray, source: str) -> None:

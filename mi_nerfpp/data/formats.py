@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 
 from .blender import is_transforms, read_transforms
+from .colmap import is_colmap, read_colmap
 from .dataset import Dataset
 from .errors import DatasetError
 from .llff import is_llff, read_llff
@@ -11,11 +12,13 @@ from .nerfpp import is_nerfpp, read_nerfpp
 
 
 def detect_format(path) -> str:
-    """The format of the dataset at ``path``: 'nerfpp', 'blender' or 'llff'.
+    """The format of the dataset at ``path``: 'nerfpp', 'blender', 'llff' or 'colmap'.
 
     Checked in that order: a folder with ``train/pose/`` (NeRF++), a ``transforms*.json`` file
     or a folder with ``transforms_train.json`` / ``transforms.json`` (Blender, instant-ngp,
-    nerfstudio), a ``poses_bounds.npy`` file or a folder with one (LLFF).
+    nerfstudio), a ``poses_bounds.npy`` file or a folder with one (LLFF), a folder with a
+    COLMAP model in ``sparse/0/``, ``sparse/`` or itself (COLMAP; LLFF folders often hold their
+    COLMAP model too, and their ``poses_bounds.npy`` wins).
 
     Raises:
         DatasetError: the path does not exist or matches no format.
@@ -29,14 +32,17 @@ def detect_format(path) -> str:
         return 'blender'
     if is_llff(path):
         return 'llff'
+    if is_colmap(path):
+        return 'colmap'
     raise DatasetError(
         f'{path}: not a recognized dataset. Expected a NeRF++ folder '
         f'(train/{{rgb,pose,intrinsics}}/), a Blender/instant-ngp/nerfstudio folder '
-        f'(transforms_train.json or transforms.json) or an LLFF folder (poses_bounds.npy + '
-        f'images/)')
+        f'(transforms_train.json or transforms.json), an LLFF folder (poses_bounds.npy + '
+        f'images/) or a COLMAP folder (sparse/0/ + images/); for a folder of photos without '
+        f'poses, run python -m mi_nerfpp colmap PHOTOS --out DATA first')
 
 
-def load_dataset(path, downscale: int = 1, background=(1.0, 1.0, 1.0),
+def load_dataset(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
                  llff_hold: int = 8) -> Dataset:
     """Read the dataset at ``path`` in whichever supported format it is.
 
@@ -46,18 +52,26 @@ def load_dataset(path, downscale: int = 1, background=(1.0, 1.0, 1.0),
     Args:
         path: dataset folder (or its transforms JSON / ``poses_bounds.npy``).
         downscale: integer factor to shrink images by (area averaging); intrinsics follow.
+            None: the smallest factor that keeps the train images under
+            :data:`~mi_nerfpp.data.dataset.AUTO_DOWNSCALE_PIXELS` pixels in all; the factor
+            used is ``Dataset.downscale``.
         background: RGB colour transparent pixels are composited over.
-        llff_hold: for formats without explicit splits (LLFF, a single ``transforms.json``),
+        llff_hold: for formats without explicit splits (LLFF, COLMAP, a single
+            ``transforms.json``),
             every ``llff_hold``-th image is held out as test (0: none).
 
     Raises:
         DatasetError: anything wrong with the data; the message names the file and the fix.
     """
-    if int(downscale) != downscale or downscale < 1:
-        raise ValueError(f'downscale must be a positive integer, got {downscale!r}')
+    if downscale is not None:
+        if int(downscale) != downscale or downscale < 1:
+            raise ValueError(f'downscale must be a positive integer, got {downscale!r}')
+        downscale = int(downscale)
     fmt = detect_format(path)
     if fmt == 'nerfpp':
-        return read_nerfpp(path, int(downscale), background)
+        return read_nerfpp(path, downscale, background)
     if fmt == 'blender':
-        return read_transforms(path, int(downscale), background, llff_hold)
-    return read_llff(path, int(downscale), background, llff_hold)
+        return read_transforms(path, downscale, background, llff_hold)
+    if fmt == 'colmap':
+        return read_colmap(path, downscale, background, llff_hold)
+    return read_llff(path, downscale, background, llff_hold)

@@ -23,6 +23,7 @@ import numpy as np
 from .errors import DatasetError
 
 _PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
+_EXIF_ORIENTATION = 0x0112
 
 
 def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
@@ -113,6 +114,29 @@ def _read_ldr(path: str) -> np.ndarray:
         import mitsuba as mi
         return np.array(mi.Bitmap(path))
     return iio.imread(path, plugin='pillow', rotate=True)     # rotate: EXIF orientation
+
+
+def image_size(path) -> tuple[int, int]:
+    """(width, height) of an image as :func:`read_image` returns it (EXIF orientation applied),
+    from the file header where Pillow can read it, without decoding the pixels.
+
+    Raises:
+        DatasetError: the file cannot be read.
+    """
+    path = os.fspath(path)
+    if not path.lower().endswith('.exr'):
+        try:
+            from PIL import Image
+            with Image.open(path) as img:
+                width, height = img.size
+                # EXIF orientations 5-8 turn the image by 90 degrees.
+                if img.getexif().get(_EXIF_ORIENTATION, 1) in (5, 6, 7, 8):
+                    width, height = height, width
+            return width, height
+        except Exception:  # noqa: BLE001 - not readable by Pillow: decode it below
+            pass
+    height, width = read_image(path).shape[:2]
+    return width, height
 
 
 def _to_unit_range(pixels: np.ndarray) -> np.ndarray:

@@ -13,7 +13,7 @@ import os
 
 import numpy as np
 
-from .dataset import Dataset, Frame, make_dataset, make_split
+from .dataset import Dataset, Frame, make_dataset, make_splits
 from .errors import DatasetError
 
 POSES_FILE = 'poses_bounds.npy'
@@ -43,7 +43,7 @@ def llff_to_opencv(pose) -> np.ndarray:
     return c2w
 
 
-def read_llff(path, downscale: int = 1, background=(1.0, 1.0, 1.0),
+def read_llff(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
               llff_hold: int = 8) -> Dataset:
     """Read an LLFF dataset (see the module docstring).
 
@@ -98,14 +98,10 @@ def read_llff(path, downscale: int = 1, background=(1.0, 1.0, 1.0),
             source=source,
             name=os.path.splitext(os.path.basename(image))[0]))
     held_out = set(range(0, len(frames), llff_hold)) if llff_hold > 0 else set()
-    splits = {
-        'train': make_split([f for i, f in enumerate(frames) if i not in held_out],
-                            downscale, background),
-        'validation': make_split([], downscale, background),
-        'test': make_split([f for i, f in enumerate(frames) if i in held_out],
-                           downscale, background),
-    }
-    return make_dataset('llff', root, **splits, train_source=poses_path)
+    splits, downscale = make_splits({
+        'train': [f for i, f in enumerate(frames) if i not in held_out],
+        'test': [f for i, f in enumerate(frames) if i in held_out]}, downscale, background)
+    return make_dataset('llff', root, **splits, train_source=poses_path, downscale=downscale)
 
 
 def _intrinsics(hwf, source: str, image: str, width: int, height: int) -> np.ndarray:

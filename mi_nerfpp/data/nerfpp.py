@@ -17,7 +17,7 @@ import os
 import numpy as np
 
 from .cameras import Camera
-from .dataset import SPLITS, Dataset, Frame, make_dataset, make_split
+from .dataset import SPLITS, Dataset, Frame, make_dataset, make_splits
 from .errors import DatasetError
 from .images import write_png
 
@@ -30,12 +30,13 @@ def is_nerfpp(root) -> bool:
     return os.path.isdir(os.path.join(root, 'train', 'pose'))
 
 
-def read_nerfpp(root, downscale: int = 1, background=(1.0, 1.0, 1.0)) -> Dataset:
+def read_nerfpp(root, downscale: int | None = 1, background=(1.0, 1.0, 1.0)) -> Dataset:
     """Read a NeRF++ layout folder (see the module docstring).
 
     Args:
         root: the dataset folder.
         downscale: integer factor to shrink images by (area averaging); intrinsics follow.
+            None: chosen from the image size (:func:`~mi_nerfpp.data.dataset.auto_downscale`).
         background: RGB colour transparent pixels are composited over.
 
     Raises:
@@ -46,9 +47,10 @@ def read_nerfpp(root, downscale: int = 1, background=(1.0, 1.0, 1.0)) -> Dataset
     if not os.path.isdir(os.path.join(root, 'train')):
         raise DatasetError(f'{os.path.join(root, "train")}: missing train split folder; a NeRF++ '
                            f'dataset needs ROOT/train/{{rgb,pose,intrinsics}}/')
-    splits = {name: make_split(_split_frames(os.path.join(root, name)), downscale, background)
-              for name in SPLITS}
-    return make_dataset('nerfpp', root, **splits, train_source=os.path.join(root, 'train'))
+    splits, downscale = make_splits(
+        {name: _split_frames(os.path.join(root, name)) for name in SPLITS}, downscale, background)
+    return make_dataset('nerfpp', root, **splits, train_source=os.path.join(root, 'train'),
+                        downscale=downscale)
 
 
 def write_nerfpp(root, splits: dict[str, tuple[list[Camera], list[np.ndarray]]]) -> None:
@@ -85,11 +87,18 @@ def write_nerfpp(root, splits: dict[str, tuple[list[Camera], list[np.ndarray]]])
             os.makedirs(folder, exist_ok=True)
         for i, (cam, img) in enumerate(zip(cameras, images)):
             stem = f'{i:06d}'
-            intrinsics = np.eye(4)
-            intrinsics[:3, :3] = cam.K
             write_png(os.path.join(folders[0], stem + '.png'), img)
-            _write_matrix(os.path.join(folders[1], stem + '.txt'), cam.c2w)
-            _write_matrix(os.path.join(folders[2], stem + '.txt'), intrinsics)
+            write_camera(os.path.join(root, name), stem, cam)
+
+
+def write_camera(split_folder, stem: str, camera: Camera) -> None:
+    """Write ``pose/STEM.txt`` and ``intrinsics/STEM.txt`` of one camera into a split folder
+    (the folders are created if needed; the image ``rgb/STEM.*`` is the caller's)."""
+    intrinsics = np.eye(4)
+    intrinsics[:3, :3] = camera.K
+    for sub, matrix in (('pose', camera.c2w), ('intrinsics', intrinsics)):
+        os.makedirs(os.path.join(split_folder, sub), exist_ok=True)
+        _write_matrix(os.path.join(split_folder, sub, stem + '.txt'), matrix)
 
 
 def _split_frames(folder: str) -> list[Frame]:

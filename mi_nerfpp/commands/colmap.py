@@ -1,0 +1,52 @@
+"""``python -m mi_nerfpp colmap PHOTOS --out DATA``: structure from motion (:mod:`mi_nerfpp.sfm`)."""
+from __future__ import annotations
+
+import argparse
+
+
+def run(args) -> int:
+    from ..sfm import SfmError, run_sfm
+    try:
+        run_sfm(args.photos, args.out, matching=args.matching, camera=args.camera,
+                hold=args.hold, max_image_size=args.max_image_size, overlap=args.overlap,
+                num_threads=args.threads)
+    except (SfmError, FileExistsError, ValueError) as e:
+        raise SystemExit(f'colmap: {e}') from None
+    return 0
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    """Register ``colmap`` on the sub-command parsers of ``python -m mi_nerfpp``."""
+    from ..sfm import (CAMERA_MODES, DEFAULT_HOLD, DEFAULT_MAX_IMAGE_SIZE, DEFAULT_OVERLAP,
+                       MATCHING)
+    p = sub.add_parser(
+        'colmap', help='poses for a folder of photos (structure from motion with pycolmap), '
+                       'written as a NeRF++ dataset',
+        description='Feature extraction, matching, incremental mapping and undistortion with '
+                    'COLMAP (pycolmap), then the registered photos in the NeRF++ layout with '
+                    'NeRF++\'s normalization (DATA/sfm.json holds it, and the registered and '
+                    'unregistered photos). A second run with the same photos and options '
+                    'reuses DATA.')
+    p.add_argument('photos', help='folder of JPG/PNG/TIFF photos (its subfolders are ignored)')
+    p.add_argument('--out', required=True, metavar='DATA', help='dataset folder to write')
+    p.add_argument('--matching', choices=MATCHING, default='exhaustive',
+                   help='exhaustive: every pair of photos (unordered photo sets); sequential: '
+                        'each frame with the next --overlap frames (video frames in order) '
+                        '(default %(default)s)')
+    p.add_argument('--overlap', type=int, default=DEFAULT_OVERLAP,
+                   help='sequential matching: frames each frame is matched with '
+                        '(default %(default)s)')
+    p.add_argument('--camera', choices=CAMERA_MODES, default='auto',
+                   help='which photos share intrinsics: single (one camera took all), '
+                        'per-image, or auto: single when all photos have one size and one EXIF '
+                        'camera and focal length, else per-image (default %(default)s)')
+    p.add_argument('--hold', type=int, default=DEFAULT_HOLD,
+                   help='every N-th registered photo is a test view (0: none) '
+                        '(default %(default)s)')
+    p.add_argument('--max-image-size', type=int, default=DEFAULT_MAX_IMAGE_SIZE,
+                   help='photos are shrunk to this many pixels (longer side) for feature '
+                        'extraction (default %(default)s)')
+    p.add_argument('--threads', type=int, default=-1,
+                   help='CPU threads for COLMAP (default: all)')
+    p.set_defaults(func=run)
+    return p

@@ -2,6 +2,12 @@
 
     python benchmarks/render.py [--width 1280 --height 720] [--runs 3] [--field grid]
                                 [--fg-samples 64 --bg-samples 64 --fine-samples 128]
+    python benchmarks/render.py --run runs/default [--width 1280 --height 720]
+
+Without ``--run``, seeded random fields (no occupancy grid, nothing opaque) are rendered
+from a fixed camera with the given sample counts. With ``--run DIR``, the trained model
+of a run is rendered through its ``DIR/render.xml`` (its first held-out camera, its
+sample counts, its occupancy grids), with the film resized to ``--width x --height``.
 
 Prints seconds per frame, rays/s, samples/s (field evaluations: (coarse + fine) per
 volume per ray) and the process's peak RSS. The first (cold) run compiles kernels
@@ -28,9 +34,40 @@ def main():
     ap.add_argument('--fine-samples', type=int, default=128)
     ap.add_argument('--chunk-rays', type=int, default=1 << 15)
     ap.add_argument('--spp', type=int, default=1, help='rays per pixel (a frame = 1)')
+    ap.add_argument('--run', help='a run folder: render its render.xml (trained model)')
     a = ap.parse_args()
 
-    scene = mi.load_dict({
+    if a.run:
+        scene = run_scene(a.run, a.width, a.height, a.spp)
+        integrator = scene.integrator()
+        a.fg_samples, a.bg_samples = integrator.sampling.fg_samples, integrator.sampling.bg_samples
+        a.fine_samples = integrator.sampling.fine_samples
+        a.field = integrator.model.fg.kind
+    else:
+        scene = random_scene(a)
+    rays = a.width * a.height * a.spp
+    samples = rays * (a.fg_samples + a.bg_samples + 2 * a.fine_samples)
+    bench(scene, a, rays, samples)
+
+
+def run_scene(run, width, height, spp):
+    """The run's render.xml with its film resized (and ``spp`` samples per pixel)."""
+    import os
+    import re
+    path = os.path.join(run, 'render.xml')
+    with open(path) as f:
+        xml = f.read()
+    xml = re.sub(r'(<integer name="width" value=")\d+', rf'\g<1>{width}', xml)
+    xml = re.sub(r'(<integer name="height" value=")\d+', rf'\g<1>{height}', xml)
+    xml = re.sub(r'(<integer name="sample_count" value=")\d+', rf'\g<1>{spp}', xml)
+    resized = os.path.join(run, 'render_benchmark.xml')
+    with open(resized, 'w') as f:
+        f.write(xml)
+    return mi.load_file(resized)
+
+
+def random_scene(a):
+    return mi.load_dict({
         'type': 'scene',
         'integrator': {'type': 'nerfpp', 'field': a.field, 'fg_samples': a.fg_samples,
                        'bg_samples': a.bg_samples, 'fine_samples': a.fine_samples,
@@ -40,9 +77,9 @@ def main():
                    'sampler': {'type': 'independent', 'sample_count': a.spp},
                    'film': {'type': 'hdrfilm', 'width': a.width, 'height': a.height,
                             'rfilter': {'type': 'box'}, 'pixel_format': 'rgba'}}})
-    rays = a.width * a.height * a.spp
-    samples = rays * (a.fg_samples + a.bg_samples + 2 * a.fine_samples)
 
+
+def bench(scene, a, rays, samples):
     def run():
         t0 = time.perf_counter()
         img = mi.render(scene, seed=0)
@@ -56,7 +93,8 @@ def main():
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     n_params = scene.integrator().model.n_parameters()
     print(f'frame {a.width}x{a.height} at {a.spp} spp, field={a.field} ({n_params / 1e6:.2f} M parameters), '
-          f'samples per ray: fg {a.fg_samples}+{a.fine_samples}, bg {a.bg_samples}+{a.fine_samples}')
+          f'samples per ray: fg {a.fg_samples}+{a.fine_samples}, bg {a.bg_samples}+{a.fine_samples}'
+          + (f' (trained model of {a.run}; samples/s counts the full budget, before skipping)' if a.run else ''))
     print(f'cold run (kernel compilation included): {cold:.2f} s')
     print(f'warm runs: {", ".join(f"{x:.2f}" for x in times)} s -> median {t:.2f} s per frame')
     print(f'rays/s: {rays / t / 1e6:.3f} M   samples/s: {samples / t / 1e6:.2f} M')

@@ -16,9 +16,14 @@ def is_grid(name: str) -> bool:
     return name.rsplit('.', 1)[-1].startswith('grid')
 
 
-def adam(params: dict, lr: float = LR_MLP):
-    """An Adam optimizer holding ``params`` (name -> array)."""
-    opt = dr.opt.Adam(lr=lr)
+def adam(params: dict, lr: float = LR_MLP, lazy: bool = False):
+    """An Adam optimizer holding ``params`` (name -> array).
+
+    ``lazy``: entries whose gradient is zero in a step are left alone, moments included
+    (``mask_updates``, as instant-ngp does for its grids): a grid cell that no sample
+    touched does not keep drifting on stale momentum.
+    """
+    opt = dr.opt.Adam(lr=lr, mask_updates=lazy)
     for k, v in params.items():
         opt[k] = v
     return opt

@@ -34,7 +34,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import optim
+from . import optim, priors
 from .checkpoint import load_checkpoint, save_checkpoint
 from .data import pixel_rays
 from .fields import GridField
@@ -94,6 +94,8 @@ class TrainConfig:
                                metavar='FINE')
     lr_grid: float = option(optim.LR_GRID, 'learning rate of the feature grids')
     lr_mlp: float = option(optim.LR_MLP, 'learning rate of the MLPs')
+    lazy_adam: bool = option(False, 'leave parameters whose gradient is zero untouched in an Adam '
+                             'step (moments included)')
     lr_final: float = option(optim.LR_FINAL, 'learning rates decay exponentially to this '
                              'fraction of their start over the run')
     distortion: float = option(0.0, 'weight of the mip-NeRF 360 distortion loss against '
@@ -102,6 +104,9 @@ class TrainConfig:
     opacity_entropy: float = option(0.0, 'weight of the binary-entropy prior on the foreground '
                                     'opacity of each ray (pushes it to 0 or 1)')
     entropy_start: float = option(0.0, 'fraction of the run after which the entropy prior applies')
+    sparsity: float = option(0.0, 'weight of the sparsity prior: Cauchy loss log(1 + 2σ²) of the '
+                             'density at random points of each volume (Plenoxels), which '
+                             'removes haze and floaters')
     tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
     density_bias: float = option(_grid_default('density_bias'),
@@ -323,7 +328,7 @@ class Trainer:
         if 'rng' in meta:
             self.rng.bit_generator.state = meta['rng']
 
-        self.opt = optim.adam(self.model.parameters(), config.lr_mlp)
+        self.opt = optim.adam(self.model.parameters(), config.lr_mlp, lazy=config.lazy_adam)
         self._restore_optimizer(state)
 
     # ------------------------------------------------------------------ optimizer state
@@ -379,8 +384,9 @@ class Trainer:
                 if vol is not None:
                     loss += cfg.distortion * dr.mean(distortion(vol.weights, vol.position, vol.n))
         if cfg.opacity_entropy > 0 and self.progress() >= cfg.entropy_start:
-            a = dr.clip(res.fg.fine.opacity, 1e-4, 1.0 - 1e-4)
-            loss += cfg.opacity_entropy * dr.mean(-(a * dr.log(a) + (1.0 - a) * dr.log(1.0 - a)))
+            loss += cfg.opacity_entropy * priors.opacity_entropy(res.fg.fine.opacity)
+        if cfg.sparsity > 0:
+            loss += cfg.sparsity * self._sparsity_loss()
         if cfg.tv > 0:
             loss += cfg.tv * self._tv_loss()
         dr.backward(loss)
@@ -402,6 +408,17 @@ class Trainer:
                     field.upsample(level, target)
                     self.opt[key] = field.params[f'grid{level}']   # new shape: fresh Adam moments
 
+    def _sparsity_loss(self):
+        """Cauchy sparsity of both volumes' density at ``batch_rays`` random points each."""
+        n = self.cfg.batch_rays
+        total = mi.Float(0.0)
+        for field in (self.model.fg, self.model.bg):
+            if field is None:
+                continue
+            u = [mi.Float(self.rng.random(n, dtype=np.float32)) for _ in range(4)]
+            total += priors.cauchy_sparsity(field.density(priors.random_points(field.domain, u)))
+        return total
+
     def _tv_loss(self):
         """Total variation of every grid level, estimated on random cells (see :func:`grid_tv`)."""
         total = mi.Float(0.0)
@@ -410,7 +427,7 @@ class Trainer:
                 shape = self.opt[k].shape
                 cells = shape[0] * shape[1] * shape[2]
                 idx = mi.UInt32(self.rng.integers(0, cells, min(self.cfg.tv_cells, cells)))
-                total += grid_tv(self.opt[k], idx)
+                total += priors.grid_tv(self.opt[k], idx)
         return total
 
     def data_summary(self):
@@ -518,24 +535,6 @@ def data_conflicts(stored: dict, now: dict) -> list[str]:
              'training_rays': 'training rays (images, sizes or --downscale)'}
     return [f'{names[k]}: the checkpoint was trained on {stored[k]!r}, this run has {now[k]!r}'
             for k in names if k in stored and stored[k] != now[k]]
-
-
-def grid_tv(grid, cells):
-    """Mean squared difference between cells and their +x, +y, +z neighbours (clamped at the
-    border), over the cell indices ``cells`` of a (Z, Y, X, C) grid tensor, per channel."""
-    Z, Y, X, C = grid.shape
-    x = cells % X
-    y = (cells // X) % Y
-    z = cells // (X * Y)
-    total = mi.Float(0.0)
-    for c in range(C):
-        def at(zz, yy, xx):
-            return dr.gather(mi.Float, grid.array, ((zz * Y + yy) * X + xx) * C + c)
-        v = at(z, y, x)
-        for n in (at(z, y, dr.minimum(x + 1, X - 1)), at(z, dr.minimum(y + 1, Y - 1), x),
-                  at(dr.minimum(z + 1, Z - 1), y, x)):
-            total += dr.mean(dr.square(n - v))
-    return total / C
 
 
 def samples_per_second(cfg, iterations, seconds):

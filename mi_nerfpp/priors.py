@@ -1,0 +1,57 @@
+"""Regularizers of the radiance fields (added to the colour loss by :mod:`.train`).
+
+* :func:`cauchy_sparsity` — Plenoxels' sparsity prior ``log(1 + 2σ²)`` of the density at
+  random points: it saturates for surfaces, so a thin opaque surface costs little while a
+  volume of haze costs in every cell it fills. It removes the foreground veil that the
+  background would otherwise compensate for (see the README's tuning table).
+* :func:`opacity_entropy` — binary entropy of a ray's foreground opacity, minimal at 0 and 1.
+* :func:`grid_tv` — total variation of a feature grid on random cells.
+
+Each returns a scalar Float (a mean), differentiable in its inputs.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+ENTROPY_EPSILON = 1e-4
+
+
+def cauchy_sparsity(density):
+    """Mean of ``log(1 + 2σ²)`` over density samples ``σ`` (Float)."""
+    return dr.mean(dr.log(1.0 + 2.0 * dr.square(density)))
+
+
+def opacity_entropy(opacity):
+    """Mean binary entropy ``-(a log a + (1 - a) log(1 - a))`` of opacities, clamped away from 0
+    and 1 by ENTROPY_EPSILON."""
+    a = dr.clip(opacity, ENTROPY_EPSILON, 1.0 - ENTROPY_EPSILON)
+    return dr.mean(-(a * dr.log(a) + (1.0 - a) * dr.log(1.0 - a)))
+
+
+def grid_tv(grid, cells):
+    """Mean squared difference between cells and their +x, +y, +z neighbours (clamped at the
+    border), over the cell indices ``cells`` (UInt32) of a (Z, Y, X, C) grid tensor, averaged
+    over the channels."""
+    Z, Y, X, C = grid.shape
+    x = cells % X
+    y = (cells // X) % Y
+    z = cells // (X * Y)
+    total = mi.Float(0.0)
+    for c in range(C):
+        def at(zz, yy, xx):
+            return dr.gather(mi.Float, grid.array, ((zz * Y + yy) * X + xx) * C + c)
+        v = at(z, y, x)
+        for n in (at(z, y, dr.minimum(x + 1, X - 1)), at(z, dr.minimum(y + 1, Y - 1), x),
+                  at(dr.minimum(z + 1, Z - 1), y, x)):
+            total += dr.mean(dr.square(n - v))
+    return total / C
+
+
+def random_points(domain, u):
+    """Field inputs of uniform random points of a volume's domain from 4 uniform Floats ``u``:
+    the cube ``[-1, 1]³`` around the unit ball, or a uniform direction and ``s ∈ [0, 1)``."""
+    if domain == 'ball':
+        return [dr.fma(c, 2.0, -1.0) for c in u[:3]]
+    d = mi.warp.square_to_uniform_sphere(mi.Point2f(u[0], u[1]))
+    return [d.x, d.y, d.z, u[2]]

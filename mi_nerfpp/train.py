@@ -170,7 +170,7 @@ class TrainConfig:
                         'downscale', 'grid_channels', 'occupancy_res', 'occupancy_every',
                         'tv_cells')
         for name in at_least_one:
-            if getattr(self, name) < 1:
+            if getattr(self, name) is not None and getattr(self, name) < 1:   # downscale: auto
                 bad(name, 'at least 1')
         for name in ('fine_samples', 'checkpoint_every', 'preview_every', 'dir_octaves', 'seed'):
             if getattr(self, name) < 0:
@@ -179,7 +179,7 @@ class TrainConfig:
             if not (finite(getattr(self, name)) and getattr(self, name) > 0):
                 bad(name, 'a positive finite number')
         for name in ('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'density_bias',
-                     'occupancy_threshold'):
+                     'occupancy_threshold', 'sparsity'):
             v = getattr(self, name)
             if not finite(v) or (name != 'density_bias' and v < 0):
                 bad(name, 'a finite number' if name == 'density_bias' else

@@ -76,12 +76,13 @@ def inputs(args) -> Inputs:
     check_run_folder(out, resume=args.resume, overwrite=getattr(args, 'overwrite', False))
     data = photos_to_dataset(data, os.path.join(out, 'sfm'))
     dataset = load_dataset(data, downscale=cfg.downscale, background=cfg.background)
-    if cfg.downscale is None:
+    if cfg.downscale is None:           # chosen from the image size: announced when it shrinks
         cfg.downscale = dataset.downscale
-        train = dataset.train.cameras[0]
-        print(f'downscale {cfg.downscale} chosen from the image size: {len(dataset.train)} '
-              f'train images of {train.width}x{train.height} after it (pass --downscale to '
-              f'choose)')
+        if cfg.downscale > 1:
+            train = dataset.train.cameras[0]
+            print(f'downscale {cfg.downscale} chosen from the image size: {len(dataset.train)} '
+                  f'train images of {train.width}x{train.height} after it (pass --downscale to '
+                  f'choose)')
     return Inputs(data, dataset, cfg, out, sorted(eval_at or []))
 
 

@@ -33,8 +33,13 @@ from .sampling import flat_index
 # space alone still has a well-defined, monotonic coordinate.
 EMPTY_WEIGHT = 1e-3
 DEFAULT_RESOLUTION = 64
-DEFAULT_THRESHOLD = 0.01     # density (per unit of the volume's parameter) below which a cell is empty
+# Density (per unit of the volume's parameter) below which a cell is empty. Surfaces on the
+# 128³ foreground grid need σ ≫ 10; haze that a compositor would see as a veil sits below
+# 0.5. Measured on the default capture (1,500 steps): 0.01 pruned nothing, 0.3 left 4.5 % of
+# the foreground cells at unchanged PSNR, 1.0 cut into surfaces (-1.8 dB).
+DEFAULT_THRESHOLD = 0.3
 DEFAULT_DECAY = 0.95
+DEFAULT_EVERY = 16           # training steps between refreshes
 DEFAULT_BINS = {'ball': 128, 'inverted_sphere': 64}
 # Density a new grid starts with: every cell occupied until the first update from the field.
 INITIAL_DENSITY = 1e4

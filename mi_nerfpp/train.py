@@ -34,7 +34,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import optim, priors
+from . import occupancy as occ, optim, priors
 from .checkpoint import load_checkpoint, save_checkpoint
 from .data import pixel_rays
 from .fields import GridField
@@ -85,12 +85,12 @@ class TrainConfig:
     bg_field: str | None = option(None, 'field kind of the background volume', type=str,
                                   choices=FIELD_KINDS, default_help='(default: as --field)',
                                   shapes_model=True)
-    batch_rays: int = option(512, 'rays per step')
-    fg_samples: int = option(32, 'coarse foreground samples per ray', joint='--samples',
+    batch_rays: int = option(1024, 'rays per step')
+    fg_samples: int = option(16, 'coarse foreground samples per ray', joint='--samples',
                              metavar='FG')
-    bg_samples: int = option(32, 'coarse background samples per ray', joint='--samples',
+    bg_samples: int = option(16, 'coarse background samples per ray', joint='--samples',
                              metavar='BG')
-    fine_samples: int = option(32, 'fine samples per ray and volume', joint='--samples',
+    fine_samples: int = option(16, 'fine samples per ray and volume', joint='--samples',
                                metavar='FINE')
     lr_grid: float = option(optim.LR_GRID, 'learning rate of the feature grids')
     lr_mlp: float = option(optim.LR_MLP, 'learning rate of the MLPs')
@@ -104,18 +104,24 @@ class TrainConfig:
     opacity_entropy: float = option(0.0, 'weight of the binary-entropy prior on the foreground '
                                     'opacity of each ray (pushes it to 0 or 1)')
     entropy_start: float = option(0.0, 'fraction of the run after which the entropy prior applies')
-    sparsity: float = option(0.0, 'weight of the sparsity prior: Cauchy loss log(1 + 2σ²) of the '
+    sparsity: float = option(0.01, 'weight of the sparsity prior: Cauchy loss log(1 + 2σ²) of the '
                              'density at random points of each volume (Plenoxels), which '
                              'removes haze and floaters')
     tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
-    density_bias: float = option(_grid_default('density_bias'),
-                                 'grid field: initial density logit', shapes_model=True)
-    occupancy: bool = option(False, 'skip empty space: an occupancy grid per volume places the '
+    density_bias: float = option(0.0, "grid field: initial density logit: σ = 1 everywhere, above "
+                                 "the occupancy threshold, so that empty space is carved out "
+                                 "rather than grown into (the grid field's own default, for random "
+                                 "models, is more transparent)", shapes_model=True)
+    occupancy: bool = option(True, 'skip empty space: an occupancy grid per volume places the '
                              'samples', shapes_model=True)
-    occupancy_res: int = option(64, 'resolution of the occupancy grids', shapes_model=True)
-    occupancy_threshold: float = option(0.01, 'density below which an occupancy cell is empty')
-    occupancy_every: int = option(16, 'steps between refreshes of the occupancy grids')
+    occupancy_res: int = option(occ.DEFAULT_RESOLUTION, 'resolution of the occupancy grids',
+                                shapes_model=True)
+    occupancy_threshold: float = option(
+        occ.DEFAULT_THRESHOLD, 'density below which an occupancy cell is empty (per unit length in the foreground, '
+        'per unit of s in the background)')
+    occupancy_every: int = option(occ.DEFAULT_EVERY,
+                                  'steps between refreshes of the occupancy grids')
     grid_levels: tuple = option(tuple(_grid_default('resolutions')),
                                 'grid field: resolution of each level',
                                 metavar='RES', shapes_model=True)

@@ -131,7 +131,9 @@ def test_optimize_options_come_from_train_config():
              .choices['optimize']._actions if isinstance(a, argparse.Action)}
     for f in dataclasses.fields(TrainConfig):
         assert f.metadata.get('help'), f.name            # every option documents itself
-    assert '(default: 512)' in helps['batch_rays']
+    assert f'(default: {TrainConfig.batch_rays})' in helps['batch_rays']
+    args = build_parser().parse_args(['optimize', '--no-occupancy'])   # booleans switch both ways
+    assert TrainConfig(**values(args, TrainConfig)).occupancy is False
     with pytest.raises(SystemExit):
         build_parser().parse_args(['optimize', '--iterations', '3', '--minutes', '1'])
 

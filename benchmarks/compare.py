@@ -40,7 +40,7 @@ def picture(data, runs, path, view=0):
     pp = read_exr(os.path.join(runs['nerfpp'], 'test', f'test_{view:03d}.exr'))
 
     def img(layers, prefix=''):
-        return to_srgb8(np.stack([layers[prefix + c] for c in 'RGB'], -1), 'srgb')
+        return to_srgb8(np.stack([layers[prefix + c] for c in 'RGB'], -1), 'linear')   # EXRs are scene-linear
     panels = [gt, img(nerf), img(pp), img(pp, 'fg.'), img(pp, 'bg.')]
     iio.imwrite(path, np.concatenate(panels, axis=1))
 

@@ -33,7 +33,7 @@ import drjit as dr
 import drjit.nn as nn
 import mitsuba as mi
 
-from .geometry import direction_to_equirect
+from .geometry import grid_coordinates
 
 DOMAINS = {'ball': 3, 'inverted_sphere': 4}
 
@@ -273,15 +273,9 @@ class GridField(Field):
         self.params[f'grid{level}'] = mi.TensorXf(data, shape + (self.channels,))
         tex.set_tensor(self.params[f'grid{level}'])
 
-    def _grid_coords(self, x):
-        if self.domain == 'ball':
-            return [dr.fma(c, 0.5, 0.5) for c in x]
-        u, v = direction_to_equirect(mi.Vector3f(x[0], x[1], x[2]))
-        return [u, v, x[3]]
-
     def _lookup(self, x):
         """Density logit and feature vector (all levels) at field inputs ``x``."""
-        coords = self._grid_coords(x)
+        coords = grid_coordinates(self.domain, x)
         density = mi.Float(self.density_bias)
         features = []
         for i, (tex, r) in enumerate(zip(self.textures, self.resolutions)):

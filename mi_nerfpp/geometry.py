@@ -20,6 +20,7 @@ For origins inside the sphere this reduces to NeRF++ exactly (``s_max = 1``).
 from __future__ import annotations
 
 import drjit as dr
+import mitsuba as mi
 
 
 def closest_approach(o, d):
@@ -109,8 +110,18 @@ def direction_to_equirect(x):
     return u, v
 
 
+def grid_coordinates(domain, x):
+    """A volume's field inputs -> grid coordinates in ``[0, 1]³``, ordered (x, y, z) of a texture:
+    the ball ``[-1, 1]³`` scaled to the unit cube; the inverted sphere ``(x̂, s)`` as
+    (longitude, colatitude, s) of :func:`direction_to_equirect`."""
+    if domain == 'ball':
+        return [dr.fma(c, 0.5, 0.5) for c in x]
+    u, v = direction_to_equirect(mi.Vector3f(x[0], x[1], x[2]))
+    return [u, v, x[3]]
+
+
 __all__ = [
     'closest_approach', 'unit_sphere_chord', 'foreground_interval', 'background_s_max',
     'inverted_sphere_direction', 'inverted_sphere_distance',
-    'inverted_sphere_direction_by_rotation', 'direction_to_equirect',
+    'inverted_sphere_direction_by_rotation', 'direction_to_equirect', 'grid_coordinates',
 ]

@@ -25,7 +25,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .geometry import direction_to_equirect
+from .geometry import grid_coordinates
 from .sampling import flat_index
 
 # Weight of an empty bin's length in the occupied-length coordinate: small enough
@@ -73,18 +73,11 @@ class OccupancyGrid:
     def config(self):
         return {'domain': self.domain, 'resolution': self.resolution, 'threshold': self.threshold}
 
-    def _coords(self, x):
-        """Field inputs -> coordinates in [0, 1]³ ordered (X, Y, Z) like :attr:`shape` reversed."""
-        if self.domain == 'ball':
-            return [dr.fma(c, 0.5, 0.5) for c in x]
-        u, v = direction_to_equirect(mi.Vector3f(x[0], x[1], x[2]))
-        return [u, v, x[3]]
-
     def cell(self, x):
         """Flat cell index of field inputs ``x`` (list of Floats), clamped to the grid."""
         Z, Y, X = self.shape
         idx = [mi.UInt32(dr.clip(mi.Int32(dr.floor(c * n)), 0, n - 1))
-               for c, n in zip(self._coords(x), (X, Y, Z))]
+               for c, n in zip(grid_coordinates(self.domain, x), (X, Y, Z))]
         return (idx[2] * Y + idx[1]) * X + idx[0]
 
     def occupied(self, x):

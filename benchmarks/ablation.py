@@ -1,0 +1,73 @@
+"""Quality of one training setting at a fixed number of steps (the README's tuning table).
+
+    python benchmarks/ablation.py [DATA] --iterations 1500 [any optimize training option]
+
+Trains ``--iterations`` steps (default 1500) from scratch with the given options (the same
+flags and defaults as ``optimize``), then prints one line: held-out PSNR (mean and per test
+view), PSNR of every 8th training view (the generalization gap), foreground/background
+separation against the synthetic ground truth (``mi_nerfpp.metrics.separation``: mean
+|alpha - alpha_gt|, foreground opacity where the true mask is 0, fraction of soft alpha) and
+the fraction of occupied cells. A fixed step count makes settings comparable however busy the
+machine is; time-based quality is ``benchmarks/quality.py``. Without DATA, the embedded
+default capture is used.
+"""
+import argparse
+import glob
+import os
+
+import numpy as np
+
+import mi_nerfpp  # noqa: F401
+from mi_nerfpp.data import load_dataset
+from mi_nerfpp.exr import read_exr
+from mi_nerfpp.metrics import psnr, separation
+from mi_nerfpp.options import add_options, values
+from mi_nerfpp.synth import default_capture
+from mi_nerfpp.train import TrainConfig, Trainer
+from mi_nerfpp.views import ViewRenderer, encoded_rgb
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('data', nargs='?')
+    ap.add_argument('--out', default='/tmp/mi_nerfpp_ablation')
+    add_options(ap, TrainConfig)
+    a = ap.parse_args()
+    data = a.data or default_capture()
+    options = dict(values(a, TrainConfig), checkpoint_every=0, preview_every=0, minutes=None)
+    options['iterations'] = options['iterations'] or 1500
+    cfg = TrainConfig(**options)
+    dataset = load_dataset(data, downscale=cfg.downscale or 1, background=cfg.background)
+    trainer = Trainer(dataset, a.out, cfg)
+    from tqdm import tqdm
+    with tqdm(total=cfg.iterations, desc='train', unit='it', leave=False) as bar:
+        while not trainer.done():
+            trainer.step()
+            bar.update()
+
+    renderer = ViewRenderer(trainer.model, cfg.sampling, cfg.model == 'nerfpp')
+    space = trainer.model.color_space
+
+    def score(split, i):
+        layers = renderer.render(split.cameras[i])
+        return layers, psnr(np.clip(encoded_rgb(layers, space), 0, 1), split.images[i])
+
+    gts = sorted(glob.glob(os.path.join(data, 'test', 'gt', '*.exr')))
+    test, sep = [], []
+    for i in range(len(trainer.test)):
+        layers, p = score(trainer.test, i)
+        test.append(p)
+        if i < len(gts):
+            sep.append(separation(layers['fg.A'], read_exr(gts[i])['fg.A']))
+    train = [score(trainer.train, i)[1] for i in range(0, len(trainer.train), 8)]
+    mean = {k: np.nanmean([s[k] for s in sep]) for k in sep[0]} if sep else {}
+    occupied = {k: round(g.fraction(), 3) for k, g in trainer.model.occupancy.items()}
+    print(f'{cfg.iterations} steps: held-out PSNR {np.mean(test):.2f} dB '
+          f'(views {", ".join(f"{p:.1f}" for p in test)}); training views '
+          f'{np.mean(train):.2f} dB; |alpha - alpha_gt| {mean.get("alpha_error", np.nan):.3f}, '
+          f'leak {mean.get("leak", np.nan):.3f}, soft alpha {100 * mean.get("soft_fraction", np.nan):.0f}%; '
+          f'occupied cells {occupied or "-"}')
+
+
+if __name__ == '__main__':
+    main()

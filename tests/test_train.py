@@ -39,17 +39,25 @@ def _params(model):
     return {k: np.array(v) for k, v in model.parameters().items()}
 
 
+# Exact resume is checked without the distortion loss: its per-sample gradients are tiny
+# differences of parallel prefix sums whose float order varies from run to run, and Adam's
+# normalization turns that noise into visible updates on cells no other gradient reaches
+# (measured: 1 of 3 runs of this test off by up to 3 % on a dozen cells with it, 6 of 6 exact
+# without it). Everything else a step does - occupancy refresh, sparsity prior - stays on.
+EXACT = dict(SMALL, distortion=0.0)
+
+
 def test_resume_continues_where_the_run_stopped(dataset, tmp_path):
-    straight = Trainer(dataset, str(tmp_path / 'a'), TrainConfig(iterations=12, **SMALL))
+    straight = Trainer(dataset, str(tmp_path / 'a'), TrainConfig(iterations=12, **EXACT))
     straight.run()
-    first = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **SMALL))
+    first = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **EXACT))
 
     def interrupt_at_6(trainer, loss, psnr):
         if trainer.iteration == 6:
             raise KeyboardInterrupt
 
     assert first.run(on_step=interrupt_at_6) is False
-    resumed = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **SMALL),
+    resumed = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **EXACT),
                       resume=True)
     assert resumed.iteration == 6
     resumed.run()

@@ -26,7 +26,7 @@ import mitsuba as mi
 import numpy as np
 
 from .geometry import grid_coordinates
-from .sampling import flat_index
+from .sampling import cdf_bin, flat_index
 
 # Weight of an empty bin's length in the occupied-length coordinate: small enough
 # that empty space absorbs nothing visible, non-zero so that a ray through empty
@@ -142,9 +142,7 @@ class OccupiedVolume:
         K = self.bins
         target = u * dr.gather(mi.Float, self.total, ray)
         base = ray * K
-        first_above = dr.binary_search(
-            0, K, lambda k: dr.gather(mi.Float, self.cdf, base + k, k < K) <= target)
-        b = base + mi.UInt32(dr.maximum(mi.Int32(first_above) - 1, 0))
+        b = cdf_bin(self.cdf, base, K, target)
         frac = dr.clip((target - dr.gather(mi.Float, self.cdf, b)) / dr.gather(mi.Float, self.mass, b),
                        0.0, 1.0)
         lo = dr.gather(mi.Float, self.base.lo, ray)

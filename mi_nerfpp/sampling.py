@@ -63,6 +63,15 @@ def bin_edges(v, lo, hi, n):
     return left, right
 
 
+def cdf_bin(cdf, base, n, value):
+    """Flat index of the bin that holds ``value`` in per-ray exclusive CDFs of ``n`` bins
+    starting at flat index ``base`` (a vectorized binary search)."""
+    # (binary_search also probes index n: the masks keep those reads in bounds.)
+    # First bin whose CDF exceeds the value, minus one: the bin that contains it.
+    first_above = dr.binary_search(0, n, lambda k: dr.gather(mi.Float, cdf, base + k, k < n) <= value)
+    return base + mi.UInt32(dr.maximum(mi.Int32(first_above) - 1, 0))
+
+
 def inverse_cdf(v, weights, lo, hi, n_coarse, n_fine, xi=None):
     """Draw ``n_fine`` samples per ray from the piecewise-constant PDF of the coarse weights.
 
@@ -82,11 +91,7 @@ def inverse_cdf(v, weights, lo, hi, n_coarse, n_fine, xi=None):
     ray, j = flat_index(n_rays, n_fine)
     u = (mi.Float(j) + (0.5 if xi is None else xi)) * (1.0 / n_fine)
     u_scaled = u * dr.gather(mi.Float, total, ray)
-    base = ray * n_coarse
-    # (binary_search also probes index n: the masks keep those reads in bounds.)
-    # First bin whose CDF exceeds u, minus one: the bin that contains u.
-    first_above = dr.binary_search(0, n_coarse, lambda k: dr.gather(mi.Float, cdf, base + k, k < n_coarse) <= u_scaled)
-    b = base + mi.UInt32(dr.maximum(mi.Int32(first_above) - 1, 0))
+    b = cdf_bin(cdf, ray * n_coarse, n_coarse, u_scaled)
     frac = (u_scaled - dr.gather(mi.Float, cdf, b)) / dr.gather(mi.Float, p, b)
     e0, e1 = dr.gather(mi.Float, left, b), dr.gather(mi.Float, right, b)
     return dr.fma(dr.clip(frac, 0.0, 1.0), e1 - e0, e0)

@@ -27,10 +27,28 @@ from mi_nerfpp.train import TrainConfig, Trainer
 from mi_nerfpp.views import ViewRenderer, encoded_rgb
 
 
+def _picture(folder, i, layers, gt, space):
+    """One PNG row per test view: what a person looks at to see where the error is."""
+    import imageio.v3 as iio
+    from mi_nerfpp.preview import to_srgb8
+    pred = np.clip(encoded_rgb(layers, space), 0, 1)
+    enc = 'srgb' if space == 'srgb' else 'linear'
+    fg = np.stack([layers[f'fg.{c}'] for c in 'RGB'], axis=-1)
+    bg = np.stack([layers[f'bg.{c}'] for c in 'RGB'], axis=-1)
+    err = np.clip(4 * np.abs(pred - gt), 0, 1)
+    row = np.concatenate([to_srgb8(gt, enc), to_srgb8(pred, enc), to_srgb8(fg), to_srgb8(bg),
+                          to_srgb8(err, 'srgb')], axis=1)
+    os.makedirs(folder, exist_ok=True)
+    iio.imwrite(os.path.join(folder, f'test_{i:02d}.png'), row)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('data', nargs='?')
     ap.add_argument('--out', default='/tmp/mi_nerfpp_ablation')
+    ap.add_argument('--pictures', metavar='DIR',
+                    help='also write, per test view, ground truth | render | foreground over black | '
+                         'background | 4x absolute error as one PNG row')
     add_options(ap, TrainConfig)
     a = ap.parse_args()
     data = a.data or default_capture()
@@ -57,6 +75,8 @@ def main():
     for i in range(len(trainer.test)):
         layers, p = score(trainer.test, i)
         test.append(p)
+        if a.pictures:
+            _picture(a.pictures, i, layers, trainer.test.images[i], space)
         if i < len(gts):
             sep.append(separation(layers['fg.A'], read_exr(gts[i])['fg.A']))
     train = [score(trainer.train, i)[1] for i in range(0, len(trainer.train), 8)]

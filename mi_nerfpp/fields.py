@@ -33,7 +33,7 @@ import drjit as dr
 import drjit.nn as nn
 import mitsuba as mi
 
-from .geometry import grid_coordinates
+from .geometry import ball_warp, grid_coordinates
 
 DOMAINS = {'ball': 3, 'inverted_sphere': 4}
 
@@ -204,16 +204,27 @@ class GridField(Field):
     dir_octaves=10`` is the grid analogue of the paper's vanilla MLP (§3): grid
     features and ``γ^10(d)`` side by side at the input of a deep colour MLP.
 
-    Ball domain: level ``R`` is an ``R³`` grid over ``[-1, 1]³``.
+    Ball domain: level ``R`` is an ``R³`` grid over ``[-1, 1]³``, indexed by the point itself or,
+    with ``warp_radius > 0``, by :func:`~mi_nerfpp.geometry.ball_warp` of it (finer cells in the
+    centre, where a 360° capture's cameras look).
     Inverted-sphere domain: level ``R`` is a grid over (longitude, colatitude,
-    s) of ``2R × R × max(R/2, 4)`` cells, periodic in longitude.
+    s) of ``2R × R × max(s_ratio·R, 4)`` cells, periodic in longitude. Distant content
+    needs angular resolution more than resolution in ``s``: a small ``s_ratio`` buys finer
+    angles for the same number of parameters.
     """
 
     kind = 'grid'
 
     def __init__(self, domain, resolutions=(32, 128), channels=4, hidden=32, dir_octaves=4,
-                 density_bias=-3.0, density_activation='exp', color_layers=1, seed=0):
+                 density_bias=-3.0, density_activation='exp', color_layers=1, s_ratio=0.5,
+                 warp_radius=0.0, seed=0):
         super().__init__(domain)
+        self.warp_radius = float(warp_radius)
+        if not 0 <= self.warp_radius < 1:
+            raise ValueError(f'GridField warp_radius must be in [0, 1), got {warp_radius}')
+        self.s_ratio = float(s_ratio)
+        if not 0 < self.s_ratio <= 1:
+            raise ValueError(f'GridField s_ratio must be in (0, 1], got {s_ratio}')
         if channels < 2:
             raise ValueError('GridField needs channels >= 2 (density + features)')
         self.resolutions = [int(r) for r in resolutions]
@@ -244,14 +255,15 @@ class GridField(Field):
         """Tensor shape (Z, Y, X) of a level: texture axes are (x, y, z) = coordinates."""
         if self.domain == 'ball':
             return (r, r, r)
-        return (max(r // 2, 4), r, 2 * r)
+        return (max(int(r * self.s_ratio), 4), r, 2 * r)
 
     @property
     def config(self):
         return dict(kind=self.kind, domain=self.domain, resolutions=self.resolutions,
                     channels=self.channels, hidden=self.hidden, dir_octaves=self.dir_octaves,
                     color_layers=self.color_layers, density_bias=self.density_bias,
-                    density_activation=self.density_activation)
+                    density_activation=self.density_activation, s_ratio=self.s_ratio,
+                    warp_radius=self.warp_radius)
 
     def upsample(self, level, resolution):
         """Resample grid ``level`` to ``resolution`` by trilinear interpolation of the current grid
@@ -275,6 +287,8 @@ class GridField(Field):
 
     def _lookup(self, x):
         """Density logit and feature vector (all levels) at field inputs ``x``."""
+        if self.domain == 'ball':
+            x = ball_warp(x, self.warp_radius)
         coords = grid_coordinates(self.domain, x)
         density = mi.Float(self.density_bias)
         features = []

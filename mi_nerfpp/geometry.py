@@ -110,6 +110,28 @@ def direction_to_equirect(x):
     return u, v
 
 
+# Share of the foreground grid's radius that :func:`ball_warp` gives to the inner ball.
+BALL_WARP_SHARE = 0.5
+
+
+def ball_warp(p, inner_radius):
+    """Radial, piecewise-linear warp of the unit ball onto itself that magnifies the inner ball.
+
+    Points within ``inner_radius`` are scaled by ``BALL_WARP_SHARE / inner_radius`` (the inner
+    ball fills that share of the radius); the shell beyond is mapped linearly in radius onto the
+    rest. Continuous and monotonic, so a grid indexed by the warped point spends more cells on
+    the centre of a 360° capture, where its cameras look, and fewer near the cameras.
+    ``inner_radius = 0`` is the identity.
+    """
+    if inner_radius <= 0:
+        return list(p)
+    r = dr.norm(mi.Vector3f(*p))
+    k = BALL_WARP_SHARE
+    outer = k + (1.0 - k) * (r - inner_radius) / (1.0 - inner_radius)
+    scale = dr.select(r <= inner_radius, k / inner_radius, outer / dr.maximum(r, 1e-12))
+    return [c * scale for c in p]
+
+
 def grid_coordinates(domain, x):
     """A volume's field inputs -> grid coordinates in ``[0, 1]³``, ordered (x, y, z) of a texture:
     the ball ``[-1, 1]³`` scaled to the unit cube; the inverted sphere ``(x̂, s)`` as
@@ -124,4 +146,5 @@ __all__ = [
     'closest_approach', 'unit_sphere_chord', 'foreground_interval', 'background_s_max',
     'inverted_sphere_direction', 'inverted_sphere_distance',
     'inverted_sphere_direction_by_rotation', 'direction_to_equirect', 'grid_coordinates',
+    'ball_warp', 'BALL_WARP_SHARE',
 ]

@@ -125,6 +125,16 @@ class TrainConfig:
     grid_levels: tuple = option(tuple(_grid_default('resolutions')),
                                 'grid field: resolution of each level',
                                 metavar='RES', shapes_model=True)
+    fg_warp: float = option(_grid_default('warp_radius'), 'grid field: radius of the inner ball '
+                            'that the foreground grid magnifies (it fills half the grid\'s '
+                            'radius; 0: a linear grid)', shapes_model=True)
+    bg_grid_levels: tuple | None = option(None, 'grid field: resolution of each level of the '
+                                          'background grid', type=int, nargs='+', metavar='RES',
+                                          default_help='(default: as --grid-levels)',
+                                          shapes_model=True)
+    bg_s_ratio: float = option(_grid_default('s_ratio'), 'grid field: cells along s (inverse '
+                               'radius) per cell of colatitude in the background grid',
+                               shapes_model=True)
     coarse_to_fine: tuple = option((), 'grid field: fractions of the run at which the grids '
                                    'double in resolution (they start at RES / 2^n)', type=float,
                                    nargs='*', metavar='F', shapes_model=True)
@@ -158,6 +168,8 @@ class TrainConfig:
         if self.iterations is None and self.minutes is None:
             self.iterations = DEFAULT_ITERATIONS
         self.grid_levels, self.background = tuple(self.grid_levels), tuple(self.background)
+        if self.bg_grid_levels is not None:
+            self.bg_grid_levels = tuple(self.bg_grid_levels)
         self._validate()
         if self.bg_field is None:
             self.bg_field = self.field
@@ -196,6 +208,13 @@ class TrainConfig:
             bad('iterations', 'at least 1')
         if not self.grid_levels or min(self.grid_levels) < 2:
             bad('grid_levels', 'one or more resolutions of at least 2')
+        if self.bg_grid_levels is not None and (not self.bg_grid_levels
+                                                or min(self.bg_grid_levels) < 2):
+            bad('bg_grid_levels', 'one or more resolutions of at least 2')
+        if not (finite(self.fg_warp) and 0 <= self.fg_warp < 1):
+            bad('fg_warp', 'a radius in [0, 1)')
+        if not (finite(self.bg_s_ratio) and 0 < self.bg_s_ratio <= 1):
+            bad('bg_s_ratio', 'a number in (0, 1]')
         if not all(finite(f) and 0 < f < 1 for f in self.coarse_to_fine):
             bad('coarse_to_fine', 'fractions between 0 and 1')
         if len(self.background) != 3 or not all(finite(c) for c in self.background):
@@ -205,11 +224,19 @@ class TrainConfig:
         """The field config of one volume: the grid options apply to grid fields only."""
         if kind != 'grid':
             return default_field_config(kind, domain)
-        start = [max(r >> len(self.coarse_to_fine), 4) for r in self.grid_levels]
+        start = [max(r >> len(self.coarse_to_fine), 4) for r in self.levels(domain)]
+        extra = ({'s_ratio': self.bg_s_ratio} if domain == 'inverted_sphere' else
+                 {'warp_radius': self.fg_warp})
         return dict(kind='grid', domain=domain, resolutions=start,
                     channels=self.grid_channels, dir_octaves=self.dir_octaves,
                     color_layers=self.color_layers, hidden=self.color_width,
-                    density_bias=self.density_bias)
+                    density_bias=self.density_bias, **extra)
+
+    def levels(self, domain):
+        """The final grid resolutions of one volume's grid field."""
+        if domain == 'inverted_sphere' and self.bg_grid_levels is not None:
+            return self.bg_grid_levels
+        return self.grid_levels
 
     @property
     def sampling(self):
@@ -406,7 +433,7 @@ class Trainer:
         for volume, field in (('fg', self.model.fg), ('bg', self.model.bg)):
             if field is None or field.kind != 'grid':
                 continue
-            for level, final in enumerate(self.cfg.grid_levels):
+            for level, final in enumerate(self.cfg.levels(field.domain)):
                 target = max(final >> (len(self.cfg.coarse_to_fine) - due), 4)
                 if field.resolutions[level] < target:
                     key = f'{volume}.grid{level}'

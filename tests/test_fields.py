@@ -91,3 +91,17 @@ def test_upsampled_grid_renders_the_same_field(domain):
     s1, c1 = f(x_in, d, ray)
     np.testing.assert_allclose(np.array(s1), np.array(s0), rtol=1e-4)
     np.testing.assert_allclose(np.array(c1), np.array(c0), atol=1e-5)
+
+
+def test_background_grid_cells_along_s_follow_s_ratio():
+    """The inverted-sphere grid is 2R x R x max(s_ratio R, 4) (longitude, colatitude, s); the ratio
+    round-trips through the config, and configs written before it existed read as 0.5."""
+    f = GridField('inverted_sphere', resolutions=(8, 64), channels=3, hidden=8, s_ratio=0.125)
+    assert tuple(f.params['grid0'].shape) == (4, 8, 16, 3)      # at least 4 cells along s
+    assert tuple(f.params['grid1'].shape) == (8, 64, 128, 3)
+    again = make_field(f.config)
+    assert again.s_ratio == 0.125 and tuple(again.params['grid1'].shape) == (8, 64, 128, 3)
+    old = {k: v for k, v in f.config.items() if k != 's_ratio'}
+    assert make_field(old).s_ratio == 0.5
+    with pytest.raises(ValueError, match='s_ratio'):
+        GridField('inverted_sphere', resolutions=(8,), s_ratio=0)

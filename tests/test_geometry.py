@@ -301,3 +301,24 @@ def test_equirect_range_and_round_trip():
     # Slightly non-unit inputs (float rounding) must not produce NaN at the poles.
     _, v = geo.direction_to_equirect(V(np.array([[0, 0, 1.0000001], [0, 0, -1.0000001]])))
     np.testing.assert_allclose(np1(v), [0.0, 1.0], atol=1e-6)
+
+
+def test_ball_warp_magnifies_the_inner_ball_and_keeps_the_sphere():
+    """Closed form of the piecewise-linear radial warp: the inner ball of radius r0 fills half the
+    radius, the unit sphere stays in place, radii are monotonic and directions unchanged."""
+    from mi_nerfpp.geometry import BALL_WARP_SHARE, ball_warp
+    r0 = 0.3
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = np.linspace(0.0, 1.0, 400)
+    p = d * r[:, None]
+    q = np.stack([np.array(c) for c in ball_warp([mi.Float(p[:, i]) for i in range(3)], r0)], 1)
+    rq = np.linalg.norm(q, axis=1)
+    expect = np.where(r <= r0, r * BALL_WARP_SHARE / r0,
+                      BALL_WARP_SHARE + (1 - BALL_WARP_SHARE) * (r - r0) / (1 - r0))
+    np.testing.assert_allclose(rq, expect, atol=1e-6)
+    assert np.all(np.diff(rq) > 0)
+    inside = r > 1e-3
+    np.testing.assert_allclose(q[inside] / rq[inside, None], d[inside], atol=1e-5)
+    np.testing.assert_allclose(ball_warp([mi.Float(0.5)] * 3, 0.0)[0], [0.5])

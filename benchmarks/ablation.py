@@ -4,7 +4,9 @@
 
 Trains ``--iterations`` steps (default 1500) from scratch with the given options (the same
 flags and defaults as ``optimize``), then prints one line: held-out PSNR (mean and per test
-view), PSNR of every 8th training view (the generalization gap), foreground/background
+view), held-out PSNR over the pixels whose direction at least ``SEEN_BY`` training views saw
+(``mi_nerfpp.data.direction_coverage``: the rest is extrapolation), PSNR of every 8th
+training view (the generalization gap), foreground/background
 separation against the synthetic ground truth (``mi_nerfpp.metrics.separation``: mean
 |alpha - alpha_gt|, foreground opacity where the true mask is 0, fraction of soft alpha) and
 the fraction of occupied cells. A fixed step count makes settings comparable however busy the
@@ -18,9 +20,9 @@ import os
 import numpy as np
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp.data import load_dataset
+from mi_nerfpp.data import direction_coverage, load_dataset
 from mi_nerfpp.exr import read_exr
-from mi_nerfpp.metrics import psnr, separation
+from mi_nerfpp.metrics import SEEN_BY, masked_psnr, psnr, separation
 from mi_nerfpp.options import add_options, values
 from mi_nerfpp.synth import default_capture
 from mi_nerfpp.train import TrainConfig, Trainer
@@ -71,10 +73,13 @@ def main():
         return layers, psnr(np.clip(encoded_rgb(layers, space), 0, 1), split.images[i])
 
     gts = sorted(glob.glob(os.path.join(data, 'test', 'gt', '*.exr')))
-    test, sep = [], []
+    test, seen, sep = [], [], []
     for i in range(len(trainer.test)):
         layers, p = score(trainer.test, i)
         test.append(p)
+        mask = direction_coverage(trainer.test.cameras[i], trainer.train.cameras) >= SEEN_BY
+        seen.append(masked_psnr(np.clip(encoded_rgb(layers, space), 0, 1), trainer.test.images[i],
+                                mask))
         if a.pictures:
             _picture(a.pictures, i, layers, trainer.test.images[i], space)
         if i < len(gts):
@@ -83,7 +88,8 @@ def main():
     mean = {k: np.nanmean([s[k] for s in sep]) for k in sep[0]} if sep else {}
     occupied = {k: round(g.fraction(), 3) for k, g in trainer.model.occupancy.items()}
     print(f'{cfg.iterations} steps: held-out PSNR {np.mean(test):.2f} dB '
-          f'(views {", ".join(f"{p:.1f}" for p in test)}); training views '
+          f'(views {", ".join(f"{p:.1f}" for p in test)}); seen by >= {SEEN_BY} training views '
+          f'{np.nanmean(seen):.2f} dB (worst {np.nanmin(seen):.1f}); training views '
           f'{np.mean(train):.2f} dB; |alpha - alpha_gt| {mean.get("alpha_error", np.nan):.3f}, '
           f'leak {mean.get("leak", np.nan):.3f}, soft alpha {100 * mean.get("soft_fraction", np.nan):.0f}%; '
           f'occupied cells {occupied or "-"}')

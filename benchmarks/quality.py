@@ -8,7 +8,9 @@ of training steps, with held-out evaluations at ``--eval-at`` minutes and at the
 each evaluation it reads the written test EXRs and prints, against the capture's
 ground truth (``DATA/test/gt/*.exr`` from ``synth``):
 
-* held-out PSNR (mean and the worst view) and SSIM;
+* held-out PSNR (mean and the worst view) and SSIM; the same PSNR over the pixels whose
+  direction at least ``SEEN_BY`` training views saw ('seen': the rest is extrapolation that
+  no method recovers from the capture, ``mi_nerfpp.data.direction_coverage``);
 * foreground/background separation (``mi_nerfpp.metrics.separation``): mean
   |alpha - alpha_gt|, the foreground opacity where the true mask is 0 (leak), the
   fraction of pixels with 0.05 < alpha < 0.95, median relative depth error where the
@@ -37,9 +39,9 @@ def ray_distance_to_z(distance, camera):
 
 
 def score(data, test_dir):
-    from mi_nerfpp.data import load_dataset
+    from mi_nerfpp.data import direction_coverage, load_dataset
     from mi_nerfpp.exr import read_exr
-    from mi_nerfpp.metrics import psnr, separation, ssim
+    from mi_nerfpp.metrics import SEEN_BY, masked_psnr, psnr, separation, ssim
     from mi_nerfpp.views import encoded_rgb
     dataset = load_dataset(data)
     test, test_color_space = dataset.test, dataset.color_space
@@ -50,13 +52,16 @@ def score(data, test_dir):
         gt = read_exr(gt_path)
         # Renders are scene-linear; compare in the encoding of the dataset images.
         pred = np.clip(encoded_rgb(layers, test_color_space), 0, 1)
-        row = {'psnr': psnr(pred, test.images[i]), 'ssim': ssim(pred, test.images[i])}
+        seen = direction_coverage(test.cameras[i], dataset.train.cameras) >= SEEN_BY
+        row = {'psnr': psnr(pred, test.images[i]), 'ssim': ssim(pred, test.images[i]),
+               'psnr_seen': masked_psnr(pred, test.images[i], seen)}
         # The ground truth holds ray distances; depth.Z is camera-space z.
         row.update(separation(layers['fg.A'], gt['fg.A'], layers['depth.Z'],
                               ray_distance_to_z(gt['depth.Z'], test.cameras[i])))
         rows.append(row)
     mean = {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}
     mean['worst_psnr'] = min(r['psnr'] for r in rows)
+    mean['worst_seen'] = float(np.nanmin([r['psnr_seen'] for r in rows]))
     mean['views'] = [round(r['psnr'], 2) for r in rows]
     return mean
 
@@ -86,7 +91,8 @@ def main():
     with open(os.path.join(a.out, 'metrics.json')) as f:
         metrics = json.load(f)
 
-    print(f'\n{"minutes":>7} {"iter":>6} {"PSNR":>6} {"worst":>6} {"SSIM":>6} {"|a-a_gt|":>8} '
+    print(f'\n{"minutes":>7} {"iter":>6} {"PSNR":>6} {"worst":>6} {"seen":>6} {"worst":>6} '
+          f'{"SSIM":>6} {"|a-a_gt|":>8} '
           f'{"leak":>6} {"soft%":>6} {"depth":>6}  per-view PSNR')
     points = [(p['minutes'], p['iteration'], os.path.join(a.out, f'test_at_{p["minutes"]:g}min'))
               for p in metrics.get('progress', [])]
@@ -94,6 +100,7 @@ def main():
     for minutes, iterations, test_dir in points:
         s = score(data, test_dir)
         print(f'{minutes:7g} {iterations:6d} {s["psnr"]:6.2f} {s["worst_psnr"]:6.2f} '
+              f'{s["psnr_seen"]:6.2f} {s["worst_seen"]:6.2f} '
               f'{s["ssim"]:6.3f} {s["alpha_error"]:8.3f} {s["leak"]:6.3f} '
               f'{100 * s["soft_fraction"]:5.1f}% {s["depth_error"]:6.3f}  {s["views"]}')
     cfg = metrics['config']

@@ -35,6 +35,21 @@ def psnr(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> float:
     return float(10.0 * np.log10(data_range ** 2 / error))
 
 
+def masked_psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, data_range: float = 1.0) -> float:
+    """PSNR over the pixels where the ``H x W`` boolean ``mask`` is set (NaN where none is)."""
+    pred, gt = _check_pair(pred, gt)
+    mask = np.asarray(mask, bool)
+    if mask.shape != pred.shape[:2]:
+        raise ValueError(f'mask shape {mask.shape} does not match the images {pred.shape[:2]}')
+    if not mask.any():
+        return float('nan')
+    return psnr(pred[mask][None], gt[mask][None], data_range)
+
+
+# A held-out pixel counts as seen when at least this many training views saw its direction.
+SEEN_BY = 2
+
+
 def _ssim_win_size(height: int, width: int) -> int:
     """The largest odd window, at most 7, that fits in the image."""
     side = min(height, width, SSIM_WIN_SIZE)

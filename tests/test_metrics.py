@@ -105,3 +105,17 @@ def test_separation_against_a_hand_computed_example():
     assert np.isnan(separation(alpha[:, :2], gt[:, :2])['leak'])
     with pytest.raises(ValueError, match='alpha shapes'):
         separation(alpha, gt[:, :2])
+
+
+def test_masked_psnr_scores_only_the_masked_pixels():
+    from mi_nerfpp.metrics import masked_psnr
+    gt = np.zeros((4, 4, 3))
+    pred = gt.copy()
+    pred[:, :2] = 0.1                     # error 0.1 on the left half only
+    left = np.zeros((4, 4), bool)
+    left[:, :2] = True
+    assert masked_psnr(pred, gt, left) == pytest.approx(20.0)
+    assert masked_psnr(pred, gt, ~left) == float('inf')
+    assert np.isnan(masked_psnr(pred, gt, np.zeros((4, 4), bool)))
+    with pytest.raises(ValueError, match='mask shape'):
+        masked_psnr(pred, gt, np.ones((2, 2), bool))

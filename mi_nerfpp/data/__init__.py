@@ -13,6 +13,7 @@ Modules:
 from .blender import read_transforms
 from .cameras import (
     Camera,
+    direction_coverage,
     mitsuba_sensor_dict,
     mitsuba_to_opencv,
     opencv_to_mitsuba,
@@ -31,6 +32,7 @@ from .nerfpp import read_nerfpp, write_nerfpp
 
 __all__ = [
     'Camera', 'Dataset', 'DatasetError', 'Split', 'auto_downscale', 'detect_format',
+    'direction_coverage',
     'downscale_image', 'image_size', 'read_colmap',
     'llff_to_opencv', 'load_dataset', 'mitsuba_sensor_dict', 'mitsuba_to_opencv',
     'opencv_to_mitsuba', 'opencv_to_opengl', 'opengl_to_opencv',

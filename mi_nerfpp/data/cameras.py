@@ -150,6 +150,27 @@ def pixel_rays(camera: Camera, px, py) -> tuple[np.ndarray, np.ndarray]:
     return origins, dirs
 
 
+def direction_coverage(camera: Camera, others) -> np.ndarray:
+    """How many of the cameras ``others`` see the direction of each pixel of ``camera``.
+
+    Directions are taken at infinity (the camera centres do not matter), so the count says
+    which held-out pixels show distant content that training views saw at all: a test view's
+    pixels seen by fewer than two training views are extrapolation, whatever the model.
+    Returns an ``H x W`` integer array.
+    """
+    px, py = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    _, dirs = pixel_rays(camera, px, py)
+    count = np.zeros(len(dirs), dtype=np.int64)
+    for other in others:
+        v = dirs @ other.c2w[:3, :3]            # world directions into that camera's axes
+        ahead = v[:, 2] > 1e-9
+        z = np.where(ahead, v[:, 2], 1.0)
+        u = other.K[0, 0] * v[:, 0] / z + other.K[0, 1] * v[:, 1] / z + other.K[0, 2]
+        w = other.K[1, 1] * v[:, 1] / z + other.K[1, 2]
+        count += ahead & (u >= 0) & (u < other.width) & (w >= 0) & (w < other.height)
+    return count.reshape(camera.height, camera.width)
+
+
 def project(camera: Camera, points) -> tuple[np.ndarray, np.ndarray]:
     """Project world points with ``K @ W2C``.
 

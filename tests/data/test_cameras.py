@@ -170,3 +170,23 @@ def test_mitsuba_sensor_transform():
                                cam.center + shift[:3, 3], atol=1e-6)
     with pytest.raises(ValueError, match='rigid'):
         cameras.mitsuba_sensor_dict(cam, transform=np.diag([2.0, 2.0, 2.0, 1.0]))
+
+
+def test_direction_coverage_counts_the_cameras_that_see_each_direction():
+    """A camera sees all its own directions; one turned 180 degrees sees none of them; one turned
+    by half its field of view about the vertical sees exactly the half of the image on that side."""
+    from mi_nerfpp.data import direction_coverage
+    from mi_nerfpp.synth import intrinsics_from_fov, look_at
+    K = intrinsics_from_fov(60.0, 40, 30)
+    front = Camera(K, look_at([0, 0, 0], [0, 0, 1]), 40, 30, 'front')
+    back = Camera(K, look_at([5, 1, 0], [5, 1, -1]), 40, 30, 'back')
+    turned = Camera(K, look_at([0, 0, 0], [np.sin(np.radians(30)), 0, np.cos(np.radians(30))]),
+                    40, 30, 'turned')
+    assert (direction_coverage(front, [front]) == 1).all()
+    assert (direction_coverage(front, [back]) == 0).all()
+    both = direction_coverage(front, [front, back, turned])
+    assert set(np.unique(both)) == {1, 2}
+    # On the middle row the turned camera's field spans 0-60 degrees: exactly the half of the
+    # row on its side of the optical axis.
+    row = both[15] == 2
+    assert row.sum() == 20 and (row[:20].all() or row[20:].all())

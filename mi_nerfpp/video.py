@@ -52,10 +52,13 @@ def orbit_cameras(cameras, frames, template: Camera):
 
 
 def resized(camera: Camera, width, height):
-    """The same camera with its image (and intrinsics) resampled to ``width`` x ``height``."""
+    """The same camera with an image of ``width`` x ``height`` pixels: the horizontal field of
+    view and the pixels' shape are kept, so another aspect ratio (a 16:9 video of a 4:3
+    capture) shows more or less above and below."""
     K = camera.K.copy()
     K[0] *= width / camera.width
-    K[1] *= height / camera.height
+    K[1, 1] *= width / camera.width
+    K[1, 2] *= height / camera.height
     return Camera(K, camera.c2w, width, height, camera.name)
 
 

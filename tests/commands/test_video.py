@@ -34,3 +34,11 @@ def test_ray_option_without_ray_says_how_to_install(tiny_run, tmp_path, capsys, 
     monkeypatch.setitem(sys.modules, 'ray', None)       # as where the extra is not installed
     assert main(['video', tiny_run, '-o', str(tmp_path / 'v.gif'), '--ray'] + VIDEO) == 1
     assert "pip install -e '.[cluster]'" in capsys.readouterr().err
+
+
+def test_video_of_another_aspect_ratio_keeps_square_pixels(tiny_run, tmp_path):
+    # The capture is 4:3; a 16:9 video shows less above and below, with square pixels.
+    out = tmp_path / 'wide.gif'
+    assert main(['video', tiny_run, '-o', str(out), '--frames', '2', '--res', '32x18']) == 0
+    import imageio.v3 as iio
+    assert iio.imread(out).shape[1:3] == (18, 32)

@@ -22,13 +22,18 @@ def check_writable_folder(folder: str | os.PathLike, what: str = 'folder') -> No
                       f'writable place', folder) from None
 
 
-def remove_stale_temporaries(folder: str | os.PathLike, name: str) -> list[str]:
-    """Delete the temporary files that :func:`atomic_write_path` left for ``name`` in
-    ``folder`` when a process was killed mid-write. Returns the paths removed."""
-    base, ext = os.path.splitext(name)
+def remove_stale_temporaries(folder: str | os.PathLike, name: str | None = None) -> list[str]:
+    """Delete the temporary files that :func:`atomic_write_path` left for ``name`` (for every
+    name when None) in ``folder`` when a process was killed mid-write. Returns the paths
+    removed."""
+    base, ext = os.path.splitext(name) if name is not None else ('', '')
     removed = []
     for entry in os.listdir(folder):
-        if entry.startswith(f'.{base}.') and entry.endswith(f'.tmp{ext}'):
+        if name is None:
+            stale = entry.startswith('.') and '.tmp' in entry
+        else:
+            stale = entry.startswith(f'.{base}.') and entry.endswith(f'.tmp{ext}')
+        if stale:
             path = os.path.join(folder, entry)
             with contextlib.suppress(FileNotFoundError):
                 os.remove(path)

@@ -574,6 +574,13 @@ def samples_per_second(cfg, iterations, seconds):
     return iterations * cfg.batch_rays * cfg.samples_per_ray / seconds if seconds > 0 else 0.0
 
 
+def run_config(meta) -> TrainConfig:
+    """The :class:`TrainConfig` a checkpoint's ``meta`` was trained with (fields it does not
+    store, from versions before them, take today's defaults)."""
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    return TrainConfig(**{k: v for k, v in meta.get('config', {}).items() if k in fields})
+
+
 def open_run(run_dir):
     """A finished or interrupted run: ``(model, meta, config, splits)``.
 
@@ -582,8 +589,7 @@ def open_run(run_dir):
     """
     from .data import load_dataset
     model, meta, _ = load_checkpoint(os.path.join(run_dir, 'model.npz'))
-    fields = {f.name for f in dataclasses.fields(TrainConfig)}
-    cfg = TrainConfig(**{k: v for k, v in meta.get('config', {}).items() if k in fields})
+    cfg = run_config(meta)
     root = meta.get('dataset')
     if not root or not os.path.exists(root):
         raise TrainingError(f'{run_dir}/model.npz: its dataset {root!r} is not there any more')

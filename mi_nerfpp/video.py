@@ -1,7 +1,15 @@
-"""Novel-view videos of a trained model: an orbit around the scene, or the dataset's test path."""
+"""Novel-view videos of a trained model: an orbit around the scene, or the dataset's test path.
+
+A video is rendered as frame files first (``frame_NNNNN.png``, and the multi-layer
+``frame_NNNNN.exr`` on request), each written atomically, then assembled. A frame whose files
+exist is done, so an interrupted job resumes where it stopped. :func:`render_frames` is the one
+function that renders frames to files, in one process or on each worker of a cluster
+(:mod:`mi_nerfpp.cluster`).
+"""
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 
 import numpy as np
@@ -44,10 +52,13 @@ def orbit_cameras(cameras, frames, template: Camera):
 
 
 def resized(camera: Camera, width, height):
-    """The same camera with its image (and intrinsics) resampled to ``width`` x ``height``."""
+    """The same camera with an image of ``width`` x ``height`` pixels: the horizontal field of
+    view and the pixels' shape are kept, so another aspect ratio (a 16:9 video of a 4:3
+    capture) shows more or less above and below."""
     K = camera.K.copy()
     K[0] *= width / camera.width
-    K[1] *= height / camera.height
+    K[1, 1] *= width / camera.width
+    K[1, 2] *= height / camera.height
     return Camera(K, camera.c2w, width, height, camera.name)
 
 
@@ -69,3 +80,66 @@ def write_video(path, frames, fps=24):
                          macro_block_size=1) as writer:
         for f in frames:
             writer.append_data(f)
+
+
+FRAME_NAME = 'frame_{:05d}'
+MANIFEST = 'frames.json'
+
+
+def frame_files(frames_dir, index, exr=False):
+    """The final files of frame ``index``: its PNG, and its EXR (all layers) with ``exr``."""
+    base = os.path.join(frames_dir, FRAME_NAME.format(index))
+    return [base + '.png'] + ([base + '.exr'] if exr else [])
+
+
+def pending_frames(frames_dir, count, exr=False):
+    """The indices of the ``count`` frames whose files are not all written yet."""
+    return [i for i in range(count)
+            if not all(os.path.exists(p) for p in frame_files(frames_dir, i, exr))]
+
+
+def prepare_frames_dir(frames_dir, job: dict):
+    """Create ``frames_dir`` for ``job`` (what determines the frames: run, path, size, ...), or
+    check that the frames it already holds are of the same job (ValueError otherwise); remove
+    the temporary files of writers that were killed."""
+    from .evaluate import write_json
+    from .files import check_writable_folder, remove_stale_temporaries
+    check_writable_folder(frames_dir, what='frames folder')
+    manifest = os.path.join(frames_dir, MANIFEST)
+    if os.path.exists(manifest):
+        with open(manifest) as f:
+            held = json.load(f)
+        if held != job:
+            changed = ', '.join(f'{k} {held.get(k)!r} -> {job.get(k)!r}' for k in job
+                                if held.get(k) != job.get(k))
+            raise ValueError(f'{frames_dir} holds the frames of another video ({changed}): '
+                             f'remove it or choose another --frames-dir')
+    write_json(manifest, job)
+    remove_stale_temporaries(frames_dir)
+
+
+def render_frames(renderer, cameras: dict, frames_dir, exr=False, on_frame=None):
+    """Render the frames ``cameras`` (index -> camera) whose files are missing with
+    ``renderer`` (a :class:`~mi_nerfpp.views.ViewRenderer`), writing each atomically: the EXR
+    with all layers first (with ``exr``), then the PNG. Returns the indices rendered."""
+    from .exr import write_exr
+    from .preview import write_png
+    from .views import rgb
+    done = []
+    for index in sorted(cameras):
+        files = frame_files(frames_dir, index, exr)
+        if not all(os.path.exists(p) for p in files):
+            layers, attributes = renderer.render(cameras[index], with_attributes=True)
+            if exr:
+                write_exr(files[1], layers, attributes=attributes)
+            write_png(files[0], np.clip(rgb(layers), 0, 1), 'linear')
+            done.append(index)
+        if on_frame is not None:
+            on_frame(index)
+    return done
+
+
+def read_frames(frames_dir, count):
+    """The PNG frames, in order, as uint8 arrays (to assemble the video)."""
+    import imageio.v3 as iio
+    return [iio.imread(frame_files(frames_dir, i)[0]) for i in range(count)]

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Idempotent set-up: libLLVM >= 17 (Dr.Jit's CPU backend), oiiotool (compositing tests),
 # a virtual environment in .venv,
-# and this package installed in it (editable, with test extras).
+# and this package installed in it (editable, with the test and cluster extras: the Ray
+# tests run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -37,4 +38,4 @@ fi
 if [ ! -x .venv/bin/python ]; then
     python3 -m venv .venv
 fi
-.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]'
+.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test,cluster]'

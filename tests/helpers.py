@@ -9,6 +9,10 @@ import mitsuba as mi
 
 from mi_nerfpp.model import NeRFPPModel
 
+# Optimize options of a run that trains in seconds (for the commands that read a run).
+TINY_RUN = ['--iterations', '5', '--batch-rays', '256', '--samples', '8', '8', '8',
+            '--checkpoint-every', '0', '--preview-every', '0']
+
 TINY_GRID = dict(kind='grid', resolutions=[4, 8], channels=3, hidden=8, dir_octaves=1)
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from . import colmap, evaluate, optimize, render, synth, video
+from . import colmap, evaluate, optimize, render, sweep, synth, video
 
-COMMANDS = (render, optimize, synth, evaluate, video, colmap)
+COMMANDS = (render, optimize, synth, evaluate, video, sweep, colmap)
 
 
 def resolution(value: str) -> tuple[int, int]:

@@ -1,4 +1,10 @@
-"""``python -m mi_nerfpp video RUN``: a novel-view video (orbit or test path) of a training run."""
+"""``python -m mi_nerfpp video RUN``: a novel-view video (orbit or test path) of a training run.
+
+Frames are written to a frames folder first (PNG, and the multi-layer EXR with ``--exr``), each
+atomically; frames already there are skipped, so a re-run resumes an interrupted job. With
+``--ray`` the frames are rendered by workers on a Ray cluster (:mod:`mi_nerfpp.cluster`), with
+the same function as in one process. The video is assembled from the PNGs.
+"""
 from __future__ import annotations
 
 import os
@@ -15,20 +21,33 @@ def add_parser(sub):
     p.add_argument('--fps', type=positive_int, default=24)
     p.add_argument('--res', type=resolution, metavar='WxH',
                    help='WxH (default: the training images)')
+    p.add_argument('--exr', action='store_true',
+                   help='also write every frame as a multi-layer EXR (all layers) next to its PNG')
+    p.add_argument('--frames-dir', metavar='DIR',
+                   help='where the frames go (default: the output path without its extension, '
+                        'plus _frames); frames already there are not rendered again')
+    add_ray_options(p, 'render the frames on a Ray cluster')
+    p.add_argument('--workers', type=positive_int,
+                   help='with --ray: frame workers (default: the cluster CPUs / --worker-cpus)')
+    p.add_argument('--worker-cpus', type=positive_int, default=1,
+                   help='with --ray: CPUs (Dr.Jit threads) of each frame worker (default 1)')
     p.set_defaults(func=run)
     return p
 
 
-def run(args):
-    import numpy as np
-    from tqdm import tqdm
+def add_ray_options(p, what):
+    """``--ray [auto|ADDRESS]`` (shared by the commands that can use a cluster)."""
+    p.add_argument('--ray', nargs='?', const='auto', metavar='auto|ADDRESS',
+                   help=f'{what}: auto joins the running cluster (ray start) or starts a local '
+                        f'one; ADDRESS joins that cluster. Needs pip install -e \'.[cluster]\'')
 
-    from ..preview import to_srgb8
-    from ..video import orbit_cameras, resized, write_video
-    from ..views import ViewRenderer, rgb
+
+def cameras_of(args):
+    """The run's checkpoint path, the video's cameras and the description of the job."""
+    from ..video import orbit_cameras, resized
     from . import open_run_or_exit
 
-    model, meta, cfg, dataset = open_run_or_exit(args.run)
+    _, meta, _, dataset = open_run_or_exit(args.run)
     template = dataset.train.cameras[0]
     if args.res:
         template = resized(template, *args.res)
@@ -38,12 +57,56 @@ def run(args):
         cameras = [resized(c, template.width, template.height) for c in dataset.test.cameras]
         if not cameras:
             raise SystemExit(f'{dataset.root} has no test cameras: use --path orbit')
+    checkpoint = os.path.join(args.run, 'model.npz')
+    job = {'checkpoint': os.path.abspath(checkpoint), 'iteration': meta.get('iteration'),
+           'path': args.path, 'frames': len(cameras), 'size': [template.width, template.height]}
+    return checkpoint, cameras, job
+
+
+def run(args):
+    from tqdm import tqdm
+
+    from ..files import remove_stale_temporaries
+    from ..video import pending_frames, prepare_frames_dir, read_frames, write_video
+
+    if args.ray:
+        from ..cluster import import_ray
+        import_ray()                # not installed: say how, before any work
+    checkpoint, cameras, job = cameras_of(args)
     out = args.output or os.path.join(args.run, 'video.mp4')
-    renderer = ViewRenderer(model, cfg.sampling, cfg.model == 'nerfpp')
-    frames = [to_srgb8(np.clip(rgb(renderer.render(cam)), 0, 1), 'linear')
-              for cam in tqdm(cameras, desc='video', unit='frame')]
+    frames_dir = args.frames_dir or os.path.splitext(out)[0] + '_frames'
+    prepare_frames_dir(frames_dir, job)
+    pending = pending_frames(frames_dir, len(cameras), args.exr)
+    with tqdm(total=len(cameras), initial=len(cameras) - len(pending), desc='video',
+              unit='frame', dynamic_ncols=True) as bar:
+        if pending and args.ray:
+            render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar)
+        elif pending:
+            render_here(checkpoint, cameras, pending, frames_dir, args.exr, bar)
+    remove_stale_temporaries(frames_dir)
     try:
-        write_video(out, frames, fps=args.fps)
+        write_video(out, read_frames(frames_dir, len(cameras)), fps=args.fps)
     except (RuntimeError, ValueError) as e:
         raise SystemExit(f'error: {e}') from None
-    print(f'wrote {out} ({len(frames)} frames)')
+    print(f'wrote {out} ({len(cameras)} frames; frames in {frames_dir})')
+
+
+def render_here(checkpoint, cameras, pending, frames_dir, exr, bar):
+    from ..cluster import FrameWorker
+    FrameWorker(checkpoint).render({i: cameras[i] for i in pending}, frames_dir, exr,
+                                   on_frame=lambda i: bar.update(1))
+
+
+def render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar):
+    from ..cluster import FramePool, cluster_cpus, session
+    with session(args.ray) as ray:
+        workers = args.workers or max(1, cluster_cpus(ray) // args.worker_cpus)
+        workers = min(workers, len(pending))
+        bar.write(f'rendering {len(pending)} frames on {workers} Ray workers of '
+                  f'{args.worker_cpus} CPU(s)')
+        pool = FramePool(checkpoint, workers, args.worker_cpus)
+        try:
+            pool.render(cameras, pending, os.path.abspath(frames_dir), args.exr,
+                        on_frames=bar.update)
+        finally:
+            pool.close()

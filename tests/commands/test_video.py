@@ -1,0 +1,44 @@
+"""`python -m mi_nerfpp video`: frames as files, resumed after an interruption."""
+import os
+import sys
+
+from mi_nerfpp.cli import main
+from mi_nerfpp.video import frame_files
+
+VIDEO = ['--frames', '3', '--res', '24x18']
+
+
+def test_video_resumes_skipping_written_frames(tiny_run, tmp_path, capsys):
+    out = str(tmp_path / 'orbit.gif')
+    frames = str(tmp_path / 'orbit_frames')
+    assert main(['video', tiny_run, '-o', out, '--exr'] + VIDEO) == 0
+    files = [p for i in range(3) for p in frame_files(frames, i, exr=True)]
+    assert all(os.path.getsize(p) > 0 for p in files)
+    written = {p: os.stat(p).st_mtime_ns for p in files}
+    os.remove(frame_files(frames, 1)[0])              # as if interrupted before frame 1's PNG
+    os.remove(out)
+    assert main(['video', tiny_run, '-o', out, '--exr'] + VIDEO) == 0
+    for p in files:
+        assert os.path.exists(p)
+        if '00001' not in p:
+            assert os.stat(p).st_mtime_ns == written[p], p          # not rendered again
+    assert os.path.getsize(out) > 0
+    capsys.readouterr()
+    # Frames of another job are not mixed in.
+    assert main(['video', tiny_run, '-o', out, '--frames', '3', '--res', '32x24']) == 1
+    err = capsys.readouterr().err
+    assert 'holds the frames of another video' in err and 'size' in err
+
+
+def test_ray_option_without_ray_says_how_to_install(tiny_run, tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, 'ray', None)       # as where the extra is not installed
+    assert main(['video', tiny_run, '-o', str(tmp_path / 'v.gif'), '--ray'] + VIDEO) == 1
+    assert "pip install -e '.[cluster]'" in capsys.readouterr().err
+
+
+def test_video_of_another_aspect_ratio_keeps_square_pixels(tiny_run, tmp_path):
+    # The capture is 4:3; a 16:9 video shows less above and below, with square pixels.
+    out = tmp_path / 'wide.gif'
+    assert main(['video', tiny_run, '-o', str(out), '--frames', '2', '--res', '32x18']) == 0
+    import imageio.v3 as iio
+    assert iio.imread(out).shape[1:3] == (18, 32)

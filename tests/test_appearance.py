@@ -16,7 +16,7 @@ from mi_nerfpp.exr import LAYERS
 from mi_nerfpp.preview import srgb_eotf
 from mi_nerfpp.synth import APPEARANCE_FILE, vary_exposure
 from mi_nerfpp.train import TrainConfig, Trainer
-from tests.helpers import scene_dict, tiny_model
+from tests.helpers import interrupted_then_resumed, scene_dict, tiny_model
 
 # Small and fast, the same for both runs; 150 steps at a fixed seed.
 FAST = dict(batch_rays=512, fg_samples=8, bg_samples=8, fine_samples=8, checkpoint_every=0,
@@ -54,7 +54,8 @@ def test_fit_affine_recovers_gain_and_bias_exactly():
 
 def test_vary_exposure_records_the_gains_it_applies(capture, exposed):
     out, gains = exposed
-    assert json.load(open(os.path.join(out, APPEARANCE_FILE)))['gains'] == gains
+    with open(os.path.join(out, APPEARANCE_FILE)) as f:
+        assert json.load(f)['gains'] == gains
     src, dst = load_dataset(capture), load_dataset(out)
     assert len(gains['train']) == len(dst.train) and len(gains['test']) == len(dst.test)
     assert gains['train'][0] == [1.0, 1.0, 1.0]
@@ -117,16 +118,8 @@ def test_checkpoint_round_trips_and_resumes_exactly_with_appearance(exposed, tmp
     assert model.appearance_images == len(dataset.train) and 'adam.m/appearance' in state
     assert np.any(model.appearance.numpy() != 0)
 
-    first = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=10, **EXACT))
-
-    def stop_at_5(trainer, loss, psnr):
-        if trainer.iteration == 5:
-            raise KeyboardInterrupt
-
-    assert first.run(on_step=stop_at_5) is False
-    resumed = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=10, **EXACT),
-                      resume=True)
-    resumed.run()
+    resumed = interrupted_then_resumed(dataset, str(tmp_path / 'b'),
+                                       TrainConfig(iterations=10, **EXACT), stop_at=5)
     np.testing.assert_allclose(resumed.model.appearance.numpy(),
                                straight.model.appearance.numpy(), rtol=1e-3, atol=1e-5)
     with pytest.raises(Exception, match='--appearance'):
@@ -172,3 +165,22 @@ def test_bad_appearance_options_are_refused():
         TrainConfig(lr_appearance=0.0)
     with pytest.raises(ValueError, match='--appearance-prior must be a finite number >= 0'):
         TrainConfig(appearance_prior=-1.0)
+
+
+def test_optimize_with_appearance_scores_nerf_w_style_and_keeps_the_neutral_score(exposed,
+                                                                                  tmp_path):
+    import subprocess
+    import sys
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = tmp_path / 'run'
+    r = subprocess.run([sys.executable, os.path.join(root, 'optimize.py'), exposed[0],
+                        '--appearance', '--out', str(out), '--iterations', '3',
+                        '--batch-rays', '128', '--samples', '4', '4', '4', '--preview-every', '0'],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert 'scored NeRF-W style' in r.stdout
+    test = json.loads((out / 'metrics.json').read_text())['test']
+    assert np.isfinite(test['psnr']) and np.isfinite(test['psnr_neutral'])
+    assert all(len(v['gain']) == 3 and len(v['bias']) == 3 for v in test['views'])
+    model, _, _ = load_checkpoint(out / 'model.npz')
+    assert model.appearance_images == len(load_dataset(exposed[0]).train)

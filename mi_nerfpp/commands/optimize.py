@@ -207,6 +207,10 @@ def report(trainer, inp: Inputs, progress_log, wall_seconds):
     if 'test' in metrics:
         print(f'held-out views: PSNR {metrics["test"]["psnr"]:.2f} dB, '
               f'SSIM {metrics["test"]["ssim"]:.3f} over {len(metrics["test"]["views"])} views')
+        if 'psnr_neutral' in metrics['test']:
+            print(f'  (scored NeRF-W style: each view\'s appearance fitted on its left half, '
+                  f'right half scored; neutral whole views: PSNR '
+                  f'{metrics["test"]["psnr_neutral"]:.2f} dB)')
     written = ['model.npz', 'metrics.json', 'training.png']
     if 'test' in metrics:
         written[2:2] = ['test/*.exr|png', 'render.xml']

@@ -151,7 +151,8 @@ def train(trainer, inp: Inputs):
         while eval_at and tr.elapsed >= 60 * eval_at[0] and len(test_views):
             minute = eval_at.pop(0)
             r = evaluate_split(tr.model, test_views, os.path.join(out, f'test_at_{minute:g}min'),
-                               cfg.sampling, background=background)
+                               cfg.sampling, background=background,
+                               fit_appearance=cfg.appearance)
             progress_log.append({'minutes': minute, 'iteration': tr.iteration,
                                  'psnr': r['psnr'], 'ssim': r['ssim']})
             bar.write(f'after {minute:g} min ({tr.iteration} iterations): held-out PSNR '

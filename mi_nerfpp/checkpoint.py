@@ -6,6 +6,8 @@ Keys:
 * ``config`` — JSON: ``{"fg": <field config>, "bg": <field config or null>,
   "normalization": {"center": [x, y, z], "scale": s}, "color_space": "srgb"|"linear",
   "composite": "linear"|"srgb" (where samples are composited; missing: "srgb", older files),
+  "appearance_images": n (per-image colour transforms, ``param/appearance`` of shape (n, 6),
+  :mod:`~mi_nerfpp.appearance`; missing or 0: none),
   "meta": {...}}``. ``normalization`` is the scene normalization
   ``x_model = (x_world - center)·scale`` (:class:`~mi_nerfpp.frame.Normalization`; version 1
   files stored ``center`` and ``scale`` at the top level and are still read);
@@ -90,7 +92,8 @@ def load_checkpoint(path, seed=0):
         model = NeRFPPModel(fg, bg, normalization=Normalization.from_config(config),
                             color_space=config.get('color_space', 'srgb'), occupancy=occupancy,
                             # written before issue 11: sRGB models composited encoded colour
-                            composite=config.get('composite', 'srgb'))
+                            composite=config.get('composite', 'srgb'),
+                            appearance_images=int(config.get('appearance_images', 0)))
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None
 

@@ -20,14 +20,19 @@ from .metrics import psnr, ssim
 from .preview import write_png
 from .render import Sampling
 from .scene_xml import write_render_xml
-from .views import ViewRenderer, encoded_rgb
+from .views import ViewRenderer, encoded_rgb, rgb
 
 
 def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', background=True,
-                   progress=None):
+                   progress=None, fit_appearance=False):
     """Render every view of ``split``, write ``{name}_NNN.exr``/``.png`` and return the metrics.
 
-    Returns a dict with per-view PSNR/SSIM, their means and the render time.
+    Returns a dict with per-view PSNR/SSIM, their means and the render time. Renders are
+    neutral (no appearance transform). ``fit_appearance``: held-out photos have their own
+    exposure, so they are scored as NeRF-W does - a per-channel gain and bias is fitted (linear
+    least squares in linear light, :func:`~mi_nerfpp.appearance.fit_affine`) on the left half
+    of each view and the right half is scored; that score is then ``psnr`` and the neutral
+    full-image scores are kept as ``psnr_neutral`` / ``ssim_neutral``.
     """
     os.makedirs(out_dir, exist_ok=True)
     renderer = ViewRenderer(model, sampling, background)
@@ -43,15 +48,39 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
         base = os.path.join(out_dir, f'{name}_{i:03d}')
         write_exr(base + '.exr', layers, attributes=attributes)
         write_png(base + '.png', pred, model.color_space)
-        views.append({'view': i, 'image': os.path.basename(split.image_paths[i]),
-                      'psnr': float(psnr(np.clip(pred, 0, 1), gt)),
-                      'ssim': float(ssim(np.clip(pred, 0, 1), gt))})
+        view = {'view': i, 'image': os.path.basename(split.image_paths[i]),
+                'psnr': float(psnr(np.clip(pred, 0, 1), gt)),
+                'ssim': float(ssim(np.clip(pred, 0, 1), gt))}
+        if fit_appearance:
+            view['psnr_neutral'], view['ssim_neutral'] = view['psnr'], view['ssim']
+            view['psnr'], view['ssim'], view['gain'], view['bias'] = _fitted_right_half(
+                rgb(layers), gt, model.color_space)
+        views.append(view)
     seconds = time.perf_counter() - t0
     result = {'views': views, 'render_seconds': seconds}
-    if views:
-        result['psnr'] = float(np.mean([v['psnr'] for v in views]))
-        result['ssim'] = float(np.mean([v['ssim'] for v in views]))
+    if fit_appearance:
+        result['scoring'] = 'appearance fitted on the left half of each view, right half scored'
+    for key in ('psnr', 'ssim', 'psnr_neutral', 'ssim_neutral'):
+        if views and key in views[0]:
+            result[key] = float(np.mean([v[key] for v in views]))
     return result
+
+
+def _fitted_right_half(linear, gt, color_space):
+    """NeRF-W scoring of one view: ``(psnr, ssim, gain, bias)`` of the right half after the
+    affine colour transform fitted on the left half (in linear light)."""
+    from .appearance import fit_affine, left_right
+    from .preview import srgb_eotf, srgb_oetf
+    srgb = color_space == 'srgb'
+    target = srgb_eotf(gt) if srgb else gt
+    (pred_l, pred_r), (gt_l, _) = left_right(linear), left_right(target)
+    gain, bias = fit_affine(pred_l, gt_l)
+    fitted = pred_r * gain + bias
+    fitted = srgb_oetf(np.clip(fitted, 0, 1)) if srgb else np.clip(fitted, 0, 1)
+    right = left_right(gt)[1]
+    fitted = fitted.astype(np.float32)
+    return (float(psnr(fitted, right)), float(ssim(fitted, right)), gain.tolist(),
+            bias.tolist())
 
 
 def finish_run(out, model, held_out, cfg, checkpoint_path, metrics):
@@ -65,7 +94,8 @@ def finish_run(out, model, held_out, cfg, checkpoint_path, metrics):
     background = cfg.model == 'nerfpp'
     if len(held_out):
         metrics['test'] = evaluate_split(model, held_out, os.path.join(out, 'test'),
-                                         cfg.sampling, background=background, progress=tqdm)
+                                         cfg.sampling, background=background, progress=tqdm,
+                                         fit_appearance=getattr(cfg, 'appearance', False))
         norm = model.normalization
         write_render_xml(os.path.join(out, 'render.xml'), checkpoint_path,
                          norm.to_world_camera(held_out.cameras[0]), cfg.sampling,

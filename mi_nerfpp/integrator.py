@@ -117,6 +117,12 @@ class NeRFPPIntegrator(ADIntegrator):
        - |int|
        - Primal renders are evaluated in chunks of this many rays to bound
          memory. (Default: 32768)
+     * - appearance_image
+       - |int|
+       - Render with the colour transform (exposure, white balance) learned for
+         this training image of a model trained with ``--appearance``; -1 renders
+         neutral (the model's own colour, that of training image 0). An index
+         the model has no transform for is refused. (Default: -1)
      * - max_samples
        - |int|
        - Largest film (pixels times samples per pixel) a render accepts; larger
@@ -156,6 +162,7 @@ class NeRFPPIntegrator(ADIntegrator):
         self.max_samples = read('max_samples', int, MAX_FILM_SAMPLES, minimum=1)
         self.random_field = read('field', str, 'grid', choices=FIELD_KINDS)
         self.random_seed = read('seed', int, 0, minimum=0)
+        self.appearance_image = read('appearance_image', int, -1, minimum=-1)
         read.reject_unknown()
         self.show_progress = False
         self._model, self.meta = None, {}
@@ -172,6 +179,7 @@ class NeRFPPIntegrator(ADIntegrator):
                     f"{', '.join(dict.fromkeys(places))}; relative paths are resolved against "
                     f"the scene file's folder)")
             self._model, self.meta, _ = load_checkpoint(path)
+            self._check_appearance(self._model)
 
     @property
     def model(self):
@@ -183,7 +191,22 @@ class NeRFPPIntegrator(ADIntegrator):
 
     def set_model(self, model, meta=None):
         """Render ``model`` (a :class:`~mi_nerfpp.model.NeRFPPModel`) from now on."""
+        self._check_appearance(model)
         self._model, self.meta = model, meta or {}
+
+    def _check_appearance(self, model):
+        n = model.appearance_images
+        if self.appearance_image >= n:
+            have = (f'transforms for training images 0..{n - 1}' if n else
+                    'no appearance transforms (train with --appearance)')
+            raise ValueError(f"nerfpp: parameter 'appearance_image' is {self.appearance_image} "
+                             f"but the model has {have}; -1 renders neutral")
+
+    def _transform(self):
+        """``(gain, bias)`` (Color3f) of the chosen training image's colour transform."""
+        from .appearance import single
+        gain, bias = single(self.model.appearance.numpy(), self.appearance_image)
+        return mi.Color3f(*map(float, gain)), mi.Color3f(*map(float, bias))
 
     def aov_names(self):
         return list(AOVS)
@@ -235,6 +258,11 @@ class NeRFPPIntegrator(ADIntegrator):
             # alpha is 0 or 1.
             L, bg = dr.srgb_to_linear(L), dr.srgb_to_linear(bg)
             fg_rgb = alpha * dr.srgb_to_linear(fg_rgb / dr.maximum(alpha, 1e-6))
+        if self.appearance_image >= 0:
+            # c' = g·c + b on the beauty; fg' = g·fg + α·b and bg' = g·bg + b keep
+            # beauty = fg' + (1 - α)·bg'.
+            gain, bias = self._transform()
+            L, fg_rgb, bg = gain * L + bias, gain * fg_rgb + alpha * bias, gain * bg + bias
         surface = norm.to_world_distance(surface_distance(res))
         if self._view is None:        # no sensor known: the distance along the ray
             depth = surface

@@ -52,8 +52,13 @@ class NeRFPPModel:
     """
 
     def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb',
-                 occupancy=None, composite='linear'):
+                 occupancy=None, composite='linear', appearance_images=0):
         self.fg, self.bg = fg, bg
+        # Per-training-image colour transforms (:mod:`.appearance`); None: off.
+        self.appearance = None
+        if appearance_images:
+            from .appearance import identity
+            self.appearance = identity(appearance_images)
         self.normalization = normalization
         # Volume name ('fg'/'bg') -> OccupancyGrid: empty-space skipping (none: sample everywhere).
         self.occupancy = dict(occupancy or {})
@@ -90,8 +95,13 @@ class NeRFPPModel:
     def config(self):
         return {'fg': self.fg.config, 'bg': self.bg.config if self.bg else None,
                 'normalization': self.normalization.to_config(), 'color_space': self.color_space,
-                'composite': self.composite,
+                'composite': self.composite, 'appearance_images': self.appearance_images,
                 'occupancy': {k: g.config for k, g in self.occupancy.items()}}
+
+    @property
+    def appearance_images(self):
+        """Number of training images with a colour transform (0: no appearance model)."""
+        return 0 if self.appearance is None else self.appearance.shape[0]
 
     def enable_occupancy(self, resolution, threshold):
         """Give every volume a fresh (all occupied) occupancy grid."""
@@ -107,10 +117,13 @@ class NeRFPPModel:
             grid.update(self.fg if k == 'fg' else self.bg, seed, DEFAULT_DECAY if decay is None else decay)
 
     def parameters(self):
-        """All learnable arrays, named ``fg.<name>`` / ``bg.<name>`` (live references)."""
+        """All learnable arrays, named ``fg.<name>`` / ``bg.<name>`` (live references), and
+        ``appearance`` (:mod:`.appearance`) when the model has per-image transforms."""
         out = {f'fg.{k}': v for k, v in self.fg.params.items()}
         if self.bg is not None:
             out.update({f'bg.{k}': v for k, v in self.bg.params.items()})
+        if self.appearance is not None:
+            out['appearance'] = self.appearance
         return out
 
     def n_parameters(self):
@@ -125,6 +138,10 @@ class NeRFPPModel:
                 raise KeyError(f'model has no {volume} field for parameters {sorted(sub)}')
             if sub:
                 field.set_parameters(sub)
-        unknown = [k for k in values if not k.startswith(('fg.', 'bg.'))]
+        if 'appearance' in values:
+            if self.appearance is None:
+                raise KeyError('model has no appearance transforms')
+            self.appearance = values['appearance']
+        unknown = [k for k in values if not k.startswith(('fg.', 'bg.')) and k != 'appearance']
         if unknown:
             raise KeyError(f'unknown parameter names {unknown}')

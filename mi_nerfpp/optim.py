@@ -30,10 +30,13 @@ def adam(params: dict, lr: float = LR_MLP, lazy: bool = False):
 
 
 def set_learning_rates(opt, progress: float, lr_grid: float = LR_GRID, lr_mlp: float = LR_MLP,
-                       lr_final: float = LR_FINAL) -> None:
-    """Grid or MLP rate by name, times ``lr_final ** progress`` (progress clamped to [0, 1])."""
+                       lr_final: float = LR_FINAL, by_name: dict | None = None) -> None:
+    """Grid or MLP rate by name (``by_name``: the rate of particular parameters), times
+    ``lr_final ** progress`` (progress clamped to [0, 1])."""
     decay = lr_final ** min(max(progress, 0.0), 1.0)
-    opt.set_learning_rate({k: (lr_grid if is_grid(k) else lr_mlp) * decay for k in opt.keys()})
+    by_name = by_name or {}
+    opt.set_learning_rate({k: by_name.get(k, lr_grid if is_grid(k) else lr_mlp) * decay
+                           for k in opt.keys()})
 
 
 def mse(a, b):

@@ -23,6 +23,13 @@ def srgb_oetf(linear: np.ndarray) -> np.ndarray:
     return np.where(linear <= SRGB_LINEAR_CUTOFF, 12.92 * linear, curve)
 
 
+def srgb_eotf(encoded: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] -> linear light (the inverse of :func:`srgb_oetf`)."""
+    encoded = np.asarray(encoded, dtype=np.float64)
+    return np.where(encoded <= 0.04045, encoded / 12.92,
+                    ((np.maximum(encoded, 0.04045) + 0.055) / 1.055) ** 2.4)
+
+
 def _check_rgb(rgb: np.ndarray) -> np.ndarray:
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3:

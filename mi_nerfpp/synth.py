@@ -128,7 +128,7 @@ from .data.nerfpp import write_nerfpp
 from .exr import write_exr
 from .files import atomic_write_path
 from .frame import MITSUBA_NEAR_CLIP, Normalization
-from .preview import to_srgb8
+from .preview import srgb_eotf, to_srgb8
 
 TRAJECTORIES = ('orbit', 'truck', 'hemisphere', 'arc')
 CAPTURE_FILE = 'capture.json'
@@ -669,3 +669,50 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
         print(f'wrote {views} views ({counts["train"]} train, {counts["validation"]} validation, '
               f'{counts["test"]} test) to {out} in {info["render_seconds"]:.1f} s')
     return dict(info, cached=False)
+
+
+# --- per-image appearance ----------------------------------------------------------------------
+
+APPEARANCE_FILE = 'appearance.json'
+
+
+def vary_exposure(src, out, stops: float = 0.5, white_balance: float = 0.1, seed: int = 0,
+                  splits=('train', 'test')) -> dict:
+    """Copy the NeRF++-layout capture ``src`` to ``out`` with a different exposure and white
+    balance per image, as a camera on auto-exposure would record it.
+
+    Each image of ``splits`` gets per-channel gains ``2^(e + w_c)`` (``e`` uniform in
+    ``±stops``, ``w_c`` uniform in ``±white_balance`` stops), applied in linear light, then
+    clipped and sRGB-encoded to 8 bits again. Training image 0 keeps gain 1: it is the
+    reference of the learned transforms (:mod:`mi_nerfpp.appearance`), so the learned gains
+    estimate the applied ones directly. The true gains are written to ``out/appearance.json``
+    (``{split: [[r, g, b], ...]}`` in file order) and returned.
+    """
+    import imageio.v3 as iio
+
+    src, out = os.fspath(src), os.fspath(out)
+    if not os.path.isdir(os.path.join(src, 'train', 'rgb')):
+        raise FileNotFoundError(f'{src}: not a NeRF++ capture (no train/rgb folder)')
+    if os.path.exists(out):
+        raise FileExistsError(f'{out}: already exists; vary_exposure writes a new folder')
+    if not (stops >= 0 and white_balance >= 0):
+        raise ValueError(f'stops and white_balance must be >= 0, got {stops}, {white_balance}')
+    shutil.copytree(src, out)
+    rng = np.random.default_rng(seed)
+    gains = {}
+    for split in splits:
+        folder = os.path.join(out, split, 'rgb')
+        names = sorted(os.listdir(folder)) if os.path.isdir(folder) else []
+        gains[split] = []
+        for i, name in enumerate(names):
+            g = 2.0 ** (rng.uniform(-stops, stops) + rng.uniform(-white_balance, white_balance, 3))
+            if split == 'train' and i == 0:
+                g = np.ones(3)
+            path = os.path.join(folder, name)
+            image = iio.imread(path)[..., :3].astype(np.float64) / 255.0
+            iio.imwrite(path, to_srgb8(np.clip(srgb_eotf(image) * g, 0.0, 1.0)))
+            gains[split].append([float(v) for v in g])
+    with atomic_write_path(os.path.join(out, APPEARANCE_FILE)) as tmp, open(tmp, 'w') as f:
+        json.dump({'gains': gains, 'stops': stops, 'white_balance': white_balance,
+                   'seed': seed}, f, indent=2)
+    return gains

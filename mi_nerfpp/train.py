@@ -34,7 +34,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import occupancy as occ, optim, priors
+from . import appearance as app, occupancy as occ, optim, priors
 from .checkpoint import load_checkpoint, save_checkpoint
 from .data import pixel_rays
 from .fields import GridField
@@ -161,6 +161,13 @@ class TrainConfig:
                             'sums encoded colour as before issue 11 (measured 1-2 dB better '
                             'held-out PSNR on a small capture; layers recombine only '
                             'approximately)', choices=('linear', 'srgb'), shapes_model=True)
+    appearance: bool = option(False, 'learn a colour transform (exposure, white-balance gain and '
+                              'bias) per training image; training image 0 is the reference; '
+                              'held-out views are then scored NeRF-W style (transform fitted on '
+                              'the left half, right half scored)', shapes_model=True)
+    lr_appearance: float = option(app.LR_APPEARANCE, 'learning rate of the appearance transforms')
+    appearance_prior: float = option(app.PRIOR, 'weight of the L2 prior that keeps the '
+                                     'appearance transforms near the identity')
 
     def __post_init__(self):
         if self.model not in MODEL_KINDS:
@@ -193,11 +200,11 @@ class TrainConfig:
         for name in ('fine_samples', 'checkpoint_every', 'preview_every', 'dir_octaves', 'seed'):
             if getattr(self, name) < 0:
                 bad(name, '0 or more')
-        for name in ('lr_grid', 'lr_mlp', 'lr_final'):
+        for name in ('lr_grid', 'lr_mlp', 'lr_final', 'lr_appearance'):
             if not (finite(getattr(self, name)) and getattr(self, name) > 0):
                 bad(name, 'a positive finite number')
         for name in ('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'density_bias',
-                     'occupancy_threshold', 'sparsity'):
+                     'occupancy_threshold', 'sparsity', 'appearance_prior'):
             v = getattr(self, name)
             if not finite(v) or (name != 'density_bias' and v < 0):
                 bad(name, 'a finite number' if name == 'density_bias' else
@@ -275,30 +282,38 @@ class TrainConfig:
 
 
 class RayBank:
-    """Every pixel ray of a split (model frame) and its colour, as Dr.Jit arrays."""
+    """Every pixel ray of a split (model frame), its colour and its image index, as Dr.Jit
+    arrays."""
 
     def __init__(self, split):
         if len(split) == 0:
             raise TrainingError('the training split is empty')
-        o, d, c = [], [], []
-        for cam, img in zip(split.cameras, split.images):
+        o, d, c, image = [], [], [], []
+        for k, (cam, img) in enumerate(zip(split.cameras, split.images)):
             h, w = img.shape[:2]
             py, px = np.mgrid[0:h, 0:w] + 0.5
             oi, di = pixel_rays(cam, px, py)
             o.append(oi)
             d.append(di)
             c.append(img.reshape(-1, 3))
+            image.append(np.full(h * w, k, np.uint32))
         o, d, c = (np.concatenate(a).astype(np.float32) for a in (o, d, c))
         self.size = len(c)
         self.o = mi.Point3f(*[mi.Float(o[:, i]) for i in range(3)])
         self.d = mi.Vector3f(*[mi.Float(d[:, i]) for i in range(3)])
         self.rgb = mi.Color3f(*[mi.Float(c[:, i]) for i in range(3)])
-        dr.eval(self.o, self.d, self.rgb)
+        self.image = mi.UInt32(np.concatenate(image))
+        dr.eval(self.o, self.d, self.rgb, self.image)
 
     def batch(self, index):
+        """``(origin, direction, colour)`` of the rays ``index``."""
         i = mi.UInt32(index)
         return (dr.gather(mi.Point3f, self.o, i), dr.gather(mi.Vector3f, self.d, i),
                 dr.gather(mi.Color3f, self.rgb, i))
+
+    def images(self, index):
+        """The training-image index of the rays ``index`` (UInt32)."""
+        return dr.gather(mi.UInt32, self.image, mi.UInt32(index))
 
 
 def in_model_frame(dataset, normalization):
@@ -352,6 +367,7 @@ class Trainer:
                 background=config.model == 'nerfpp', seed=config.seed,
                 normalization=normalization,
                 color_space=dataset.color_space, composite=config.composite,
+                appearance_images=len(self.train) if config.appearance else 0,
                 fg_config=config.field_config(config.field, 'ball'),
                 bg_config=config.field_config(config.bg_field, 'inverted_sphere'))
             if config.occupancy:
@@ -397,7 +413,8 @@ class Trainer:
         """One optimization step. Returns ``(loss, fine-pass MSE)`` as Python floats."""
         cfg = self.cfg
         self._coarse_to_fine()
-        optim.set_learning_rates(self.opt, self.progress(), cfg.lr_grid, cfg.lr_mlp, cfg.lr_final)
+        optim.set_learning_rates(self.opt, self.progress(), cfg.lr_grid, cfg.lr_mlp, cfg.lr_final,
+                                 {'appearance': cfg.lr_appearance})
         index = self.rng.integers(0, self.rays.size, cfg.batch_rays)
         seed = mi.UInt32(self.rng.integers(0, 2 ** 32, cfg.batch_rays, dtype=np.uint64)
                          .astype(np.uint32))
@@ -408,10 +425,16 @@ class Trainer:
         self.model.set_parameters({k: self.opt[k] for k in self.opt.keys()})
         res = render_rays(o, d, *self.model.radiance_fields(), cfg.sampling, seed=seed,
                           occupancy=self.model.occupancy)
-        # Radiance is linear; the loss compares it in the encoding of the images.
+        # Radiance is linear; the loss compares it in the encoding of the images, after the
+        # image's colour transform when appearance is learned.
         encode = self.model.loss_encoding
+        if self.model.appearance is not None:
+            image, params = self.rays.images(index), self.opt['appearance']
+            encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
         fine = optim.mse(encode(res.fine.rgb), gt)
         loss = fine + optim.mse(encode(res.coarse.rgb), gt)
+        if self.model.appearance is not None and cfg.appearance_prior > 0:
+            loss += cfg.appearance_prior * app.prior(self.opt['appearance'])
         if cfg.distortion > 0:
             for vol in (res.fg, res.bg):
                 if vol is not None:

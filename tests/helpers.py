@@ -111,3 +111,19 @@ def truck_fixture_cameras():
         width, height = entry['img_size']
         result.append(Camera(K=K, c2w=np.linalg.inv(w2c), width=width, height=height, name=name))
     return result
+
+
+def interrupted_then_resumed(dataset, out, config, stop_at):
+    """Train ``config`` in ``out``, interrupted after step ``stop_at`` as by Ctrl-C, then resume
+    it in a new Trainer to the end; returns that Trainer."""
+    from mi_nerfpp.train import Trainer
+
+    def interrupt(trainer, loss, psnr):
+        if trainer.iteration == stop_at:
+            raise KeyboardInterrupt
+
+    assert Trainer(dataset, out, config).run(on_step=interrupt) is False
+    resumed = Trainer(dataset, out, config, resume=True)
+    assert resumed.iteration == stop_at
+    resumed.run()
+    return resumed

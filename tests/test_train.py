@@ -13,6 +13,7 @@ from mi_nerfpp.data import load_dataset
 from mi_nerfpp.evaluate import evaluate_split
 from mi_nerfpp.options import values
 from mi_nerfpp.train import TrainConfig, Trainer, TrainingError
+from tests.helpers import interrupted_then_resumed
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SMALL = dict(batch_rays=512, fg_samples=16, bg_samples=16, fine_samples=16,
@@ -50,17 +51,8 @@ EXACT = dict(SMALL, distortion=0.0)
 def test_resume_continues_where_the_run_stopped(dataset, tmp_path):
     straight = Trainer(dataset, str(tmp_path / 'a'), TrainConfig(iterations=12, **EXACT))
     straight.run()
-    first = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **EXACT))
-
-    def interrupt_at_6(trainer, loss, psnr):
-        if trainer.iteration == 6:
-            raise KeyboardInterrupt
-
-    assert first.run(on_step=interrupt_at_6) is False
-    resumed = Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **EXACT),
-                      resume=True)
-    assert resumed.iteration == 6
-    resumed.run()
+    resumed = interrupted_then_resumed(dataset, str(tmp_path / 'b'),
+                                       TrainConfig(iterations=12, **EXACT), stop_at=6)
     a, b = _params(straight.model), _params(resumed.model)
     for k in a:
         # Same batches, same optimizer moments; only float summation order may differ.

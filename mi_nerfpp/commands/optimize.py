@@ -151,7 +151,8 @@ def train(trainer, inp: Inputs):
         while eval_at and tr.elapsed >= 60 * eval_at[0] and len(test_views):
             minute = eval_at.pop(0)
             r = evaluate_split(tr.model, test_views, os.path.join(out, f'test_at_{minute:g}min'),
-                               cfg.sampling, background=background)
+                               cfg.sampling, background=background,
+                               fit_appearance=cfg.appearance)
             progress_log.append({'minutes': minute, 'iteration': tr.iteration,
                                  'psnr': r['psnr'], 'ssim': r['ssim']})
             bar.write(f'after {minute:g} min ({tr.iteration} iterations): held-out PSNR '
@@ -207,6 +208,10 @@ def report(trainer, inp: Inputs, progress_log, wall_seconds):
     if 'test' in metrics:
         print(f'held-out views: PSNR {metrics["test"]["psnr"]:.2f} dB, '
               f'SSIM {metrics["test"]["ssim"]:.3f} over {len(metrics["test"]["views"])} views')
+        if 'psnr_neutral' in metrics['test']:
+            print(f'  (scored NeRF-W style: each view\'s appearance fitted on its left half, '
+                  f'right half scored; neutral whole views: PSNR '
+                  f'{metrics["test"]["psnr_neutral"]:.2f} dB)')
     written = ['model.npz', 'metrics.json', 'training.png']
     if 'test' in metrics:
         written[2:2] = ['test/*.exr|png', 'render.xml']

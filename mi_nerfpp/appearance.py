@@ -1,0 +1,89 @@
+"""Per-image appearance: an affine colour transform per training image (exposure, white balance).
+
+Photos of one capture differ in exposure and white balance. With ``--appearance`` each training
+image ``i`` gets a transform of the rendered *linear* colour ``c``::
+
+    c' = exp(g_i) ⊙ c + b_i        (per channel: gain exp(g_i), bias b_i)
+
+learned jointly with the fields (its own learning rate) under an L2 prior pulling
+``(g_i, b_i)`` to 0, the identity (as the original NeRF++'s auto-exposure option). The loss
+compares ``c'`` (sRGB-encoded for photos) with the pixels.
+
+Gauge: scaling the model's radiance and dividing every gain by the same factor changes no
+pixel, so one transform must be fixed. Training image 0 is the reference: its transform is the
+identity and is never updated. The model's own (neutral) colour is therefore that of training
+image 0, and a learned gain ``exp(g_i)`` estimates image ``i``'s exposure *relative to image 0*.
+
+The parameters are one ``(n_images, 6)`` tensor ``[g_r, g_g, g_b, b_r, b_g, b_b]``, stored in
+the checkpoint as ``param/appearance``. Rendering is neutral unless the integrator is asked for
+a training image's transform (``appearance_image``).
+
+Held-out photos have their own exposure, unknown to the model: :func:`fit_affine` fits it as
+NeRF-W evaluates (the transform of a test image is fitted on its left half - closed-form linear
+least squares in linear light - and the right half is scored).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+PARAMS = 6                  # log-gain and bias per channel
+LR_APPEARANCE = 0.02        # Adam learning rate of the transforms
+PRIOR = 1e-3                # weight of the L2 prior towards the identity
+
+
+def identity(n_images: int) -> mi.TensorXf:
+    """The parameters of ``n_images`` identity transforms."""
+    if n_images < 1:
+        raise ValueError(f'appearance needs at least one image, got {n_images}')
+    return mi.TensorXf(np.zeros((n_images, PARAMS), np.float32))
+
+
+def transform_rays(params: mi.TensorXf, image, rgb: mi.Color3f) -> mi.Color3f:
+    """Apply the transform of image ``image[k]`` (UInt32 per ray) to ray ``k``'s linear colour.
+    Image 0 is the gauge: always the identity, so its parameters get no gradient."""
+    image = mi.UInt32(image)
+    active = image != 0
+    p = [dr.gather(mi.Float, params.array, image * PARAMS + j, active) for j in range(PARAMS)]
+    gain = dr.exp(mi.Color3f(p[0], p[1], p[2]))
+    return gain * rgb + mi.Color3f(p[3], p[4], p[5])
+
+
+def prior(params: mi.TensorXf) -> mi.Float:
+    """L2 of the parameters (0 at the identity), averaged over images and entries."""
+    return dr.mean(dr.square(params.array))
+
+
+def gains_biases(params) -> tuple[np.ndarray, np.ndarray]:
+    """``(gains (n, 3), biases (n, 3))`` as NumPy arrays."""
+    p = np.asarray(params, dtype=np.float64).reshape(-1, PARAMS)
+    return np.exp(p[:, :3]), p[:, 3:]
+
+
+def single(params, index: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(gain, bias)`` of one image (3-vectors)."""
+    gains, biases = gains_biases(params)
+    return gains[index], biases[index]
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+def fit_affine(pred: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel ``(gain, bias)`` minimizing ``|gain·pred + bias - target|²`` over the pixels
+    ((..., 3) arrays, linear light): closed-form linear least squares."""
+    x = pred.reshape(-1, 3).astype(np.float64)
+    y = target.reshape(-1, 3).astype(np.float64)
+    gain, bias = np.ones(3), np.zeros(3)
+    for c in range(3):
+        a = np.stack([x[:, c], np.ones(len(x))], axis=1)
+        (g, b), *_ = np.linalg.lstsq(a, y[:, c], rcond=None)
+        if np.isfinite(g) and np.isfinite(b):
+            gain[c], bias[c] = g, b
+    return gain, bias
+
+
+def left_right(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The left and right halves of an (H, W, ...) image (the right one gets the odd column)."""
+    half = image.shape[1] // 2
+    return image[:, :half], image[:, half:]

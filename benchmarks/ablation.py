@@ -6,7 +6,8 @@ Trains ``--iterations`` steps (default 1500) from scratch with the given options
 flags and defaults as ``optimize``), then prints one line: held-out PSNR (mean and per test
 view), held-out PSNR over the pixels whose direction at least ``SEEN_BY`` training views saw
 (``mi_nerfpp.data.direction_coverage``: the rest is extrapolation), PSNR of every 8th
-training view (the generalization gap), foreground/background
+training view (the generalization gap; with the synthetic ground truth also split into the
+pixels whose true foreground mask is 1 and 0, to see which volume's fit stalls), foreground/background
 separation against the synthetic ground truth (``mi_nerfpp.metrics.separation``: mean
 |alpha - alpha_gt|, foreground opacity where the true mask is 0, fraction of soft alpha) and
 the fraction of occupied cells. A fixed step count makes settings comparable however busy the
@@ -84,13 +85,24 @@ def main():
             _picture(a.pictures, i, layers, trainer.test.images[i], space)
         if i < len(gts):
             sep.append(separation(layers['fg.A'], read_exr(gts[i])['fg.A']))
-    train = [score(trainer.train, i)[1] for i in range(0, len(trainer.train), 8)]
+    train, train_fg, train_bg = [], [], []
+    train_gts = sorted(glob.glob(os.path.join(data, 'train', 'gt', '*.exr')))
+    for i in range(0, len(trainer.train), 8):
+        layers, p = score(trainer.train, i)
+        train.append(p)
+        if len(train_gts) == len(trainer.train):
+            inside = read_exr(train_gts[i])['fg.A'] > 0.5
+            pred = np.clip(encoded_rgb(layers, space), 0, 1)
+            train_fg.append(masked_psnr(pred, trainer.train.images[i], inside))
+            train_bg.append(masked_psnr(pred, trainer.train.images[i], ~inside))
+    split = (f' (true foreground {np.nanmean(train_fg):.2f}, background {np.nanmean(train_bg):.2f})'
+             if train_fg else '')
     mean = {k: np.nanmean([s[k] for s in sep]) for k in sep[0]} if sep else {}
     occupied = {k: round(g.fraction(), 3) for k, g in trainer.model.occupancy.items()}
     print(f'{cfg.iterations} steps: held-out PSNR {np.mean(test):.2f} dB '
           f'(views {", ".join(f"{p:.1f}" for p in test)}); seen by >= {SEEN_BY} training views '
           f'{np.nanmean(seen):.2f} dB (worst {np.nanmin(seen):.1f}); training views '
-          f'{np.mean(train):.2f} dB; |alpha - alpha_gt| {mean.get("alpha_error", np.nan):.3f}, '
+          f'{np.mean(train):.2f} dB{split}; |alpha - alpha_gt| {mean.get("alpha_error", np.nan):.3f}, '
           f'leak {mean.get("leak", np.nan):.3f}, soft alpha {100 * mean.get("soft_fraction", np.nan):.0f}%; '
           f'occupied cells {occupied or "-"}')
 

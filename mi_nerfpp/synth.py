@@ -676,6 +676,17 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
 APPEARANCE_FILE = 'appearance.json'
 
 
+def _capture_copy_paths(src, out, needs: str, writer: str) -> tuple[str, str]:
+    """``(src, out)`` as strings for a modified copy of a NeRF++ capture; refuses a source
+    without ``train/<needs>`` and an ``out`` that already exists."""
+    src, out = os.fspath(src), os.fspath(out)
+    if not os.path.isdir(os.path.join(src, 'train', needs)):
+        raise FileNotFoundError(f'{src}: not a NeRF++ capture (no train/{needs} folder)')
+    if os.path.exists(out):
+        raise FileExistsError(f'{out}: already exists; {writer} writes a new folder')
+    return src, out
+
+
 def vary_exposure(src, out, stops: float = 0.5, white_balance: float = 0.1, seed: int = 0,
                   splits=('train', 'test')) -> dict:
     """Copy the NeRF++-layout capture ``src`` to ``out`` with a different exposure and white
@@ -690,11 +701,7 @@ def vary_exposure(src, out, stops: float = 0.5, white_balance: float = 0.1, seed
     """
     import imageio.v3 as iio
 
-    src, out = os.fspath(src), os.fspath(out)
-    if not os.path.isdir(os.path.join(src, 'train', 'rgb')):
-        raise FileNotFoundError(f'{src}: not a NeRF++ capture (no train/rgb folder)')
-    if os.path.exists(out):
-        raise FileExistsError(f'{out}: already exists; vary_exposure writes a new folder')
+    src, out = _capture_copy_paths(src, out, 'rgb', 'vary_exposure')
     if not (stops >= 0 and white_balance >= 0):
         raise ValueError(f'stops and white_balance must be >= 0, got {stops}, {white_balance}')
     shutil.copytree(src, out)
@@ -735,12 +742,7 @@ def perturb_poses(src, out, degrees: float = 1.0, fraction: float = 0.01, seed: 
     from .data.nerfpp import _read_matrix, _write_matrix
     from .poses import corrected_c2w
 
-    src, out = os.fspath(src), os.fspath(out)
-    folder = os.path.join(src, 'train', 'pose')
-    if not os.path.isdir(folder):
-        raise FileNotFoundError(f'{src}: not a NeRF++ capture (no train/pose folder)')
-    if os.path.exists(out):
-        raise FileExistsError(f'{out}: already exists; perturb_poses writes a new folder')
+    src, out = _capture_copy_paths(src, out, 'pose', 'perturb_poses')
     if not (degrees >= 0 and fraction >= 0):
         raise ValueError(f'degrees and fraction must be >= 0, got {degrees}, {fraction}')
     shutil.copytree(src, out)

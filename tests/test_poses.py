@@ -10,12 +10,11 @@ import numpy as np
 import pytest
 
 from mi_nerfpp import poses
-from mi_nerfpp.checkpoint import load_checkpoint
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.render import Sampling, render_rays
 from mi_nerfpp.synth import POSES_FILE, perturb_poses
 from mi_nerfpp.train import TrainConfig, Trainer
-from tests.helpers import interrupted_then_resumed
+from tests.helpers import per_image_parameters_resume_exactly
 
 FAST = dict(batch_rays=512, fg_samples=8, bg_samples=8, fine_samples=8, checkpoint_every=0,
             preview_every=0, seed=0)
@@ -154,20 +153,9 @@ EXACT = dict(FAST, distortion=0.0, refine_poses=True, poses_start=0.0)
 
 
 def test_checkpoint_round_trips_and_resumes_exactly_with_pose_refinement(perturbed, tmp_path):
-    dataset = load_dataset(perturbed[0])
-    straight = Trainer(dataset, str(tmp_path / 'a'), TrainConfig(iterations=10, **EXACT))
-    straight.run()
-    model, meta, state = load_checkpoint(tmp_path / 'a' / 'model.npz')
-    np.testing.assert_array_equal(model.poses.numpy(), straight.model.poses.numpy())
-    assert model.pose_images == len(dataset.train) and 'adam.m/poses' in state
-    assert np.any(model.poses.numpy()[1:] != 0) and np.all(model.poses.numpy()[0] == 0)
-
-    resumed = interrupted_then_resumed(dataset, str(tmp_path / 'b'),
-                                       TrainConfig(iterations=10, **EXACT), stop_at=5)
-    np.testing.assert_allclose(resumed.model.poses.numpy(), straight.model.poses.numpy(),
-                               rtol=1e-3, atol=1e-7)
-    with pytest.raises(Exception, match='--refine-poses'):
-        Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **FAST), resume=True)
+    saved = per_image_parameters_resume_exactly(load_dataset(perturbed[0]), tmp_path, EXACT,
+                                                FAST, 'poses', '--refine-poses', atol=1e-7)
+    assert np.any(saved[1:] != 0) and np.all(saved[0] == 0)
 
 
 def test_bad_pose_options_are_refused():

@@ -9,6 +9,7 @@ import drjit as dr
 LR_GRID = 0.1      # learning rate of feature grids
 LR_MLP = 5e-3      # learning rate of everything else (MLP weights and biases)
 LR_FINAL = 0.1     # learning rates decay exponentially to this fraction of their start
+ADAM_BETA2 = 0.999  # decay of Adam's second-moment estimate (drjit.opt's default)
 
 
 def is_grid(name: str) -> bool:
@@ -16,14 +17,15 @@ def is_grid(name: str) -> bool:
     return name.rsplit('.', 1)[-1].startswith('grid')
 
 
-def adam(params: dict, lr: float = LR_MLP, lazy: bool = False):
+def adam(params: dict, lr: float = LR_MLP, lazy: bool = False, beta_2: float = ADAM_BETA2):
     """An Adam optimizer holding ``params`` (name -> array).
 
     ``lazy``: entries whose gradient is zero in a step are left alone, moments included
     (``mask_updates``, as instant-ngp does for its grids): a grid cell that no sample
-    touched does not keep drifting on stale momentum.
+    touched does not keep drifting on stale momentum. ``beta_2``: decay of the second-moment
+    estimate (instant-ngp uses 0.99 for its sparsely touched grids).
     """
-    opt = dr.opt.Adam(lr=lr, mask_updates=lazy)
+    opt = dr.opt.Adam(lr=lr, mask_updates=lazy, beta_2=beta_2)
     for k, v in params.items():
         opt[k] = v
     return opt

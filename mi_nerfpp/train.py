@@ -96,6 +96,7 @@ class TrainConfig:
     lr_mlp: float = option(optim.LR_MLP, 'learning rate of the MLPs')
     lazy_adam: bool = option(False, 'leave parameters whose gradient is zero untouched in an Adam '
                              'step (moments included)')
+    adam_beta2: float = option(optim.ADAM_BETA2, "decay of Adam's second-moment estimate")
     lr_final: float = option(optim.LR_FINAL, 'learning rates decay exponentially to this '
                              'fraction of their start over the run')
     distortion: float = option(0.01, 'weight of the mip-NeRF 360 distortion loss against '
@@ -227,6 +228,8 @@ class TrainConfig:
         if self.bg_grid_levels is not None and (not self.bg_grid_levels
                                                 or min(self.bg_grid_levels) < 2):
             bad('bg_grid_levels', 'one or more resolutions of at least 2')
+        if not (finite(self.adam_beta2) and 0 < self.adam_beta2 < 1):
+            bad('adam_beta2', 'a number in (0, 1)')
         if not (finite(self.fg_warp) and 0 <= self.fg_warp < 1):
             bad('fg_warp', 'a radius in [0, 1)')
         if not (finite(self.bg_s_ratio) and 0 < self.bg_s_ratio <= 1):
@@ -387,7 +390,8 @@ class Trainer:
         if 'rng' in meta:
             self.rng.bit_generator.state = meta['rng']
 
-        self.opt = optim.adam(self.model.parameters(), config.lr_mlp, lazy=config.lazy_adam)
+        self.opt = optim.adam(self.model.parameters(), config.lr_mlp, lazy=config.lazy_adam,
+                              beta_2=config.adam_beta2)
         self._restore_optimizer(state)
 
     # ------------------------------------------------------------------ optimizer state

@@ -51,6 +51,10 @@ def one_clear_line(err):
     (['--checkpoint-every', '-5'], '--checkpoint-every must be 0 or more, got -5'),
     (['--minutes', '-1'], '--minutes must be a positive number of minutes, got -1.0'),
     (['--minutes', 'nan'], '--minutes must be a positive number of minutes, got nan'),
+    (['--adam-beta2', '1'], '--adam-beta2 must be a number in (0, 1), got 1.0'),
+    (['--fg-warp', '1'], '--fg-warp must be a radius in [0, 1), got 1.0'),
+    (['--bg-s-ratio', '0'], '--bg-s-ratio must be a number in (0, 1], got 0.0'),
+    (['--bg-grid-levels', '1'], '--bg-grid-levels must be one or more resolutions of at least 2'),
 ])
 def test_bad_optimize_options_are_refused(capsys, tmp_path, option, message):
     status, _, err = run_cli(capsys, 'optimize', tmp_path, '--out', tmp_path / 'run', *option)

@@ -8,6 +8,8 @@ Keys:
   "composite": "linear"|"srgb" (where samples are composited; missing: "srgb", older files),
   "appearance_images": n (per-image colour transforms, ``param/appearance`` of shape (n, 6),
   :mod:`~mi_nerfpp.appearance`; missing or 0: none),
+  "pose_images": n (per-image camera corrections, ``param/poses`` of shape (n, 6),
+  :mod:`~mi_nerfpp.poses`; missing or 0: none),
   "meta": {...}}``. ``normalization`` is the scene normalization
   ``x_model = (x_world - center)·scale`` (:class:`~mi_nerfpp.frame.Normalization`; version 1
   files stored ``center`` and ``scale`` at the top level and are still read);
@@ -93,7 +95,8 @@ def load_checkpoint(path, seed=0):
                             color_space=config.get('color_space', 'srgb'), occupancy=occupancy,
                             # written before issue 11: sRGB models composited encoded colour
                             composite=config.get('composite', 'srgb'),
-                            appearance_images=int(config.get('appearance_images', 0)))
+                            appearance_images=int(config.get('appearance_images', 0)),
+                            pose_images=int(config.get('pose_images', 0)))
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None
 

@@ -52,13 +52,18 @@ class NeRFPPModel:
     """
 
     def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb',
-                 occupancy=None, composite='linear', appearance_images=0):
+                 occupancy=None, composite='linear', appearance_images=0, pose_images=0):
         self.fg, self.bg = fg, bg
         # Per-training-image colour transforms (:mod:`.appearance`); None: off.
         self.appearance = None
         if appearance_images:
             from .appearance import identity
             self.appearance = identity(appearance_images)
+        # Per-training-image camera pose corrections (:mod:`.poses`); None: off.
+        self.poses = None
+        if pose_images:
+            from .poses import zeros
+            self.poses = zeros(pose_images)
         self.normalization = normalization
         # Volume name ('fg'/'bg') -> OccupancyGrid: empty-space skipping (none: sample everywhere).
         self.occupancy = dict(occupancy or {})
@@ -96,12 +101,18 @@ class NeRFPPModel:
         return {'fg': self.fg.config, 'bg': self.bg.config if self.bg else None,
                 'normalization': self.normalization.to_config(), 'color_space': self.color_space,
                 'composite': self.composite, 'appearance_images': self.appearance_images,
+                'pose_images': self.pose_images,
                 'occupancy': {k: g.config for k, g in self.occupancy.items()}}
 
     @property
     def appearance_images(self):
         """Number of training images with a colour transform (0: no appearance model)."""
         return 0 if self.appearance is None else self.appearance.shape[0]
+
+    @property
+    def pose_images(self):
+        """Number of training images with a learned pose correction (0: poses not refined)."""
+        return 0 if self.poses is None else self.poses.shape[0]
 
     def enable_occupancy(self, resolution, threshold):
         """Give every volume a fresh (all occupied) occupancy grid."""
@@ -118,12 +129,15 @@ class NeRFPPModel:
 
     def parameters(self):
         """All learnable arrays, named ``fg.<name>`` / ``bg.<name>`` (live references), and
-        ``appearance`` (:mod:`.appearance`) when the model has per-image transforms."""
+        ``appearance`` (:mod:`.appearance`) when the model has per-image transforms and
+        ``poses`` (:mod:`.poses`) when it refines the training cameras."""
         out = {f'fg.{k}': v for k, v in self.fg.params.items()}
         if self.bg is not None:
             out.update({f'bg.{k}': v for k, v in self.bg.params.items()})
         if self.appearance is not None:
             out['appearance'] = self.appearance
+        if self.poses is not None:
+            out['poses'] = self.poses
         return out
 
     def n_parameters(self):
@@ -138,10 +152,12 @@ class NeRFPPModel:
                 raise KeyError(f'model has no {volume} field for parameters {sorted(sub)}')
             if sub:
                 field.set_parameters(sub)
-        if 'appearance' in values:
-            if self.appearance is None:
-                raise KeyError('model has no appearance transforms')
-            self.appearance = values['appearance']
-        unknown = [k for k in values if not k.startswith(('fg.', 'bg.')) and k != 'appearance']
+        for name, what in (('appearance', 'appearance transforms'), ('poses', 'pose corrections')):
+            if name in values:
+                if getattr(self, name) is None:
+                    raise KeyError(f'model has no {what}')
+                setattr(self, name, values[name])
+        unknown = [k for k in values if not k.startswith(('fg.', 'bg.'))
+                   and k not in ('appearance', 'poses')]
         if unknown:
             raise KeyError(f'unknown parameter names {unknown}')

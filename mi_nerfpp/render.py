@@ -85,7 +85,9 @@ class Foreground:
 
     def __init__(self, o, d, near=0.0):
         self.o, self.d = o, d
-        self.lo, self.hi = geo.foreground_interval(o, d, near)
+        # The samples' distances t are constants of the ray parameters (as nerfstudio's):
+        # gradients reach o and d through p = o + t·d only.
+        self.lo, self.hi = geo.foreground_interval(dr.detach(o), dr.detach(d), near)
 
     def inputs(self, ray, v):
         """Field inputs of the samples at ``v`` on rays ``ray``: the point ``p``."""
@@ -114,7 +116,7 @@ class Background:
     def __init__(self, o, d):
         self.d = d
         self.t_b, self.p_m, self.b = geo.closest_approach(o, d)
-        self.s_max = geo.background_s_max(o, d)
+        self.s_max = geo.background_s_max(dr.detach(o), dr.detach(d))   # constant, as t
         self.lo = dr.zeros(mi.Float, dr.width(d))
         self.hi = dr.ones(mi.Float, dr.width(d))
 
@@ -255,7 +257,7 @@ def _render_visible_background(o, d, fg, render, seed):
 
 
 def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
-                skip_occluded=False):
+                skip_occluded=False, ray_gradients=False):
     """Render rays ``o + t·d`` (``|d| = 1``) through the foreground and background volumes.
 
     ``bg_field=None`` renders the foreground volume alone (a bounded NeRF).
@@ -265,8 +267,13 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
     occupied space only (:class:`~.occupancy.OccupiedVolume`). ``skip_occluded`` (primal
     rendering only) renders the background only for rays whose foreground transmittance
     ``λ`` exceeds :data:`OCCLUDED_TRANSMITTANCE`; elsewhere its layers are zero.
+    ``ray_gradients``: let gradients flow to ``o`` and ``d`` (pose refinement, :mod:`.poses`)
+    through the sample positions; the samples' distances along the ray stay constants.
+    Otherwise the rays are detached.
     """
-    o, d = dr.detach(mi.Point3f(o)), dr.detach(mi.Vector3f(d))
+    o, d = mi.Point3f(o), mi.Vector3f(d)
+    if not ray_gradients:
+        o, d = dr.detach(o), dr.detach(d)
     occupancy = occupancy or {}
 
     def volume(v, key):

@@ -676,6 +676,17 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
 APPEARANCE_FILE = 'appearance.json'
 
 
+def _capture_copy_paths(src, out, needs: str, writer: str) -> tuple[str, str]:
+    """``(src, out)`` as strings for a modified copy of a NeRF++ capture; refuses a source
+    without ``train/<needs>`` and an ``out`` that already exists."""
+    src, out = os.fspath(src), os.fspath(out)
+    if not os.path.isdir(os.path.join(src, 'train', needs)):
+        raise FileNotFoundError(f'{src}: not a NeRF++ capture (no train/{needs} folder)')
+    if os.path.exists(out):
+        raise FileExistsError(f'{out}: already exists; {writer} writes a new folder')
+    return src, out
+
+
 def vary_exposure(src, out, stops: float = 0.5, white_balance: float = 0.1, seed: int = 0,
                   splits=('train', 'test')) -> dict:
     """Copy the NeRF++-layout capture ``src`` to ``out`` with a different exposure and white
@@ -690,11 +701,7 @@ def vary_exposure(src, out, stops: float = 0.5, white_balance: float = 0.1, seed
     """
     import imageio.v3 as iio
 
-    src, out = os.fspath(src), os.fspath(out)
-    if not os.path.isdir(os.path.join(src, 'train', 'rgb')):
-        raise FileNotFoundError(f'{src}: not a NeRF++ capture (no train/rgb folder)')
-    if os.path.exists(out):
-        raise FileExistsError(f'{out}: already exists; vary_exposure writes a new folder')
+    src, out = _capture_copy_paths(src, out, 'rgb', 'vary_exposure')
     if not (stops >= 0 and white_balance >= 0):
         raise ValueError(f'stops and white_balance must be >= 0, got {stops}, {white_balance}')
     shutil.copytree(src, out)
@@ -716,3 +723,49 @@ def vary_exposure(src, out, stops: float = 0.5, white_balance: float = 0.1, seed
         json.dump({'gains': gains, 'stops': stops, 'white_balance': white_balance,
                    'seed': seed}, f, indent=2)
     return gains
+
+
+POSES_FILE = 'poses.json'
+
+
+def perturb_poses(src, out, degrees: float = 1.0, fraction: float = 0.01, seed: int = 0) -> dict:
+    """Copy the NeRF++-layout capture ``src`` to ``out`` with perturbed *training* poses, as an
+    imperfect structure-from-motion would give them (the test of ``--refine-poses``).
+
+    Every training camera but image 0 (the reference of the learned corrections,
+    :mod:`mi_nerfpp.poses`) is rotated about its centre by ``degrees`` about a random axis and
+    its centre moved by ``fraction`` of the scene radius (the largest distance of a training
+    camera from their mean centre) in a random direction. Images and held-out poses are
+    unchanged. ``out/poses.json`` records ``{'true': [4x4 c2w, ...], 'given': [...],
+    'radius': r, ...}`` (training cameras in file order, world frame), which is returned.
+    """
+    from .data.nerfpp import _read_matrix, _write_matrix
+    from .poses import corrected_c2w
+
+    src, out = _capture_copy_paths(src, out, 'pose', 'perturb_poses')
+    if not (degrees >= 0 and fraction >= 0):
+        raise ValueError(f'degrees and fraction must be >= 0, got {degrees}, {fraction}')
+    shutil.copytree(src, out)
+    folder = os.path.join(out, 'train', 'pose')
+    names = sorted(n for n in os.listdir(folder) if n.lower().endswith('.txt'))
+    true = [_read_matrix(os.path.join(folder, n)) for n in names]
+    centers = np.stack([c[:3, 3] for c in true])
+    radius = float(np.max(np.linalg.norm(centers - centers.mean(axis=0), axis=1)))
+    rng = np.random.default_rng(seed)
+
+    def unit():
+        v = rng.normal(size=3)
+        return v / np.linalg.norm(v)
+
+    given = []
+    for i, (name, c2w) in enumerate(zip(names, true)):
+        if i > 0:
+            c2w = corrected_c2w(c2w, np.concatenate([np.radians(degrees) * unit(),
+                                                     fraction * radius * unit()]))
+            _write_matrix(os.path.join(folder, name), c2w)
+        given.append(c2w)
+    record = {'true': [m.tolist() for m in true], 'given': [m.tolist() for m in given],
+              'radius': radius, 'degrees': degrees, 'fraction': fraction, 'seed': seed}
+    with atomic_write_path(os.path.join(out, POSES_FILE)) as tmp, open(tmp, 'w') as f:
+        json.dump(record, f)
+    return record

@@ -34,7 +34,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import appearance as app, occupancy as occ, optim, priors
+from . import appearance as app, occupancy as occ, optim, poses, priors
 from .checkpoint import load_checkpoint, save_checkpoint
 from .data import pixel_rays
 from .fields import GridField
@@ -169,6 +169,15 @@ class TrainConfig:
     lr_appearance: float = option(app.LR_APPEARANCE, 'learning rate of the appearance transforms')
     appearance_prior: float = option(app.PRIOR, 'weight of the L2 prior that keeps the '
                                      'appearance transforms near the identity')
+    refine_poses: bool = option(False, 'learn an SE(3) correction of each training camera '
+                                '(rotation about its centre, translation) jointly with the '
+                                'fields; training image 0 is the reference; held-out views keep '
+                                'their given poses', shapes_model=True)
+    lr_poses: float = option(poses.LR_POSES, 'learning rate of the pose corrections (radians and '
+                             'model-frame units: the cameras lie in the unit sphere)')
+    poses_start: float = option(poses.START, 'fraction of the run after which the pose '
+                                'corrections are learned (before it the fields are too rough '
+                                'to steer them)')
 
     def __post_init__(self):
         if self.model not in MODEL_KINDS:
@@ -201,11 +210,11 @@ class TrainConfig:
         for name in ('fine_samples', 'checkpoint_every', 'preview_every', 'dir_octaves', 'seed'):
             if getattr(self, name) < 0:
                 bad(name, '0 or more')
-        for name in ('lr_grid', 'lr_mlp', 'lr_final', 'lr_appearance'):
+        for name in ('lr_grid', 'lr_mlp', 'lr_final', 'lr_appearance', 'lr_poses'):
             if not (finite(getattr(self, name)) and getattr(self, name) > 0):
                 bad(name, 'a positive finite number')
         for name in ('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'density_bias',
-                     'occupancy_threshold', 'sparsity', 'appearance_prior'):
+                     'occupancy_threshold', 'sparsity', 'appearance_prior', 'poses_start'):
             v = getattr(self, name)
             if not finite(v) or (name != 'density_bias' and v < 0):
                 bad(name, 'a finite number' if name == 'density_bias' else
@@ -371,6 +380,7 @@ class Trainer:
                 normalization=normalization,
                 color_space=dataset.color_space, composite=config.composite,
                 appearance_images=len(self.train) if config.appearance else 0,
+                pose_images=len(self.train) if config.refine_poses else 0,
                 fg_config=config.field_config(config.field, 'ball'),
                 bg_config=config.field_config(config.bg_field, 'inverted_sphere'))
             if config.occupancy:
@@ -415,10 +425,16 @@ class Trainer:
 
     def step(self):
         """One optimization step. Returns ``(loss, fine-pass MSE)`` as Python floats."""
+        if self.model.poses is None:
+            return self._step()
+        with poses.gradient_scope():
+            return self._step()
+
+    def _step(self):
         cfg = self.cfg
         self._coarse_to_fine()
         optim.set_learning_rates(self.opt, self.progress(), cfg.lr_grid, cfg.lr_mlp, cfg.lr_final,
-                                 {'appearance': cfg.lr_appearance})
+                                 {'appearance': cfg.lr_appearance, 'poses': cfg.lr_poses})
         index = self.rng.integers(0, self.rays.size, cfg.batch_rays)
         seed = mi.UInt32(self.rng.integers(0, 2 ** 32, cfg.batch_rays, dtype=np.uint64)
                          .astype(np.uint32))
@@ -427,8 +443,12 @@ class Trainer:
             self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
             self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
         self.model.set_parameters({k: self.opt[k] for k in self.opt.keys()})
+        refine = self.model.poses is not None and self.progress() >= cfg.poses_start
+        if self.model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
+            params = self.opt['poses'] if refine else dr.detach(self.opt['poses'])
+            o, d = poses.correct_rays(params, self.rays.images(index), o, d)
         res = render_rays(o, d, *self.model.radiance_fields(), cfg.sampling, seed=seed,
-                          occupancy=self.model.occupancy)
+                          occupancy=self.model.occupancy, ray_gradients=refine)
         # Radiance is linear; the loss compares it in the encoding of the images, after the
         # image's colour transform when appearance is learned.
         encode = self.model.loss_encoding

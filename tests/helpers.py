@@ -127,3 +127,30 @@ def interrupted_then_resumed(dataset, out, config, stop_at):
     assert resumed.iteration == stop_at
     resumed.run()
     return resumed
+
+
+def per_image_parameters_resume_exactly(dataset, tmp_path, exact, plain, name, flag, atol):
+    """Train ``exact`` (TrainConfig options with a per-image parameter ``name``, e.g.
+    ``'poses'``) 10 steps straight, and again interrupted at step 5 and resumed: the checkpoint
+    holds the parameter and its Adam state, the resumed run ends where the straight one did
+    (to ``atol``), and resuming with ``plain`` options is refused naming ``flag``. Returns the
+    parameter as saved."""
+    import numpy as np
+    import pytest
+
+    from mi_nerfpp.checkpoint import load_checkpoint
+    from mi_nerfpp.train import TrainConfig, Trainer
+    straight = Trainer(dataset, str(tmp_path / 'a'), TrainConfig(iterations=10, **exact))
+    straight.run()
+    model, _, state = load_checkpoint(tmp_path / 'a' / 'model.npz')
+    saved = getattr(model, name).numpy()
+    np.testing.assert_array_equal(saved, getattr(straight.model, name).numpy())
+    assert saved.shape[0] == len(dataset.train) and f'adam.m/{name}' in state
+
+    resumed = interrupted_then_resumed(dataset, str(tmp_path / 'b'),
+                                       TrainConfig(iterations=10, **exact), stop_at=5)
+    np.testing.assert_allclose(getattr(resumed.model, name).numpy(), saved, rtol=1e-3,
+                               atol=atol)
+    with pytest.raises(Exception, match=flag):
+        Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **plain), resume=True)
+    return saved

@@ -1,0 +1,165 @@
+"""Camera pose refinement (``--refine-poses``): the correction and its gauge, gradients through
+the renderer against finite differences, training on a capture with perturbed poses,
+checkpoints and options."""
+import json
+import os
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_nerfpp import poses
+from mi_nerfpp.data import load_dataset
+from mi_nerfpp.render import Sampling, render_rays
+from mi_nerfpp.synth import POSES_FILE, perturb_poses
+from mi_nerfpp.train import TrainConfig, Trainer
+from tests.helpers import per_image_parameters_resume_exactly
+
+FAST = dict(batch_rays=512, fg_samples=8, bg_samples=8, fine_samples=8, checkpoint_every=0,
+            preview_every=0, seed=0)
+
+
+def test_rotation_matches_rodrigues_and_image_0_is_the_gauge():
+    omega = np.array([0.3, -0.2, 0.5])
+    v = np.array([0.2, -0.7, 0.4])
+    out = poses.rotate(mi.Vector3f(*map(float, omega)), mi.Vector3f(*map(float, v)))
+    np.testing.assert_allclose(np.array(out).ravel(), poses.rotation_matrix(omega) @ v, atol=1e-6)
+    small = np.array([1e-4, 2e-4, -1e-4])           # the Taylor branch
+    out = poses.rotate(mi.Vector3f(*map(float, small)), mi.Vector3f(*map(float, v)))
+    np.testing.assert_allclose(np.array(out).ravel(), poses.rotation_matrix(small) @ v, atol=1e-7)
+
+    params = mi.TensorXf(np.tile(np.float32([0.1, 0.2, 0.3, 0.4, 0.5, 0.6]), (2, 1)))
+    dr.enable_grad(params)
+    o, d = poses.correct_rays(params, mi.UInt32([0, 1]), mi.Point3f(1, 2, 3),
+                              mi.Vector3f(0, 0, 1))
+    np.testing.assert_allclose(np.array(o)[:, 0], [1, 2, 3])      # image 0 is never moved
+    np.testing.assert_allclose(np.array(o)[:, 1], [1.4, 2.5, 3.6], atol=1e-6)
+    np.testing.assert_allclose(np.array(d)[:, 1], poses.rotation_matrix([0.1, 0.2, 0.3])[:, 2],
+                               atol=1e-6)
+    dr.backward(dr.sum(o.x + o.y + o.z + d.x + d.y + d.z))
+    grad = np.array(dr.grad(params))
+    assert np.all(grad[0] == 0) and np.all(grad[1] != 0)
+    # The corrected camera of the NumPy side is the one the rays see.
+    c2w = poses.corrected_c2w(np.eye(4), [0.1, 0.2, 0.3, 0.4, 0.5, 0.6])
+    np.testing.assert_allclose(c2w[:3, 2], np.array(d)[:, 1], atol=1e-6)
+
+
+def _blob(inputs, d, ray):
+    """A Gaussian blob of density (zero at the unit sphere) coloured by position."""
+    x, y, z = inputs
+    sigma = 30.0 * dr.exp(-(dr.square(x - 0.1) + dr.square(y) + dr.square(z)) / 0.08)
+    return sigma, mi.Color3f(0.5 + 0.4 * dr.sin(4 * x), 0.5 + 0.4 * dr.cos(3 * y), 0.5 + z)
+
+
+def _sky(inputs, d, ray):
+    """The background: a colour varying with direction, density per unit s rising from 0 at
+    the sphere."""
+    x, y, z, s = inputs
+    return 4.0 * dr.square(1.0 - s), mi.Color3f(0.5 + 0.3 * x, 0.5 + 0.3 * y, 0.5 + 0.3 * z)
+
+
+def test_loss_gradient_wrt_the_pose_corrections_matches_finite_differences():
+    """The gradient flows from the composite through the sample positions p = o + t·d (t held
+    constant) to the corrections. Analytic fields with no density at the sphere, so moving
+    the ray's exit point (which t held constant ignores) changes nothing: the finite
+    differences of the full render agree."""
+    rng = np.random.default_rng(0)
+    n = 48
+    d0 = rng.normal([0, 0, 1], 0.25, size=(n, 3))
+    d0 /= np.linalg.norm(d0, axis=1, keepdims=True)
+    o0 = mi.Point3f(0.0, 0.05, -0.6)
+    d0 = mi.Vector3f(*d0.T.astype(np.float32))
+    image = mi.UInt32(np.arange(n) % 2)
+    sampling = Sampling(fg_samples=256, bg_samples=64, fine_samples=0)
+    weights = (1.0, 2.0, 3.0)
+
+    def loss(p, grad=False):
+        params = mi.TensorXf(np.asarray(p, np.float32).reshape(2, 6))
+        if grad:
+            dr.enable_grad(params)
+        o, d = poses.correct_rays(params, image, o0, d0)
+        rgb = render_rays(o, d, _blob, _sky, sampling, ray_gradients=grad).fine.rgb
+        if grad:
+            dr.backward(dr.sum(weights[0] * rgb.x + weights[1] * rgb.y + weights[2] * rgb.z))
+            return np.array(dr.grad(params))
+        return float(np.array(rgb, np.float64).T.dot(np.array(weights)).sum())
+
+    p0 = np.zeros(12)
+    p0[6:] = [0.02, -0.03, 0.01, 0.02, 0.03, -0.02]
+    with poses.gradient_scope():
+        ad = loss(p0, grad=True)
+    assert np.all(ad[0] == 0)
+    h = 1e-3
+    fd = []
+    for j in range(6, 12):
+        plus, minus = p0.copy(), p0.copy()
+        plus[j] += h
+        minus[j] -= h
+        fd.append((loss(plus) - loss(minus)) / (2 * h))
+    fd = np.array(fd)
+    assert np.abs(fd).min() > 0.1, fd                    # every component is exercised
+    np.testing.assert_allclose(ad[1], fd, rtol=0.03, atol=0.01 * np.abs(fd).max())
+
+
+@pytest.fixture(scope='module')
+def perturbed(capture, tmp_path_factory):
+    """The test capture with its training poses perturbed by 3 degrees and 3% of the radius."""
+    out = str(tmp_path_factory.mktemp('perturbed') / 'data')
+    return out, perturb_poses(capture, out, degrees=3.0, fraction=0.03, seed=1)
+
+
+def test_perturb_poses_moves_training_cameras_but_0_and_records_the_true_ones(capture,
+                                                                             perturbed):
+    out, record = perturbed
+    with open(os.path.join(out, POSES_FILE)) as f:
+        assert json.load(f)['true'] == record['true']
+    src, dst = load_dataset(capture), load_dataset(out)
+
+    def world(dataset, split):
+        return [dataset.normalization.to_world_camera(c).c2w
+                for c in getattr(dataset, split).cameras]
+
+    np.testing.assert_allclose(world(src, 'train'), record['true'], atol=1e-9)
+    np.testing.assert_allclose(world(dst, 'train'), record['given'], atol=1e-9)
+    rot, trans = poses.pose_errors(record['given'], record['true'])
+    assert rot[0] == 0 and trans[0] == 0
+    np.testing.assert_allclose(rot[1:], 3.0, rtol=1e-4)
+    np.testing.assert_allclose(trans[1:] / record['radius'], 0.03, rtol=1e-6)
+    for split in ('test', 'validation'):         # held-out poses stay exact
+        np.testing.assert_allclose(world(src, split), world(dst, split), atol=1e-9)
+    np.testing.assert_array_equal(src.train.images[1], dst.train.images[1])
+    with pytest.raises(FileExistsError, match='already exists'):
+        perturb_poses(capture, out)
+
+
+def test_refinement_shrinks_the_rotation_error_of_perturbed_poses(perturbed, tmp_path):
+    out, record = perturbed
+    trainer = Trainer(load_dataset(out), str(tmp_path),
+                      TrainConfig(iterations=300, refine_poses=True, **FAST))
+    trainer.run()
+    rot, trans = poses.pose_errors(poses.world_poses(trainer.model, trainer.train.cameras),
+                                   record['true'])
+    assert rot[0] == 0 and trans[0] < 1e-6                 # the reference never moves
+    # 3 degrees and 3% of the radius given. Measured after 300 steps on this 32x24 capture
+    # (3 degrees are 1.5 pixels): rotation error mean 2.90 degrees, 14 of the 15 cameras
+    # improved; the translation error does not measurably change at this size.
+    assert rot[1:].mean() < 0.98 * 3.0, rot
+    assert np.sum(rot[1:] < 3.0) >= 12, rot
+    assert trans[1:].mean() / record['radius'] < 0.03 * 1.1, trans / record['radius']
+
+
+EXACT = dict(FAST, distortion=0.0, refine_poses=True, poses_start=0.0)
+
+
+def test_checkpoint_round_trips_and_resumes_exactly_with_pose_refinement(perturbed, tmp_path):
+    saved = per_image_parameters_resume_exactly(load_dataset(perturbed[0]), tmp_path, EXACT,
+                                                FAST, 'poses', '--refine-poses', atol=1e-7)
+    assert np.any(saved[1:] != 0) and np.all(saved[0] == 0)
+
+
+def test_bad_pose_options_are_refused():
+    with pytest.raises(ValueError, match='--lr-poses must be a positive'):
+        TrainConfig(lr_poses=0.0)
+    with pytest.raises(ValueError, match='--poses-start must be a finite number >= 0'):
+        TrainConfig(poses_start=-0.5)

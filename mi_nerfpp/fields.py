@@ -210,7 +210,9 @@ class GridField(Field):
     Inverted-sphere domain: level ``R`` is a grid over (longitude, colatitude,
     s) of ``2R × R × max(s_ratio·R, 4)`` cells, periodic in longitude. Distant content
     needs angular resolution more than resolution in ``s``: a small ``s_ratio`` buys finer
-    angles for the same number of parameters.
+    angles for the same number of parameters. ``s_ratio`` is one number or one per level
+    (e.g. a fine angular level with only 4 cells along ``s`` over coarser levels resolved in
+    depth: a factorization of angle and depth).
     """
 
     kind = 'grid'
@@ -222,12 +224,18 @@ class GridField(Field):
         self.warp_radius = float(warp_radius)
         if not 0 <= self.warp_radius < 1:
             raise ValueError(f'GridField warp_radius must be in [0, 1), got {warp_radius}')
-        self.s_ratio = float(s_ratio)
-        if not 0 < self.s_ratio <= 1:
-            raise ValueError(f'GridField s_ratio must be in (0, 1], got {s_ratio}')
         if channels < 2:
             raise ValueError('GridField needs channels >= 2 (density + features)')
         self.resolutions = [int(r) for r in resolutions]
+        # One ratio for all levels, or one per level (fine angles with few cells along s).
+        ratios = [s_ratio] * len(self.resolutions) if isinstance(s_ratio, (int, float)) \
+            else list(s_ratio)
+        if len(ratios) != len(self.resolutions) or not all(0 < float(q) <= 1 for q in ratios):
+            raise ValueError(f'GridField s_ratio must be a number in (0, 1] or one per level '
+                             f'({len(self.resolutions)}), got {s_ratio}')
+        self.s_ratio = float(s_ratio) if isinstance(s_ratio, (int, float)) \
+            else [float(q) for q in ratios]
+        self.s_ratios = [float(q) for q in ratios]
         self.channels = int(channels)
         self.hidden = int(hidden)
         self.dir_octaves = int(dir_octaves)
@@ -242,7 +250,7 @@ class GridField(Field):
         wrap = dr.WrapMode.Repeat if domain == 'inverted_sphere' else dr.WrapMode.Clamp
         self.textures = []
         for i, r in enumerate(self.resolutions):
-            shape = self._grid_shape(r) + (self.channels,)
+            shape = self._grid_shape(r, i) + (self.channels,)
             size = shape[0] * shape[1] * shape[2] * shape[3]
             self.params[f'grid{i}'] = mi.TensorXf(rng.normal(mi.Float, size) * 0.1, shape)
             self.textures.append(mi.Texture3f(self.params[f'grid{i}'], use_accel=False, wrap_mode=wrap))
@@ -251,11 +259,12 @@ class GridField(Field):
         self.color_net = _LateNet(self, 'color', n_feat, n_dir, [self.hidden] * self.color_layers,
                                   3, rng)
 
-    def _grid_shape(self, r):
-        """Tensor shape (Z, Y, X) of a level: texture axes are (x, y, z) = coordinates."""
+    def _grid_shape(self, r, level):
+        """Tensor shape (Z, Y, X) of a level at resolution ``r``: texture axes are (x, y, z) =
+        coordinates."""
         if self.domain == 'ball':
             return (r, r, r)
-        return (max(int(r * self.s_ratio), 4), r, 2 * r)
+        return (max(int(r * self.s_ratios[level]), 4), r, 2 * r)
 
     @property
     def config(self):
@@ -268,7 +277,7 @@ class GridField(Field):
     def upsample(self, level, resolution):
         """Resample grid ``level`` to ``resolution`` by trilinear interpolation of the current grid
         (coarse-to-fine training): the field is unchanged up to interpolation error."""
-        shape = self._grid_shape(int(resolution))
+        shape = self._grid_shape(int(resolution), level)
         Z, Y, X = shape
         i = dr.arange(mi.UInt32, X * Y * Z)
         # Cell centres of the new grid in texture coordinates (x, y, z) = (X, Y, Z) axes.
@@ -294,7 +303,7 @@ class GridField(Field):
         features = []
         for i, (tex, r) in enumerate(zip(self.textures, self.resolutions)):
             tex.set_tensor(self.params[f'grid{i}'])
-            shape = self._grid_shape(r)
+            shape = self._grid_shape(r, i)
             if self.domain == 'inverted_sphere':
                 # Periodic in longitude only: keep colatitude and s off the wrap.
                 c = [coords[0]] + [dr.clip(coords[k], 0.5 / shape[2 - k], 1.0 - 0.5 / shape[2 - k])

@@ -133,8 +133,10 @@ class TrainConfig:
                                           'background grid', type=int, nargs='+', metavar='RES',
                                           default_help='(default: as --grid-levels)',
                                           shapes_model=True)
-    bg_s_ratio: float = option(_grid_default('s_ratio'), 'grid field: cells along s (inverse '
-                               'radius) per cell of colatitude in the background grid',
+    bg_s_ratio: tuple = option((_grid_default('s_ratio'),), 'grid field: cells along s (inverse '
+                               'radius) per cell of colatitude in the background grid: one '
+                               'ratio, or one per background level', type=float, nargs='+',
+                               metavar='Q',
                                shapes_model=True)
     coarse_to_fine: tuple = option((), 'grid field: fractions of the run at which the grids '
                                    'double in resolution (they start at RES / 2^n)', type=float,
@@ -232,8 +234,11 @@ class TrainConfig:
             bad('adam_beta2', 'a number in (0, 1)')
         if not (finite(self.fg_warp) and 0 <= self.fg_warp < 1):
             bad('fg_warp', 'a radius in [0, 1)')
-        if not (finite(self.bg_s_ratio) and 0 < self.bg_s_ratio <= 1):
-            bad('bg_s_ratio', 'a number in (0, 1]')
+        if isinstance(self.bg_s_ratio, (int, float)):      # from Python: one number
+            self.bg_s_ratio = (float(self.bg_s_ratio),)
+        if (not self.bg_s_ratio or not all(finite(q) and 0 < q <= 1 for q in self.bg_s_ratio)
+                or len(self.bg_s_ratio) not in (1, len(self.levels('inverted_sphere')))):
+            bad('bg_s_ratio', 'one number in (0, 1], or one per background grid level')
         if not all(finite(f) and 0 < f < 1 for f in self.coarse_to_fine):
             bad('coarse_to_fine', 'fractions between 0 and 1')
         if len(self.background) != 3 or not all(finite(c) for c in self.background):
@@ -244,7 +249,8 @@ class TrainConfig:
         if kind != 'grid':
             return default_field_config(kind, domain)
         start = [max(r >> len(self.coarse_to_fine), 4) for r in self.levels(domain)]
-        extra = ({'s_ratio': self.bg_s_ratio} if domain == 'inverted_sphere' else
+        ratio = self.bg_s_ratio[0] if len(self.bg_s_ratio) == 1 else list(self.bg_s_ratio)
+        extra = ({'s_ratio': ratio} if domain == 'inverted_sphere' else
                  {'warp_radius': self.fg_warp})
         return dict(kind='grid', domain=domain, resolutions=start,
                     channels=self.grid_channels, dir_octaves=self.dir_octaves,
@@ -284,6 +290,8 @@ class TrainConfig:
         now = json.loads(json.dumps(dataclasses.asdict(self)))
         stored = dict(stored)
         stored.setdefault('bg_field', stored.get('field'))
+        if isinstance(stored.get('bg_s_ratio'), (int, float)):    # before per-level ratios
+            stored['bg_s_ratio'] = [stored['bg_s_ratio']]
         out = []
         for f in dataclasses.fields(self):
             if f.metadata.get('shapes_model') and f.name in stored \

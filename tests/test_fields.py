@@ -87,7 +87,7 @@ def test_upsampled_grid_renders_the_same_field(domain):
     d, ray = mi.Vector3f(0, 0, 1), dr.zeros(mi.UInt32, n)
     s0, c0 = f(x_in, d, ray)
     f.upsample(1, 32)
-    assert tuple(f.params['grid1'].shape) == f._grid_shape(32) + (3,)
+    assert tuple(f.params['grid1'].shape) == f._grid_shape(32, 1) + (3,)
     s1, c1 = f(x_in, d, ray)
     np.testing.assert_allclose(np.array(s1), np.array(s0), rtol=1e-4)
     np.testing.assert_allclose(np.array(c1), np.array(c0), atol=1e-5)
@@ -105,6 +105,23 @@ def test_background_grid_cells_along_s_follow_s_ratio():
     assert make_field(old).s_ratio == 0.5
     with pytest.raises(ValueError, match='s_ratio'):
         GridField('inverted_sphere', resolutions=(8,), s_ratio=0)
+
+
+def test_background_grid_takes_one_s_ratio_per_level():
+    """Per-level ratios: a fine angular level with few cells along s over a coarse level
+    resolved in depth; they round-trip through the config and through coarse-to-fine
+    upsampling, and a list of the wrong length is refused."""
+    f = GridField('inverted_sphere', resolutions=(16, 64), channels=3, hidden=8,
+                  s_ratio=[0.5, 1 / 16])
+    assert tuple(f.params['grid0'].shape) == (8, 16, 32, 3)
+    assert tuple(f.params['grid1'].shape) == (4, 64, 128, 3)
+    again = make_field(f.config)
+    assert again.s_ratio == [0.5, 0.0625]
+    assert tuple(again.params['grid1'].shape) == (4, 64, 128, 3)
+    f.upsample(0, 32)
+    assert tuple(f.params['grid0'].shape) == (16, 32, 64, 3)
+    with pytest.raises(ValueError, match='one per level'):
+        GridField('inverted_sphere', resolutions=(16, 64), s_ratio=[0.5])
 
 
 def test_density_gradient_reaches_the_sample_positions_through_the_grid():

@@ -53,7 +53,8 @@ def one_clear_line(err):
     (['--minutes', 'nan'], '--minutes must be a positive number of minutes, got nan'),
     (['--adam-beta2', '1'], '--adam-beta2 must be a number in (0, 1), got 1.0'),
     (['--fg-warp', '1'], '--fg-warp must be a radius in [0, 1), got 1.0'),
-    (['--bg-s-ratio', '0'], '--bg-s-ratio must be a number in (0, 1], got 0.0'),
+    (['--bg-s-ratio', '0'], '--bg-s-ratio must be one number in (0, 1], or one per background grid level, got 0.0'),
+    (['--bg-s-ratio', '0.5', '0.5', '0.5'], 'one per background grid level, got 0.5 0.5 0.5'),
     (['--bg-grid-levels', '1'], '--bg-grid-levels must be one or more resolutions of at least 2'),
 ])
 def test_bad_optimize_options_are_refused(capsys, tmp_path, option, message):

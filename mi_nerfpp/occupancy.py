@@ -122,7 +122,7 @@ class OccupiedVolume:
 
     def __init__(self, volume, grid, bins):
         self.base, self.bins = volume, int(bins)
-        self.infinite_last = volume.infinite_last
+        self.infinite_last, self.open = volume.infinite_last, volume.open
         self.d = volume.d
         n_rays = dr.width(volume.lo)
         ray, k = flat_index(n_rays, self.bins)

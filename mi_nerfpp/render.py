@@ -79,15 +79,19 @@ class RenderResult:
 # ----------------------------------------------------------------------------- volumes
 
 class Foreground:
-    """The unit-sphere volume, parametrized by ray distance ``t``."""
+    """The unit-sphere volume, parametrized by ray distance ``t``; ``far`` (per ray, or None)
+    ends the segment there (the ray hit a surface), ``inf`` leaves it whole."""
 
     infinite_last = False
+    open = None
 
-    def __init__(self, o, d, near=0.0):
+    def __init__(self, o, d, near=0.0, far=None):
         self.o, self.d = o, d
         # The samples' distances t are constants of the ray parameters (as nerfstudio's):
         # gradients reach o and d through p = o + t·d only.
         self.lo, self.hi = geo.foreground_interval(dr.detach(o), dr.detach(d), near)
+        if far is not None:
+            self.hi = dr.minimum(dr.maximum(far, self.lo), self.hi)
 
     def inputs(self, ray, v):
         """Field inputs of the samples at ``v`` on rays ``ray``: the point ``p``."""
@@ -109,16 +113,34 @@ class Foreground:
 
 
 class Background:
-    """The inverted-sphere volume, parametrized by ``v = 1 - s/s_max`` (see module docs)."""
+    """The inverted-sphere volume, parametrized by ``v = 1 - s/s_max`` (see module docs).
+
+    ``far`` (per ray, or None) ends the segment at that ray distance: ``v`` then stops at
+    ``v_far = 1 - s(far)/s_max`` and the last interval is finite (the volume is no longer
+    opaque); a ``far`` before the start of the outgoing part gives an empty segment, and
+    ``far = inf`` leaves the ray as without ``far``. ``open`` (None without ``far``) says per
+    ray whether the segment still reaches infinity."""
 
     infinite_last = True
 
-    def __init__(self, o, d):
+    def __init__(self, o, d, far=None):
         self.d = d
         self.t_b, self.p_m, self.b = geo.closest_approach(o, d)
         self.s_max = geo.background_s_max(dr.detach(o), dr.detach(d))   # constant, as t
         self.lo = dr.zeros(mi.Float, dr.width(d))
         self.hi = dr.ones(mi.Float, dr.width(d))
+        self.open = None
+        if far is not None:
+            self.open = dr.isinf(far)
+            finite = dr.select(self.open, 0.0, far)
+            # The outgoing part starts at the sphere exit, or at the origin / closest
+            # approach for an origin outside the sphere (see geometry).
+            o0, d0 = dr.detach(o), dr.detach(d)          # a constant, as s_max
+            t_b, _, b = geo.closest_approach(o0, d0)
+            start = dr.maximum(t_b + dr.safe_sqrt(1.0 - dr.square(b)), 0.0)
+            s_far = dr.rcp(dr.maximum(dr.norm(dr.fma(d0, finite, o0)), 1.0))
+            v_far = dr.clip(1.0 - s_far / self.s_max, 0.0, 1.0)
+            self.hi = dr.select(self.open, 1.0, dr.select(finite <= start, 0.0, v_far))
 
     def s(self, ray, v):
         return dr.gather(mi.Float, self.s_max, ray) * (1.0 - v)
@@ -155,7 +177,9 @@ def quadrature(volume, v, sigma, rgb, n):
     v_end = dr.select(last, dr.gather(mi.Float, volume.hi, ray), v_next)
     delta = (v_end - v) * volume.delta_scale(ray)
     if volume.infinite_last:
-        delta = dr.select(last, INFINITE_DELTA, delta)
+        # A background segment that a surface ends (``open`` False) keeps its finite interval.
+        infinite = last if volume.open is None else last & dr.gather(mi.Bool, volume.open, ray)
+        delta = dr.select(infinite, INFINITE_DELTA, delta)
     tau = sigma * delta
     transmittance = dr.exp(-dr.block_prefix_sum(tau, n, exclusive=True))
     w = transmittance * (1.0 - dr.exp(-tau))
@@ -234,7 +258,7 @@ class Sampling:
     near: float = 0.0
 
 
-def _render_visible_background(o, d, fg, render, seed):
+def _render_visible_background(o, d, fg, render, seed, far=None):
     """The background of the rays that the foreground does not occlude, zero elsewhere."""
     n_rays = dr.width(fg.fine.opacity)
     dr.eval(fg.fine.opacity)
@@ -251,13 +275,14 @@ def _render_visible_background(o, d, fg, render, seed):
     if dr.width(visible) == 0:
         return VolumeRender(expand(None), expand(None), None, None, 0)
     sub = render(dr.gather(mi.Point3f, o, visible), dr.gather(mi.Vector3f, d, visible),
-                 None if seed is None else dr.gather(mi.UInt32, seed, visible))
+                 None if seed is None else dr.gather(mi.UInt32, seed, visible),
+                 None if far is None else dr.gather(mi.Float, far, visible))
     return VolumeRender(expand(sub.coarse), expand(sub.fine), sub.weights, sub.position, sub.n,
                         sub.distance, rays=visible)
 
 
 def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
-                skip_occluded=False, ray_gradients=False):
+                skip_occluded=False, ray_gradients=False, far=None):
     """Render rays ``o + t·d`` (``|d| = 1``) through the foreground and background volumes.
 
     ``bg_field=None`` renders the foreground volume alone (a bounded NeRF).
@@ -270,25 +295,31 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
     ``ray_gradients``: let gradients flow to ``o`` and ``d`` (pose refinement, :mod:`.poses`)
     through the sample positions; the samples' distances along the ray stay constants.
     Otherwise the rays are detached.
+    ``far`` (Float per ray, or None) ends every ray at that distance, where it meets a
+    surface: both volumes are integrated on ``[near, far]`` only, the background is then not
+    opaque (``fine.opacity < 1``: ``1 - fine.opacity`` is the light that reaches the
+    surface), and a ray with ``far = inf`` renders exactly as without ``far``.
     """
     o, d = mi.Point3f(o), mi.Vector3f(d)
     if not ray_gradients:
         o, d = dr.detach(o), dr.detach(d)
+    if far is not None:
+        far = dr.detach(mi.Float(far))
     occupancy = occupancy or {}
 
     def volume(v, key):
         grid = occupancy.get(key)
         return v if grid is None else OccupiedVolume(v, grid, DEFAULT_BINS[grid.domain])
 
-    fg = render_volume(volume(Foreground(o, d, sampling.near), 'fg'), fg_field,
+    fg = render_volume(volume(Foreground(o, d, sampling.near, far), 'fg'), fg_field,
                        sampling.fg_samples, sampling.fine_samples, seed, stream=0)
     bg = None
     if bg_field is not None and skip_occluded:
-        bg = _render_visible_background(o, d, fg, lambda o, d, seed: render_volume(
-            volume(Background(o, d), 'bg'), bg_field, sampling.bg_samples,
-            sampling.fine_samples, seed, stream=2), seed)
+        bg = _render_visible_background(o, d, fg, lambda o, d, seed, far: render_volume(
+            volume(Background(o, d, far), 'bg'), bg_field, sampling.bg_samples,
+            sampling.fine_samples, seed, stream=2), seed, far)
     elif bg_field is not None:
-        bg = render_volume(volume(Background(o, d), 'bg'), bg_field,
+        bg = render_volume(volume(Background(o, d, far), 'bg'), bg_field,
                            sampling.bg_samples, sampling.fine_samples, seed, stream=2)
     return RenderResult(fg=fg, bg=bg,
                         coarse=composite(fg.coarse, bg.coarse if bg else None),

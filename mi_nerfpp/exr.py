@@ -49,9 +49,15 @@ AOVS = (
     'depth.Z',
     'distance.Y',
 )
+# The inserted objects' layers (0 in a render without shapes).
+OBJECT_AOVS = (
+    'obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj.Z',
+    'shadow.R', 'shadow.G', 'shadow.B',
+)
+AOVS = AOVS + OBJECT_AOVS
 LAYERS = BEAUTY + AOVS
 
-FULL_PRECISION_CHANNELS = frozenset({'depth.Z', 'distance.Y'})
+FULL_PRECISION_CHANNELS = frozenset({'depth.Z', 'distance.Y', 'obj.Z'})
 
 # Rec.709 / sRGB primaries and D65 white point: red xy, green xy, blue xy, white xy.
 REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)

@@ -8,8 +8,9 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import ADIntegrator
 
 from .checkpoint import load_checkpoint
-from .exr import AOVS
+from .exr import AOVS, OBJECT_AOVS
 from .model import FIELD_KINDS, NeRFPPModel
+from .objects import combine, split_scene, trace_paths
 from .render import Sampling, render_rays, surface_distance
 
 # Largest number of camera rays (film pixels x samples per pixel) one render may trace: memory
@@ -163,7 +164,13 @@ class NeRFPPIntegrator(ADIntegrator):
         self.random_field = read('field', str, 'grid', choices=FIELD_KINDS)
         self.random_seed = read('seed', int, 0, minimum=0)
         self.appearance_image = read('appearance_image', int, -1, minimum=-1)
+        self.max_depth = read('max_depth', int, 6, minimum=1)
+        self.rr_depth = read('rr_depth', int, 5, minimum=1)
+        catchers = read('shadow_catchers', str, '')
+        self.shadow_catchers = tuple(c.strip() for c in catchers.split(',') if c.strip())
+        self.catcher_samples = read('catcher_samples', int, 16, minimum=1)
         read.reject_unknown()
+        self._parts = None
         self.show_progress = False
         self._model, self.meta = None, {}
         self._view = None
@@ -240,15 +247,23 @@ class NeRFPPIntegrator(ADIntegrator):
         self._view = camera_axis(sensor)
         return super().prepare(sensor, seed, spp, list(aovs))
 
-    def render_layers(self, o, d, seed, primal=False):
-        """Beauty and AOVs of world-space rays: ``(L: Color3f, aovs: list[Float])``."""
+    def render_layers(self, o, d, seed, primal=False, far=None):
+        """Beauty and volume AOVs of world-space rays: ``(L: Color3f, aovs: list[Float])``,
+        the volumes ending at ``far`` (world units per ray, ``inf``: no end; None: all)."""
+        L, aovs, _ = self._volume(o, d, seed, primal, far)
+        return L, aovs
+
+    def _volume(self, o, d, seed, primal=False, far=None, transform=True):
+        """:meth:`render_layers` plus the composite opacity (``1 -`` the transmittance to
+        ``far``); ``transform=False`` leaves out the appearance transform."""
         model = self.model
         norm = model.normalization
         fg_field, bg_field = model.radiance_fields()
         res = render_rays(*norm.to_model_rays(o, d), fg_field,
                           bg_field if self.background else None,
                           self.sampling, seed, occupancy=model.occupancy,
-                          skip_occluded=primal and not self.occluded_background)
+                          skip_occluded=primal and not self.occluded_background,
+                          far=None if far is None else norm.to_model_distance(far))
         fg = res.fg.fine
         L, fg_rgb, alpha = res.fine.rgb, fg.rgb, dr.clip(fg.opacity, 0.0, 1.0)
         bg = res.bg.fine.rgb if res.bg is not None else mi.Color3f(0.0)
@@ -258,7 +273,7 @@ class NeRFPPIntegrator(ADIntegrator):
             # alpha is 0 or 1.
             L, bg = dr.srgb_to_linear(L), dr.srgb_to_linear(bg)
             fg_rgb = alpha * dr.srgb_to_linear(fg_rgb / dr.maximum(alpha, 1e-6))
-        if self.appearance_image >= 0:
+        if self.appearance_image >= 0 and transform:
             # c' = g·c + b on the beauty; fg' = g·fg + α·b and bg' = g·bg + b keep
             # beauty = fg' + (1 - α)·bg'.
             gain, bias = self._transform()
@@ -271,7 +286,7 @@ class NeRFPPIntegrator(ADIntegrator):
             depth = dr.dot(o - center, axis) + surface * dr.dot(dr.normalize(d), axis)
         aovs = [fg_rgb.x, fg_rgb.y, fg_rgb.z, alpha, bg.x, bg.y, bg.z,
                 depth, norm.to_world_distance(res.fine.depth)]
-        return L, aovs
+        return L, aovs, res.fine.opacity
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
         o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
@@ -279,17 +294,40 @@ class NeRFPPIntegrator(ADIntegrator):
         if self.stratified:
             seed = mi.UInt32(sampler.next_1d() * 4294967040.0)
         n = dr.width(o)
+        parts = self._scene_parts(scene)
+        if parts.objects is None and parts.catchers is None:
+            # No shapes: the volumes alone, without any intersection.
+            if mode != dr.ADMode.Primal:
+                L, aovs = self.render_layers(o, d, seed)
+            elif n <= self.chunk_rays:
+                L, aovs = self.render_layers(o, d, seed, primal=True)
+            else:
+                L, aovs = self._chunked(lambda o, d, seed: self.render_layers(
+                    o, d, seed, primal=True), [o, d, seed], n)
+            aovs = aovs + [dr.zeros(mi.Float, n)] * (len(AOVS) - len(aovs))
+            return L, mi.Bool(True), aovs, None
+        path_seed = mi.UInt32(sampler.next_1d() * 4294967040.0)
         if mode != dr.ADMode.Primal:
-            L, aovs = self.render_layers(o, d, seed)
-        elif n <= self.chunk_rays:
-            L, aovs = self.render_layers(o, d, seed, primal=True)
+            L, aovs = self._render_scene(parts, o, d, seed, path_seed, primal=False)
         else:
-            L, aovs = self._render_chunked(o, d, seed, n)
+            L, aovs = self._chunked(lambda o, d, seed, path_seed: self._render_scene(
+                parts, o, d, seed, path_seed, primal=True), [o, d, seed, path_seed], n)
         return L, mi.Bool(True), aovs, None
 
-    def _render_chunked(self, o, d, seed, n):
-        """Primal rendering of many rays, ``chunk_rays`` at a time (bounded memory)."""
-        dr.eval(o, d, seed)
+    def _scene_parts(self, scene):
+        """The scene's objects and shadow catchers (:func:`~mi_nerfpp.objects.split_scene`),
+        split once per scene."""
+        if self._parts is None or self._parts[0] is not scene:
+            self._parts = (scene, split_scene(scene, self.shadow_catchers))
+        return self._parts[1]
+
+    def _chunked(self, render, args, n):
+        """Primal rendering of ``n`` rays, ``chunk_rays`` at a time (bounded memory):
+        ``render(*args)`` on each chunk of the per-ray ``args`` (None stays None) returns
+        ``(L, aovs)``; AOVs it does not return stay 0."""
+        if n <= self.chunk_rays:
+            return render(*args)
+        dr.eval(*[a for a in args if a is not None])
         chunk = self.chunk_rays
         out = [dr.zeros(mi.Float, n) for _ in range(3 + len(AOVS))]
         chunks = range(0, n, chunk)
@@ -301,13 +339,106 @@ class NeRFPPIntegrator(ADIntegrator):
             i = dr.arange(mi.UInt32, chunk) + dr.opaque(mi.UInt32, start)
             valid = i < n
             j = dr.minimum(i, n - 1)
-            L, aovs = self.render_layers(dr.gather(mi.Point3f, o, j), dr.gather(mi.Vector3f, d, j),
-                                         None if seed is None else dr.gather(mi.UInt32, seed, j),
-                                         primal=True)
+            L, aovs = render(*[None if a is None else dr.gather(type(a), a, j) for a in args])
             for buf, value in zip(out, [L.x, L.y, L.z] + aovs):
                 dr.scatter(buf, value, i, valid)
             dr.eval(out)
         return mi.Color3f(*out[:3]), out[3:]
+
+    def _volume_batch(self, o, d, far, primal):
+        """Radiance and transmittance of the volumes along rays that end at ``far`` (the
+        segments that leave surfaces; neutral colour, chunked when primal)."""
+        def render(o, d, far):
+            L, _, opacity = self._volume(o, d, None, primal, far, transform=False)
+            return L, [1.0 - opacity]
+        L, (T, *_) = self._chunked(render, [o, d, far], dr.width(o)) if primal else render(o, d, far)
+        return L, T
+
+    def _render_scene(self, parts, o, d, seed, path_seed, primal, catchers=True):
+        """Beauty and AOVs of camera rays through a scene with shapes (see
+        :mod:`mi_nerfpp.objects`): the volumes up to the first surface, the surfaces path
+        traced with the volumes as their light, the shadow catchers' differential shading."""
+        n = dr.width(o)
+        hit = dr.zeros(mi.Bool, n)
+        far0 = None
+        if parts.objects is not None:
+            paths = trace_paths(parts.objects, mi.Ray3f(o, d), path_seed, self.max_depth,
+                                self.rr_depth)
+            far0 = dr.gather(mi.Float, paths.far, paths.segment(0))
+            hit = ~dr.isinf(far0)
+        L0, layers, opacity0 = self._volume(o, d, seed, primal, far0)
+        surfaces = dr.zeros(mi.Color3f, n)
+        if parts.objects is not None:
+            # Every segment's volumes: the camera segment's from above, the others here.
+            L_seg = dr.zeros(mi.Color3f, paths.n * paths.depth)
+            T_seg = dr.ones(mi.Float, paths.n * paths.depth)
+            if paths.depth > 1:
+                later = dr.compress(paths.valid & (dr.arange(mi.UInt32, dr.width(paths.valid))
+                                                   >= n))
+                if dr.width(later):
+                    L_k, T_k = self._volume_batch(
+                        dr.gather(mi.Point3f, paths.o, later), dr.gather(mi.Vector3f, paths.d, later),
+                        dr.gather(mi.Float, paths.far, later), primal)
+                    dr.scatter(L_seg, L_k, later)
+                    dr.scatter(T_seg, T_k, later)
+            dr.scatter(T_seg, 1.0 - opacity0, paths.segment(0))
+            _, surfaces = combine(paths, L_seg, T_seg)
+            if self.appearance_image >= 0:
+                surfaces = self._transform()[0] * surfaces
+        shadow = dr.zeros(mi.Color3f, n)
+        if catchers and parts.catchers is not None and parts.objects is not None:
+            shadow = self._shadow(parts, o, d, far0, L0, path_seed, primal)
+        t_hit = dr.select(hit, far0, 0.0) if far0 is not None else dr.zeros(mi.Float, n)
+        z_hit = t_hit
+        if self._view is not None:
+            center, axis = self._view
+            z_hit = dr.dot(o - center, axis) + t_hit * dr.dot(dr.normalize(d), axis)
+        # The surface is the depth where the volumes in front of it stay below half opacity.
+        depth = dr.select(hit & (opacity0 < 0.5), z_hit, layers[7])
+        distance = layers[8] + dr.select(hit, (1.0 - opacity0) * t_hit, 0.0)
+        mask = dr.select(hit, 1.0, 0.0)
+        aovs = layers[:7] + [depth, distance, surfaces.x, surfaces.y, surfaces.z, mask,
+                             dr.select(hit, z_hit, 0.0), shadow.x, shadow.y, shadow.z]
+        return L0 + surfaces + shadow, aovs
+
+    def _shadow(self, parts, o, d, far0, L0, path_seed, primal):
+        """Differential rendering on the shadow catchers (Debevec 1998): where a camera ray
+        meets a catcher before any object, the radiance ``L0`` of the volumes along it is
+        scaled by ``E_with / E_without``, the catcher's irradiance with and without the
+        objects, both estimated from the same ``catcher_samples`` cosine-distributed
+        directions. Returns the change, ``(ratio - 1)·L0`` (0 where no catcher is seen)."""
+        n, K = dr.width(o), self.catcher_samples
+        ray = mi.Ray3f(o, d)
+        if far0 is not None:
+            ray.maxt = dr.select(dr.isinf(far0), dr.largest(mi.Float), far0)
+        si = parts.catchers.ray_intersect(ray)
+        caught = dr.compress(si.is_valid())
+        shadow = dr.zeros(mi.Color3f, n)
+        m = dr.width(caught)
+        if m == 0:
+            return shadow
+        j = dr.arange(mi.UInt32, m * K)
+        ray_of = dr.gather(mi.UInt32, caught, j // K)
+        si_k = dr.gather(mi.SurfaceInteraction3f, si, ray_of)
+        rng = mi.PCG32(size=m * K, initstate=dr.gather(mi.UInt32, path_seed, ray_of),
+                       initseq=j % K + 1)
+        # The hemisphere of the catcher that faces the camera.
+        normal = dr.mulsign(si_k.sh_frame.n, -dr.dot(si_k.sh_frame.n, dr.gather(mi.Vector3f, d, ray_of)))
+        local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
+        ray_k = si_k.spawn_ray(mi.Frame3f(normal).to_world(local))
+        with_objects, aovs = self._render_scene(parts, ray_k.o, ray_k.d, None, rng.next_uint32(),
+                                                primal, catchers=False)
+        without = mi.Color3f(with_objects)
+        blocked = dr.compress(aovs[12] > 0.0)            # obj.A: the direction meets an object
+        if dr.width(blocked):
+            plain, _ = self._volume_batch(dr.gather(mi.Point3f, ray_k.o, blocked),
+                                          dr.gather(mi.Vector3f, ray_k.d, blocked),
+                                          dr.full(mi.Float, dr.inf, dr.width(blocked)), primal)
+            dr.scatter(without, plain, blocked)
+        e_with, e_without = dr.block_sum(with_objects, K), dr.block_sum(without, K)
+        ratio = dr.select(e_without > 0.0, e_with / dr.maximum(e_without, 1e-30), 1.0)
+        dr.scatter(shadow, (ratio - 1.0) * dr.gather(mi.Color3f, L0, caught), caught)
+        return shadow
 
 
 def camera_axis(sensor):

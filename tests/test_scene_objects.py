@@ -62,3 +62,124 @@ def test_far_ends_the_background_at_the_hit(far):
                       Sampling(4, 4096, 0), far=F([far]))
     expected = 1 - np.exp(-sigma * (0.5 - 1 / (2 + far)))
     assert npf(res.bg.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
+
+
+# ----------------------------------------------------------------------------- scenes with shapes
+
+class Field:
+    """A closed-form field: density and colour are functions of the field inputs (``x``: the
+    point for the foreground, ``(x̂, s)`` for the background)."""
+
+    params = {}
+    config = {'kind': 'analytic'}
+
+    def __init__(self, sigma, rgb):
+        self.sigma, self.rgb = sigma, rgb
+
+    def __call__(self, x, d, ray):
+        n = dr.width(x[0])
+        sigma = self.sigma(x) if callable(self.sigma) else dr.full(mi.Float, self.sigma, n)
+        rgb = self.rgb(x) if callable(self.rgb) else mi.Color3f(
+            *[dr.full(mi.Float, c, n) for c in self.rgb])
+        return sigma, rgb
+
+
+EMPTY = Field(0.0, (0.0, 0.0, 0.0))
+
+
+def sky(x):
+    """A background that varies with direction: colour 0.5 + 0.4·x̂."""
+    return mi.Color3f(0.5 + 0.4 * x[0], 0.5 + 0.4 * x[1], 0.5 + 0.4 * x[2])
+
+
+def object_scene(fg, bg, shapes, width=16, height=12, origin=(0.0, 0.1, 0.9), target=(0, 0, 0),
+                 spp=1, **integrator):
+    from mi_nerfpp.model import NeRFPPModel
+    from tests.helpers import scene_dict
+    desc = scene_dict(width=width, height=height, origin=origin, target=target, spp=spp,
+                      jitter=False, **dict(dict(fg_samples=64, bg_samples=32, fine_samples=32),
+                                           **integrator))
+    desc.update(shapes)
+    scene = mi.load_dict(desc)
+    scene.integrator().set_model(NeRFPPModel(fg, bg, color_space='linear'))
+    return scene
+
+
+def channels(scene, **kwargs):
+    from mi_nerfpp.exr import LAYERS
+    img = np.array(mi.render(scene, **kwargs))
+    return {name: img[..., i] for i, name in enumerate(LAYERS)}
+
+
+def pixel_rays(scene):
+    """World rays through the pixel centres (float64 numpy, H x W x 3 each)."""
+    sensor = scene.sensors()[0]
+    w, h = sensor.film().crop_size()
+    x, y = np.meshgrid((np.arange(w) + 0.5) / w, (np.arange(h) + 0.5) / h)
+    ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5))
+    o = np.array(ray.o, dtype=np.float64).reshape(3, -1).T.reshape(h, w, 3)
+    d = np.array(ray.d, dtype=np.float64).reshape(3, -1).T.reshape(h, w, 3)
+    return o, d
+
+
+def sphere_hit(o, d, center, radius):
+    """Distance to the first hit of rays on a sphere (inf on a miss)."""
+    oc = o - np.asarray(center, dtype=np.float64)
+    b = np.sum(oc * d, axis=-1)
+    disc = b * b - (np.sum(oc * oc, axis=-1) - radius ** 2)
+    t = -b - np.sqrt(np.maximum(disc, 0.0))
+    return np.where(disc > 0, t, np.inf)
+
+
+def camera_z(scene, o, d, t):
+    m = np.array(scene.sensors()[0].world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
+    return (o - m[:3, 3]) @ axis + t * (d @ axis)
+
+
+def test_sphere_in_front_of_the_volume_has_its_analytic_depth():
+    center, radius = (0.0, 0.05, 0.3), 0.2
+    haze = Field(0.2, (0.9, 0.2, 0.1))            # a thin foreground: opacity < 0.5 before the hit
+    scene = object_scene(haze, Field(1.0, sky), {
+        'ball': {'type': 'sphere', 'center': list(center), 'radius': radius,
+                 'bsdf': {'type': 'diffuse'}}})
+    c = channels(scene)
+    o, d = pixel_rays(scene)
+    t = sphere_hit(o, d, center, radius)
+    hit = np.isfinite(t)
+    assert 20 < hit.sum() < hit.size
+    np.testing.assert_array_equal(c['obj.A'], hit.astype(np.float32))
+    z = camera_z(scene, o, d, np.where(hit, t, 0.0))
+    np.testing.assert_allclose(c['depth.Z'][hit], z[hit], rtol=1e-5)
+    np.testing.assert_allclose(c['obj.Z'][hit], z[hit], rtol=1e-5)
+    assert np.all(c['obj.Z'][~hit] == 0) and np.all(c['obj.R'][~hit] == 0)
+    # The volume in front of the sphere is integrated up to the hit only: fg.A = 1 - exp(-σ t)
+    # (64 + 32 samples from the near plane; the first half interval is not integrated).
+    np.testing.assert_allclose(c['fg.A'][hit], 1 - np.exp(-0.2 * t[hit]), atol=3e-3)
+    assert np.all(c['bg.R'][hit] == 0)            # the hit is inside the unit sphere
+    # beauty = fg + (1 - fg.A)·bg + obj + shadow
+    for ch in 'RGB':
+        np.testing.assert_allclose(
+            c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'] + c[f'obj.{ch}']
+            + c[f'shadow.{ch}'], atol=2e-6)
+
+
+def test_sphere_behind_an_opaque_reconstructed_surface_is_invisible():
+    """An emitting sphere inside an opaque reconstructed ball is hidden; in front, it shows."""
+    def opaque_ball(x):
+        return dr.select(dr.norm(mi.Vector3f(x[0], x[1], x[2])) < 0.4, 1e5, 0.0)
+    fg = Field(opaque_ball, (0.5, 0.5, 0.5))
+    lamp = {'type': 'sphere', 'radius': 0.15, 'emitter': {'type': 'area', 'radiance': {
+        'type': 'rgb', 'value': [50.0, 50.0, 50.0]}}}
+    alone = channels(object_scene(fg, Field(1.0, sky), {}, fg_samples=256))
+    hidden = channels(object_scene(fg, Field(1.0, sky), {'lamp': dict(lamp, center=[0, 0, 0])},
+                                   fg_samples=256))
+    shown = channels(object_scene(fg, Field(1.0, sky), {'lamp': dict(lamp, center=[0, 0.1, 0.6])},
+                                  fg_samples=256))
+    seen = hidden['obj.A'] > 0
+    assert seen.sum() > 10                       # the rays hit it (and see the volume first)
+    np.testing.assert_allclose(hidden['R'], alone['R'], atol=1e-4)
+    # The samples now cover [near, hit] only: the surface moves by less than their spacing.
+    np.testing.assert_allclose(hidden['depth.Z'], alone['depth.Z'], atol=2.0 / 256)
+    assert np.all(hidden['obj.R'] < 1e-4)
+    assert shown['R'].max() > 10.0

@@ -239,3 +239,73 @@ def test_white_furnace(albedo):
     else:
         np.testing.assert_allclose(rgb[seen], np.broadcast_to(albedo * c_rgb, rgb[seen].shape),
                                    rtol=1e-5)
+
+
+# ----------------------------------------------------------------------------- shadow catcher
+
+def ground_fields():
+    """A reconstructed ground (opaque below y = -0.3, grey) under a sky that is bright
+    straight above (x̂_y > 0.7) and dim elsewhere."""
+    fg = Field(lambda x: dr.select(x[1] < -0.3, 1e4, 0.0), (0.5, 0.5, 0.5))
+    bg = Field(1.0, lambda x: mi.Color3f(dr.select(x[1] > 0.7, 4.0, 0.1)))
+    return fg, bg
+
+
+CATCHER = {'catcher': {'type': 'rectangle', 'id': 'catcher', 'to_world': mi.ScalarTransform4f()
+                       .translate([0, -0.3, 0]).rotate([1, 0, 0], -90).scale(0.9)}}
+
+
+def ground_scene(shapes, **integrator):
+    fg, bg = ground_fields()
+    return object_scene(fg, bg, shapes, width=20, height=15, origin=(0.0, 0.35, 0.75),
+                        target=(0, -0.3, 0), fg_samples=128, catcher_samples=32, **integrator)
+
+
+def test_shadow_catcher_without_an_occluder_changes_no_pixel():
+    # An object under the ground: hidden by the reconstruction, outside the hemisphere that
+    # the catcher sees, so the catcher's irradiance is the same with and without it.
+    buried = {'buried': {'type': 'sphere', 'center': [0, -0.6, 0], 'radius': 0.1}}
+    plain = channels(ground_scene(buried))
+    caught = channels(ground_scene(dict(buried, **CATCHER), shadow_catchers='catcher'))
+    for name in plain:
+        np.testing.assert_array_equal(caught[name], plain[name], err_msg=name)
+
+
+def test_shadow_catcher_darkens_the_ground_under_an_occluder():
+    ball = {'ball': {'type': 'sphere', 'center': [0, -0.1, 0], 'radius': 0.12,
+                     'bsdf': {'type': 'diffuse'}}}
+    plain = channels(ground_scene(ball))
+    caught = channels(ground_scene(dict(ball, **CATCHER), shadow_catchers='catcher'))
+    ground = (caught['obj.A'] == 0) & (caught['fg.A'] > 0.99)
+    shadowed = ground & (caught['shadow.R'] < 0)
+    assert shadowed.sum() >= 4
+    assert np.all(caught['R'][shadowed] < plain['R'][shadowed])
+    # Straight under the ball the bright patch of sky is blocked: much darker there.
+    assert caught['R'][shadowed].min() < 0.5 * plain['R'][shadowed].max()
+    # The shadow layer is the only change (where the ball hides dim sky, its lit side may
+    # brighten the ground a little: interreflection).
+    for ch in 'RGB':
+        np.testing.assert_allclose(caught[ch], plain[ch] + caught[f'shadow.{ch}'], atol=1e-6)
+    # Ground far from the ball keeps its colour.
+    assert (ground & (caught['shadow.R'] == 0)).sum() > 10
+
+
+def refusal(scene):
+    """The ValueError that rendering ``scene`` raises (Mitsuba wraps it in a RuntimeError)."""
+    with pytest.raises(Exception) as info:
+        mi.render(scene)
+    err = info.value
+    while err is not None and not isinstance(err, ValueError):
+        err = err.__cause__ or err.__context__
+    assert err is not None, info.value
+    return str(err)
+
+
+def test_unknown_catcher_and_environment_emitters_are_refused():
+    ball = {'ball': {'type': 'sphere', 'radius': 0.1}}
+    assert "shadow_catchers names floor, which the scene has no shape for; its shapes are " \
+        "ball" in refusal(object_scene(EMPTY, EMPTY, ball, shadow_catchers='floor'))
+    assert 'environment emitter' in refusal(
+        object_scene(EMPTY, EMPTY, dict(ball, sky={'type': 'constant'})))
+    with pytest.raises(Exception, match="nerfpp: parameter 'max_depth' must be >= 1, got -1"):
+        object_scene(EMPTY, EMPTY, {}, max_depth=-1)

@@ -10,7 +10,7 @@ from mitsuba.ad.integrators.common import ADIntegrator
 from .checkpoint import load_checkpoint
 from .exr import AOVS, OBJECT_AOVS
 from .model import FIELD_KINDS, NeRFPPModel
-from .objects import combine, split_scene, trace_paths
+from .objects import combine, path_rng, split_scene, trace_paths
 from .render import Sampling, render_rays, surface_distance
 
 # Largest number of camera rays (film pixels x samples per pixel) one render may trace: memory
@@ -420,8 +420,7 @@ class NeRFPPIntegrator(ADIntegrator):
         j = dr.arange(mi.UInt32, m * K)
         ray_of = dr.gather(mi.UInt32, caught, j // K)
         si_k = dr.gather(mi.SurfaceInteraction3f, si, ray_of)
-        rng = mi.PCG32(size=m * K, initstate=dr.gather(mi.UInt32, path_seed, ray_of),
-                       initseq=j % K + 1)
+        rng = path_rng(dr.gather(mi.UInt32, path_seed, ray_of), j % K + 1)
         # The hemisphere of the catcher that faces the camera.
         normal = dr.mulsign(si_k.sh_frame.n, -dr.dot(si_k.sh_frame.n, dr.gather(mi.Vector3f, d, ray_of)))
         local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(rng.next_float32(), rng.next_float32()))

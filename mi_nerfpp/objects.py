@@ -95,6 +95,15 @@ class Paths:
         return dr.arange(mi.UInt32, self.n) + k * self.n
 
 
+def path_rng(state, stream=0):
+    """A PCG32 generator per lane from that lane's ``state`` (UInt32) alone, unlike
+    ``mi.PCG32(size, initstate)``, which also adds the lane index: paths then do not depend
+    on where their ray sits in a chunk."""
+    rng = mi.PCG32(size=dr.width(state))
+    rng.seed(mi.UInt64(state), mi.UInt64(stream))
+    return rng
+
+
 def mis_weight(pdf_a, pdf_b):
     """Power heuristic (β = 2) of Mitsuba's integrators."""
     a2 = dr.square(pdf_a)
@@ -114,7 +123,7 @@ def trace_paths(scene, ray, seed, max_depth, rr_depth=5):
     seg_valid = dr.zeros(mi.Bool, size)
 
     ctx = mi.BSDFContext()
-    rng = mi.PCG32(size=n, initstate=seed)
+    rng = path_rng(seed)
     index = dr.arange(mi.UInt32, n)
     ray = mi.Ray3f(ray)
     depth = mi.UInt32(0)

@@ -406,7 +406,9 @@ class NeRFPPIntegrator(ADIntegrator):
         meets a catcher before any object, the radiance ``L0`` of the volumes along it is
         scaled by ``E_with / E_without``, the catcher's irradiance with and without the
         objects, both estimated from the same ``catcher_samples`` cosine-distributed
-        directions. Returns the change, ``(ratio - 1)·L0`` (0 where no catcher is seen)."""
+        directions (a direction that meets no object contributes the same volume radiance
+        to both). Returns the change, ``(ratio - 1)·L0`` (0 where no catcher is seen, and
+        where no direction meets an object)."""
         n, K = dr.width(o), self.catcher_samples
         ray = mi.Ray3f(o, d)
         if far0 is not None:
@@ -425,18 +427,28 @@ class NeRFPPIntegrator(ADIntegrator):
         normal = dr.mulsign(si_k.sh_frame.n, -dr.dot(si_k.sh_frame.n, dr.gather(mi.Vector3f, d, ray_of)))
         local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
         ray_k = si_k.spawn_ray(mi.Frame3f(normal).to_world(local))
-        with_objects, aovs = self._render_scene(parts, ray_k.o, ray_k.d, None, rng.next_uint32(),
-                                                primal, catchers=False)
-        without = mi.Color3f(with_objects)
-        blocked = dr.compress(aovs[12] > 0.0)            # obj.A: the direction meets an object
-        if dr.width(blocked):
-            plain, _ = self._volume_batch(dr.gather(mi.Point3f, ray_k.o, blocked),
-                                          dr.gather(mi.Vector3f, ray_k.d, blocked),
-                                          dr.full(mi.Float, dr.inf, dr.width(blocked)), primal)
-            dr.scatter(without, plain, blocked)
+        seed_k = rng.next_uint32()
+        # Where no direction meets an object the ratio is 1: only catcher points next to
+        # objects are shaded, each from all of its directions.
+        blocked = parts.objects.ray_test(ray_k)
+        near = dr.compress(dr.block_sum(dr.select(blocked, 1, 0), K) > 0)
+        if dr.width(near) == 0:
+            return shadow
+        j = dr.arange(mi.UInt32, dr.width(near) * K)
+        r = dr.gather(mi.UInt32, near, j // K) * K + j % K
+        o_r, d_r = dr.gather(mi.Point3f, ray_k.o, r), dr.gather(mi.Vector3f, ray_k.d, r)
+        without, _ = self._volume_batch(o_r, d_r, dr.full(mi.Float, dr.inf, dr.width(r)), primal)
+        with_objects = mi.Color3f(without)
+        hits = dr.compress(dr.gather(mi.Bool, blocked, r))
+        L_hit, _ = self._render_scene(parts, dr.gather(mi.Point3f, o_r, hits),
+                                      dr.gather(mi.Vector3f, d_r, hits), None,
+                                      dr.gather(mi.UInt32, seed_k, dr.gather(mi.UInt32, r, hits)),
+                                      primal, catchers=False)
+        dr.scatter(with_objects, L_hit, hits)
         e_with, e_without = dr.block_sum(with_objects, K), dr.block_sum(without, K)
         ratio = dr.select(e_without > 0.0, e_with / dr.maximum(e_without, 1e-30), 1.0)
-        dr.scatter(shadow, (ratio - 1.0) * dr.gather(mi.Color3f, L0, caught), caught)
+        rays = dr.gather(mi.UInt32, caught, near)
+        dr.scatter(shadow, (ratio - 1.0) * dr.gather(mi.Color3f, L0, rays), rays)
         return shadow
 
 

@@ -17,10 +17,16 @@ layer         channels                    content
 ``distance``  ``distance.Y``              expected distance along the ray (world
                                           units), blended over both volumes: not a
                                           surface, not for Z-based tools
+``obj``       ``obj.R obj.G obj.B obj.A   radiance of the scene's shapes as it reaches
+              obj.Z``                     the camera (through the volumes in front),
+                                          coverage mask, camera-space z (0 off them)
+``shadow``    ``shadow.R shadow.G         change made by the shadow catchers
+              shadow.B``                  (negative in shadows)
 ============  ==========================  ============================================
 
 Colour is scene-linear with Rec.709 primaries and D65 white (the ``chromaticities``
-attribute), so ``R G B = fg + (1 - fg.A)·bg`` holds in linear light. Every channel list
+attribute), so ``R G B = fg + (1 - fg.A)·bg + obj + shadow`` holds in linear light
+(``obj`` and ``shadow`` are 0 in a scene without shapes). Every channel list
 is written whatever the film's pixel format. Pixels are float32, or float16 with
 ``half=True``; depth layers always stay float32 because half precision cannot hold
 scene-scale distances accurately. Header attributes: :func:`compositing_attributes`

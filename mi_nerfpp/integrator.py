@@ -63,10 +63,25 @@ class NeRFPPIntegrator(ADIntegrator):
 
     Renders a NeRF++ scene representation: a foreground volume inside the unit
     sphere and an inverted-sphere background volume, composited as in the
-    paper's Eq. 4, ``C = C_fg + λ·C_bg``. Scene geometry and emitters are
-    ignored; only the sensor matters. The model lives in a normalized frame; a
-    checkpoint carries the normalization, so sensors are placed in the
+    paper's Eq. 4, ``C = C_fg + λ·C_bg``. The model lives in a normalized frame; a
+    checkpoint carries the normalization, so sensors and shapes are placed in the
     original world frame.
+
+    The scene's shapes are rendered inside the reconstruction
+    (:mod:`mi_nerfpp.objects`): a camera ray integrates the volumes up to the
+    first surface and sees the surface through the remaining transmittance; the
+    surface is path traced with its BSDF (``max_depth``, ``rr_depth`` as in
+    Mitsuba's ``path``), and every path segment that leaves a surface takes the
+    volumes' radiance along it, from its vertex to the next surface or to
+    infinity, so the reconstruction lights and is reflected by the objects with
+    parallax. Area, point, spot and directional emitters add next-event
+    estimation (their shadow rays see shapes, not the volumes); environment maps
+    are refused (the background volume is the environment). Shapes listed in
+    ``shadow_catchers`` are not rendered: they stand for a reconstructed surface
+    (the ground), and the volumes seen through them are scaled by the ratio of
+    their irradiance with and without the objects (differential rendering), so
+    objects cast shadows on the reconstruction. A scene without shapes renders
+    exactly as the volumes alone, with no intersection work.
 
     The model comes from ``checkpoint``, or from Python: :meth:`set_model` hands
     the integrator a model already in memory (evaluation does this with the
@@ -129,6 +144,22 @@ class NeRFPPIntegrator(ADIntegrator):
        - Largest film (pixels times samples per pixel) a render accepts; larger
          ones are refused before any memory is taken. (Default: 16777216,
          :data:`MAX_FILM_SAMPLES`)
+     * - max_depth
+       - |int|
+       - Longest light path through the scene's shapes, in segments (1: the
+         surfaces show their emission only; 2: direct light from the volumes
+         and the emitters; ...). -1 (unbounded) is refused. (Default: 6)
+     * - rr_depth
+       - |int|
+       - Depth from which Russian roulette may end a path. (Default: 5)
+     * - shadow_catchers
+       - |string|
+       - Comma-separated ids of shapes that are shadow catchers (Mitsuba
+         refuses unknown properties on shapes, so they are named here). (Default: none)
+     * - catcher_samples
+       - |int|
+       - Directions per camera sample over a catcher's hemisphere for its
+         irradiance ratio. (Default: 16)
 
     Unknown parameters, values of the wrong type and out-of-range values are
     refused with a message naming the parameter.
@@ -142,8 +173,14 @@ class NeRFPPIntegrator(ADIntegrator):
     z (distance along the view axis, world units) of the point where the
     accumulated opacity of the composite reaches 0.5, ``distance.Y`` the
     expected distance along the ray (blended over both volumes; background at
-    infinity capped at 1000 unit-sphere radii, see :mod:`mi_nerfpp.render`).
-    ``beauty = fg + (1 - fg.A)·bg``.
+    infinity capped at 1000 unit-sphere radii, see :mod:`mi_nerfpp.render`);
+    then the objects' layers: ``obj.R obj.G obj.B`` the radiance the scene's
+    surfaces add (seen through the volumes in front of them), ``obj.A`` the
+    fraction of the pixel's samples whose camera ray meets a surface, ``obj.Z``
+    its camera-space z (0 where none), ``shadow.R shadow.G shadow.B`` the change
+    that the shadow catchers make (negative in shadows). ``fg`` and ``bg`` then
+    hold the volumes in front of the surface. ``beauty = fg + (1 - fg.A)·bg +
+    obj + shadow``; without shapes ``obj`` and ``shadow`` are 0.
     """
 
     def __init__(self, props):

@@ -1,0 +1,58 @@
+"""The README's picture of objects inside the reconstruction: the view of
+mi_nerfpp/scenes/insert_objects.xml rendered three times (the reconstruction alone, with the
+objects, with the objects and the shadow catcher), side by side in one PNG.
+
+    .venv/bin/python docs/insert_objects.py runs/default/model.npz docs/results/insert_objects.png \
+        [-D width=640 -D height=360 -D spp=16 ...]
+"""
+import argparse
+import os
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
+import mitsuba as mi
+
+from mi_nerfpp.preview import to_srgb8
+
+SCENE = os.path.join(os.path.dirname(os.path.abspath(mi_nerfpp.__file__)), 'scenes',
+                     'insert_objects.xml')
+
+
+def variant(xml, objects, catchers):
+    root = ET.fromstring(xml)
+    for shape in root.findall('shape'):
+        if not objects or (not catchers and shape.get('id') == 'lawn'):
+            root.remove(shape)
+    if not catchers or not objects:
+        for default in root.findall('default'):
+            if default.get('name') == 'catchers':
+                default.set('value', '')
+    return ET.tostring(root, encoding='unicode')
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument('checkpoint')
+    p.add_argument('output')
+    p.add_argument('-D', '--define', action='append', default=[], metavar='NAME=VALUE')
+    args = p.parse_args()
+    defines = dict(d.split('=', 1) for d in args.define)
+    defines['checkpoint'] = os.path.abspath(args.checkpoint)
+    with open(SCENE) as f:
+        xml = f.read()
+    panels = []
+    for objects, catchers in ((False, False), (True, False), (True, True)):
+        scene = mi.load_string(variant(xml, objects, catchers), **defines)
+        img = np.array(mi.render(scene))[..., :3]
+        panels.append(to_srgb8(img, 'linear'))
+        print(f'objects={objects} catcher={catchers}: done', flush=True)
+    gap = np.full((panels[0].shape[0], 4, 3), 255, np.uint8)
+    strip = np.concatenate([panels[0], gap, panels[1], gap, panels[2]], axis=1)
+    mi.Bitmap(strip).write(args.output)
+    print(f'wrote {args.output}')
+
+
+if __name__ == '__main__':
+    main()

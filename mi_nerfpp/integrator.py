@@ -8,7 +8,7 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import ADIntegrator
 
 from .checkpoint import load_checkpoint
-from .exr import AOVS, OBJECT_AOVS
+from .exr import AOVS
 from .model import FIELD_KINDS, NeRFPPModel
 from .objects import combine, path_rng, split_scene, trace_paths
 from .render import Sampling, render_rays, surface_distance
@@ -358,17 +358,18 @@ class NeRFPPIntegrator(ADIntegrator):
             self._parts = (scene, split_scene(scene, self.shadow_catchers))
         return self._parts[1]
 
-    def _chunked(self, render, args, n):
+    def _chunked(self, render, args, n, progress=True):
         """Primal rendering of ``n`` rays, ``chunk_rays`` at a time (bounded memory):
         ``render(*args)`` on each chunk of the per-ray ``args`` (None stays None) returns
-        ``(L, aovs)``; AOVs it does not return stay 0."""
+        ``(L, aovs)``; AOVs it does not return stay 0. ``progress``: show a bar (with
+        ``show_progress``) - not for the chunks of path segments inside a chunk."""
         if n <= self.chunk_rays:
             return render(*args)
         dr.eval(*[a for a in args if a is not None])
         chunk = self.chunk_rays
         out = [dr.zeros(mi.Float, n) for _ in range(3 + len(AOVS))]
         chunks = range(0, n, chunk)
-        if self.show_progress:
+        if self.show_progress and progress:
             from tqdm import tqdm
             chunks = tqdm(chunks, desc='render', unit='chunk', leave=False)
         for start in chunks:
@@ -388,7 +389,10 @@ class NeRFPPIntegrator(ADIntegrator):
         def render(o, d, far):
             L, _, opacity = self._volume(o, d, None, primal, far, transform=False)
             return L, [1.0 - opacity]
-        L, (T, *_) = self._chunked(render, [o, d, far], dr.width(o)) if primal else render(o, d, far)
+        if primal:
+            L, (T, *_) = self._chunked(render, [o, d, far], dr.width(o), progress=False)
+        else:
+            L, (T,) = render(o, d, far)
         return L, T
 
     def _render_scene(self, parts, o, d, seed, path_seed, primal, catchers=True):
@@ -413,9 +417,9 @@ class NeRFPPIntegrator(ADIntegrator):
                 later = dr.compress(paths.valid & (dr.arange(mi.UInt32, dr.width(paths.valid))
                                                    >= n))
                 if dr.width(later):
-                    L_k, T_k = self._volume_batch(
-                        dr.gather(mi.Point3f, paths.o, later), dr.gather(mi.Vector3f, paths.d, later),
-                        dr.gather(mi.Float, paths.far, later), primal)
+                    L_k, T_k = self._volume_batch(dr.gather(mi.Point3f, paths.o, later),
+                                                  dr.gather(mi.Vector3f, paths.d, later),
+                                                  dr.gather(mi.Float, paths.far, later), primal)
                     dr.scatter(L_seg, L_k, later)
                     dr.scatter(T_seg, T_k, later)
             dr.scatter(T_seg, 1.0 - opacity0, paths.segment(0))
@@ -461,8 +465,10 @@ class NeRFPPIntegrator(ADIntegrator):
         si_k = dr.gather(mi.SurfaceInteraction3f, si, ray_of)
         rng = path_rng(dr.gather(mi.UInt32, path_seed, ray_of), j % K + 1)
         # The hemisphere of the catcher that faces the camera.
-        normal = dr.mulsign(si_k.sh_frame.n, -dr.dot(si_k.sh_frame.n, dr.gather(mi.Vector3f, d, ray_of)))
-        local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
+        normal = si_k.sh_frame.n
+        normal = dr.mulsign(normal, -dr.dot(normal, dr.gather(mi.Vector3f, d, ray_of)))
+        u = mi.Point2f(rng.next_float32(), rng.next_float32())
+        local = mi.warp.square_to_cosine_hemisphere(u)
         ray_k = si_k.spawn_ray(mi.Frame3f(normal).to_world(local))
         seed_k = rng.next_uint32()
         # Where no direction meets an object the ratio is 1: only catcher points next to

@@ -383,3 +383,26 @@ def test_chunked_render_with_shapes_matches_single_pass():
     scene.integrator().chunk_rays = 13           # 96 rays -> 8 chunks, the last one partial
     chunked = np.array(mi.render(scene))
     np.testing.assert_array_equal(whole, chunked)
+
+
+def test_example_scene_renders_objects_into_a_checkpoint(tmp_path):
+    """mi_nerfpp/scenes/insert_objects.xml with any checkpoint: the objects are in view and
+    the layers add up to the beauty."""
+    import os
+
+    import mi_nerfpp
+    from mi_nerfpp.checkpoint import save_checkpoint
+    from tests.helpers import tiny_model
+    save_checkpoint(tmp_path / 'model.npz', tiny_model())
+    xml = os.path.join(os.path.dirname(mi_nerfpp.__file__), 'scenes', 'insert_objects.xml')
+    scene = mi.load_file(xml, checkpoint=str(tmp_path / 'model.npz'), width='32', height='18',
+                         spp='1', samples='4', fine_samples='4')
+    assert scene.integrator().shadow_catchers == ('lawn',)
+    c = channels(scene)
+    assert c['obj.A'].max() == 1.0 and c['obj.A'].mean() > 0.03
+    for name, v in c.items():
+        assert np.all(np.isfinite(v)), name
+    for ch in 'RGB':
+        np.testing.assert_allclose(
+            c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'] + c[f'obj.{ch}']
+            + c[f'shadow.{ch}'], atol=2e-5)

@@ -171,7 +171,7 @@ class NeRFPPIntegrator(ADIntegrator):
     [0, 1], ``bg.R bg.G bg.B`` background radiance as seen unoccluded (0 behind
     opaque foreground unless ``occluded_background``), ``depth.Z`` camera-space
     z (distance along the view axis, world units) of the point where the
-    accumulated opacity of the composite reaches 0.5, ``distance.Y`` the
+    accumulated opacity of the composite reaches 0.5 (a scene surface is opaque), ``distance.Y`` the
     expected distance along the ray (blended over both volumes; background at
     infinity capped at 1000 unit-sphere radii, see :mod:`mi_nerfpp.render`);
     then the objects' layers: ``obj.R obj.G obj.B`` the radiance the scene's
@@ -207,7 +207,6 @@ class NeRFPPIntegrator(ADIntegrator):
         self.shadow_catchers = tuple(c.strip() for c in catchers.split(',') if c.strip())
         self.catcher_samples = read('catcher_samples', int, 16, minimum=1)
         read.reject_unknown()
-        self._parts = None
         self.show_progress = False
         self._model, self.meta = None, {}
         self._view = None
@@ -331,7 +330,8 @@ class NeRFPPIntegrator(ADIntegrator):
         if self.stratified:
             seed = mi.UInt32(sampler.next_1d() * 4294967040.0)
         n = dr.width(o)
-        parts = self._scene_parts(scene)
+        # (Split on every render, not cached: a cache would keep the scene alive.)
+        parts = split_scene(scene, self.shadow_catchers)
         if parts.objects is None and parts.catchers is None:
             # No shapes: the volumes alone, without any intersection.
             if mode != dr.ADMode.Primal:
@@ -350,13 +350,6 @@ class NeRFPPIntegrator(ADIntegrator):
             L, aovs = self._chunked(lambda o, d, seed, path_seed: self._render_scene(
                 parts, o, d, seed, path_seed, primal=True), [o, d, seed, path_seed], n)
         return L, mi.Bool(True), aovs, None
-
-    def _scene_parts(self, scene):
-        """The scene's objects and shadow catchers (:func:`~mi_nerfpp.objects.split_scene`),
-        split once per scene."""
-        if self._parts is None or self._parts[0] is not scene:
-            self._parts = (scene, split_scene(scene, self.shadow_catchers))
-        return self._parts[1]
 
     def _chunked(self, render, args, n, progress=True):
         """Primal rendering of ``n`` rays, ``chunk_rays`` at a time (bounded memory):

@@ -343,7 +343,10 @@ class NeRFPPIntegrator(ADIntegrator):
                     o, d, seed, primal=True), [o, d, seed], n)
             aovs = aovs + [dr.zeros(mi.Float, n)] * (len(AOVS) - len(aovs))
             return L, mi.Bool(True), aovs, None
-        path_seed = mi.UInt32(sampler.next_1d() * 4294967040.0)
+        # One seed per camera sample: its index hashed with the sampler (which carries the
+        # render's seed), so no two samples share a path even where the sampler repeats.
+        path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n),
+                                        mi.UInt32(sampler.next_1d() * 4294967040.0))
         if mode != dr.ADMode.Primal:
             L, aovs = self._render_scene(parts, o, d, seed, path_seed, primal=False)
         else:

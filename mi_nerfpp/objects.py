@@ -66,13 +66,19 @@ def split_scene(scene, catcher_ids=()):
                 f"remove it (area, point, spot and directional emitters may light the objects)")
     if not catcher_ids:
         return SceneParts(scene if shapes else None, None)
-    catchers = {f'c{i}': s for i, s in enumerate(shapes) if s.id() in catcher_ids}
-    objects = {f's{i}': s for i, s in enumerate(shapes) if s.id() not in catcher_ids}
-    emitters = {f'e{i}': e for i, e in enumerate(scene.emitters()) if e.shape() is None}
+    # Keyed by their own ids: load_dict gives every object its key as id.
+    catchers = {_key(s, i): s for i, s in enumerate(shapes) if s.id() in catcher_ids}
+    objects = {_key(s, i): s for i, s in enumerate(shapes) if s.id() not in catcher_ids}
+    emitters = {_key(e, f'emitter{i}'): e for i, e in enumerate(scene.emitters())
+                if e.shape() is None}
     objects_scene = None
     if objects:
         objects_scene = mi.load_dict(dict({'type': 'scene'}, **objects, **emitters))
     return SceneParts(objects_scene, mi.load_dict(dict({'type': 'scene'}, **catchers)))
+
+
+def _key(obj, fallback):
+    return obj.id() or f'_{fallback}'
 
 
 @dataclass
@@ -96,11 +102,12 @@ class Paths:
 
 
 def path_rng(state, stream=0):
-    """A PCG32 generator per lane from that lane's ``state`` (UInt32) alone, unlike
-    ``mi.PCG32(size, initstate)``, which also adds the lane index: paths then do not depend
-    on where their ray sits in a chunk."""
-    rng = mi.PCG32(size=dr.width(state))
-    rng.seed(mi.UInt64(state), mi.UInt64(stream))
+    """A PCG32 generator per lane from that lane's ``state`` (UInt32) and ``stream`` alone,
+    hashed together (TEA), unlike ``mi.PCG32(size, initstate)``, which also adds the lane
+    index: paths then do not depend on where their ray sits in a chunk."""
+    hi, lo = mi.sample_tea_32(mi.UInt32(state), mi.UInt32(stream))
+    rng = mi.PCG32(size=dr.width(hi))
+    rng.seed((mi.UInt64(hi) << 32) | mi.UInt64(lo), mi.UInt64(0))
     return rng
 
 

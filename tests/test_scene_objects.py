@@ -93,12 +93,13 @@ def sky(x):
 
 
 def object_scene(fg, bg, shapes, width=16, height=12, origin=(0.0, 0.1, 0.9), target=(0, 0, 0),
-                 spp=1, **integrator):
+                 spp=1, fov=60, **integrator):
     from mi_nerfpp.model import NeRFPPModel
     from tests.helpers import scene_dict
     desc = scene_dict(width=width, height=height, origin=origin, target=target, spp=spp,
                       jitter=False, **dict(dict(fg_samples=64, bg_samples=32, fine_samples=32),
                                            **integrator))
+    desc['sensor']['fov'] = fov
     desc.update(shapes)
     scene = mi.load_dict(desc)
     scene.integrator().set_model(NeRFPPModel(fg, bg, color_space='linear'))
@@ -380,6 +381,7 @@ def test_chunked_render_with_shapes_matches_single_pass():
     scene = object_scene(fg, bg, shapes, width=8, height=6, spp=2, origin=(0.0, 0.35, 0.75),
                          target=(0, -0.3, 0), shadow_catchers='catcher', catcher_samples=4)
     whole = np.array(mi.render(scene))
+    # (A second render also checks that splitting the scene leaves its shape ids alone.)
     scene.integrator().chunk_rays = 13           # 96 rays -> 8 chunks, the last one partial
     chunked = np.array(mi.render(scene))
     np.testing.assert_array_equal(whole, chunked)
@@ -406,3 +408,24 @@ def test_example_scene_renders_objects_into_a_checkpoint(tmp_path):
         np.testing.assert_allclose(
             c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'] + c[f'obj.{ch}']
             + c[f'shadow.{ch}'], atol=2e-5)
+
+
+def test_shadow_catcher_ratio_under_a_black_disk_is_the_unblocked_cosine_fraction():
+    """Under a uniform sky, a black disk of radius R at height h over a catcher point blocks
+    the cosine-weighted fraction R²/(R² + h²) of its irradiance: the ground seen there is
+    scaled by h²/(R² + h²)."""
+    R, h, ground = 0.2, 0.2, 0.5
+    fg = Field(lambda x: dr.select(x[1] < -0.3, 1e4, 0.0), (ground, ground, ground))
+    disk = {'type': 'disk', 'to_world': mi.ScalarTransform4f().translate([0, -0.3 + h, 0])
+            .rotate([1, 0, 0], -90).scale(R),
+            'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': 0.0}}}
+    scene = object_scene(fg, Field(1.0, (2.0, 2.0, 2.0)), dict(CATCHER, disk=disk), width=3,
+                         height=3, origin=(0.0, 0.2, 0.8), target=(0, -0.3, 0), spp=16, fov=2,
+                         fg_samples=128, shadow_catchers='catcher', catcher_samples=64)
+    # A narrow view from below the disk's rim: the centre pixel sees the point under it.
+    c = channels(scene)
+    assert c['obj.A'][1, 1] == 0 and c['fg.A'][1, 1] > 0.99
+    expected = ground * h ** 2 / (R ** 2 + h ** 2)
+    # 16 x 64 cosine-distributed directions: standard error 0.5·sqrt(1/4/1024) ≈ 0.008.
+    assert c['R'][1, 1] == pytest.approx(expected, abs=0.03)
+    assert c['shadow.R'][1, 1] == pytest.approx(expected - ground, abs=0.03)

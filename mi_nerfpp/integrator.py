@@ -391,10 +391,12 @@ class NeRFPPIntegrator(ADIntegrator):
             L, (T,) = render(o, d, far)
         return L, T
 
-    def _render_scene(self, parts, o, d, seed, path_seed, primal, catchers=True):
+    def _render_scene(self, parts, o, d, seed, path_seed, primal, catchers=True,
+                      transform=True):
         """Beauty and AOVs of camera rays through a scene with shapes (see
         :mod:`mi_nerfpp.objects`): the volumes up to the first surface, the surfaces path
-        traced with the volumes as their light, the shadow catchers' differential shading."""
+        traced with the volumes as their light, the shadow catchers' differential shading
+        (``catchers``); ``transform=False`` leaves out the appearance transform."""
         n = dr.width(o)
         hit = dr.zeros(mi.Bool, n)
         far0 = None
@@ -403,7 +405,7 @@ class NeRFPPIntegrator(ADIntegrator):
                                 self.rr_depth)
             far0 = dr.gather(mi.Float, paths.far, paths.segment(0))
             hit = ~dr.isinf(far0)
-        L0, layers, opacity0 = self._volume(o, d, seed, primal, far0)
+        L0, layers, opacity0 = self._volume(o, d, seed, primal, far0, transform)
         surfaces = dr.zeros(mi.Color3f, n)
         if parts.objects is not None:
             # Every segment's volumes: the camera segment's from above, the others here.
@@ -420,7 +422,7 @@ class NeRFPPIntegrator(ADIntegrator):
                     dr.scatter(T_seg, T_k, later)
             dr.scatter(T_seg, 1.0 - opacity0, paths.segment(0))
             _, surfaces = combine(paths, L_seg, T_seg)
-            if self.appearance_image >= 0:
+            if self.appearance_image >= 0 and transform:
                 surfaces = self._transform()[0] * surfaces
         shadow = dr.zeros(mi.Color3f, n)
         if catchers and parts.catchers is not None and parts.objects is not None:
@@ -482,7 +484,7 @@ class NeRFPPIntegrator(ADIntegrator):
         L_hit, _ = self._render_scene(parts, dr.gather(mi.Point3f, o_r, hits),
                                       dr.gather(mi.Vector3f, d_r, hits), None,
                                       dr.gather(mi.UInt32, seed_k, dr.gather(mi.UInt32, r, hits)),
-                                      primal, catchers=False)
+                                      primal, catchers=False, transform=False)
         dr.scatter(with_objects, L_hit, hits)
         e_with, e_without = dr.block_sum(with_objects, K), dr.block_sum(without, K)
         ratio = dr.select(e_without > 0.0, e_with / dr.maximum(e_without, 1e-30), 1.0)

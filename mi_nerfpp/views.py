@@ -20,7 +20,8 @@ from .render import Sampling
 def render_layers(image, integrator):
     """``mi.render``'s output (H, W, C) as the layer dict of :data:`~mi_nerfpp.exr.LAYERS`,
     whatever the film's pixel format: ``A`` is 1 where the background volume is rendered
-    (it is opaque), else the foreground alpha."""
+    (it is opaque), else the foreground alpha over the scene's shapes' coverage,
+    ``fg.A + (1 - fg.A)·obj.A``."""
     image = np.asarray(image, dtype=np.float32)
     base = image.shape[2] - len(AOVS)
     if base not in (3, 4):
@@ -29,7 +30,10 @@ def render_layers(image, integrator):
     layers = {name: image[..., i] for i, name in enumerate(BEAUTY[:3])}
     layers.update({name: image[..., base + i] for i, name in enumerate(AOVS)})
     background = getattr(integrator, 'background', True)
-    layers['A'] = np.ones_like(layers['R']) if background else layers['fg.A'].copy()
+    if background:
+        layers['A'] = np.ones_like(layers['R'])
+    else:
+        layers['A'] = layers['fg.A'] + (1.0 - layers['fg.A']) * layers['obj.A']
     return {name: layers[name] for name in BEAUTY + AOVS}
 
 

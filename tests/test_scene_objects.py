@@ -429,3 +429,14 @@ def test_shadow_catcher_ratio_under_a_black_disk_is_the_unblocked_cosine_fractio
     # 16 x 64 cosine-distributed directions: standard error 0.5·sqrt(1/4/1024) ≈ 0.008.
     assert c['R'][1, 1] == pytest.approx(expected, abs=0.03)
     assert c['shadow.R'][1, 1] == pytest.approx(expected - ground, abs=0.03)
+
+
+def test_foreground_only_alpha_covers_the_objects(tmp_path):
+    """background=false: the EXR's A is the foreground over the objects' coverage."""
+    from mi_nerfpp.views import render_to_files
+    scene = object_scene(Field(0.3, (1, 1, 1)), None, {'ball': {
+        'type': 'sphere', 'center': [0, 0, 0.2], 'radius': 0.2}}, background=False)
+    c = render_to_files(scene, tmp_path / 'r.exr', progress=False)
+    on = c['obj.A'] == 1
+    assert on.sum() > 10 and np.all(c['A'][on] == 1.0)
+    np.testing.assert_array_equal(c['A'][c['obj.A'] == 0], c['fg.A'][c['obj.A'] == 0])

@@ -212,6 +212,9 @@ def test_mirror_sphere_reflects_the_reconstruction_from_the_hit_point():
     assert np.ptp(expected[:, 0]) > 0.1           # the reflection varies over the sphere
     np.testing.assert_allclose(got, expected, rtol=2e-3, atol=2e-4)
     np.testing.assert_allclose(c['R'][ys, xs], expected[:, 0], rtol=2e-3, atol=2e-4)
+    # max_depth = 1 (as in Mitsuba's path): the surfaces show their own emission only.
+    integ.max_depth = 1
+    assert np.all(channels(scene)['obj.R'] == 0)
 
 
 @pytest.mark.parametrize('albedo', [1.0, 0.5])

@@ -23,6 +23,11 @@ colour ``Σ w_i c_i``, opacity ``Σ w_i``, depth ``Σ w_i t_i``.
   samples up to it, so the last sample lies beyond ``MAX_DEPTH_RADIUS`` and the
   absorbed light is placed at the cap, 1000 unit-sphere radii.
 
+A surface at ray distance ``far`` (a Mitsuba shape, :mod:`.objects`) ends both volumes:
+the foreground segment stops there, the background runs from ``s_max`` down to ``s(far)``
+with a finite last interval, so the composite is no longer opaque and ``1 - opacity`` is
+the transmittance to the surface.
+
 Hierarchical sampling per volume: ``n_coarse`` stratified samples are shaded
 and composited; ``n_fine`` more are drawn from their weights by inverse CDF;
 the fine image composites the union of both sets, reusing the coarse samples'

@@ -481,10 +481,15 @@ class NeRFPPIntegrator(ADIntegrator):
         without, _ = self._volume_batch(o_r, d_r, dr.full(mi.Float, dr.inf, dr.width(r)), primal)
         with_objects = mi.Color3f(without)
         hits = dr.compress(dr.gather(mi.Bool, blocked, r))
-        L_hit, _ = self._render_scene(parts, dr.gather(mi.Point3f, o_r, hits),
-                                      dr.gather(mi.Vector3f, d_r, hits), None,
-                                      dr.gather(mi.UInt32, seed_k, dr.gather(mi.UInt32, r, hits)),
-                                      primal, catchers=False, transform=False)
+        def render_hits(o, d, seed):
+            return self._render_scene(parts, o, d, None, seed, primal, catchers=False,
+                                      transform=False)
+        hit_args = [dr.gather(mi.Point3f, o_r, hits), dr.gather(mi.Vector3f, d_r, hits),
+                    dr.gather(mi.UInt32, seed_k, dr.gather(mi.UInt32, r, hits))]
+        if primal:      # up to chunk_rays x catcher_samples rays: in chunks too
+            L_hit, _ = self._chunked(render_hits, hit_args, dr.width(hits), progress=False)
+        else:
+            L_hit, _ = render_hits(*hit_args)
         dr.scatter(with_objects, L_hit, hits)
         e_with, e_without = dr.block_sum(with_objects, K), dr.block_sum(without, K)
         ratio = dr.select(e_without > 0.0, e_with / dr.maximum(e_without, 1e-30), 1.0)

@@ -1,6 +1,7 @@
 """The Mitsuba integrator ``nerfpp``: NeRF++ rendering with compositing layers as AOVs."""
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import drjit as dr
@@ -193,6 +194,8 @@ class NeRFPPIntegrator(ADIntegrator):
             bg_samples=read('bg_samples', int, default.bg_samples, minimum=1),
             fine_samples=read('fine_samples', int, default.fine_samples, minimum=0),
             near=read('near', float, default.near, minimum=0.0))
+        # Path segments that leave a surface sample the volumes from their origin on.
+        self._from_surfaces = dataclasses.replace(self.sampling, near=0.0)
         self.background = read('background', bool, True)
         self.stratified = read('stratified', bool, False)
         self.occluded_background = read('occluded_background', bool, False)
@@ -289,15 +292,17 @@ class NeRFPPIntegrator(ADIntegrator):
         L, aovs, _ = self._volume(o, d, seed, primal, far)
         return L, aovs
 
-    def _volume(self, o, d, seed, primal=False, far=None, transform=True):
+    def _volume(self, o, d, seed, primal=False, far=None, transform=True, camera=True):
         """:meth:`render_layers` plus the composite opacity (``1 -`` the transmittance to
-        ``far``); ``transform=False`` leaves out the appearance transform."""
+        ``far``); ``transform=False`` leaves out the appearance transform; ``camera=False``
+        (rays that leave a surface) starts the samples at the ray origin, not at ``near``."""
         model = self.model
         norm = model.normalization
         fg_field, bg_field = model.radiance_fields()
         res = render_rays(*norm.to_model_rays(o, d), fg_field,
                           bg_field if self.background else None,
-                          self.sampling, seed, occupancy=model.occupancy,
+                          self.sampling if camera else self._from_surfaces, seed,
+                          occupancy=model.occupancy,
                           skip_occluded=primal and not self.occluded_background,
                           far=None if far is None else norm.to_model_distance(far))
         fg = res.fg.fine
@@ -383,7 +388,8 @@ class NeRFPPIntegrator(ADIntegrator):
         """Radiance and transmittance of the volumes along rays that end at ``far`` (the
         segments that leave surfaces; neutral colour, chunked when primal)."""
         def render(o, d, far):
-            L, _, opacity = self._volume(o, d, None, primal, far, transform=False)
+            L, _, opacity = self._volume(o, d, None, primal, far, transform=False,
+                                         camera=False)
             return L, [1.0 - opacity]
         if primal:
             L, (T, *_) = self._chunked(render, [o, d, far], dr.width(o), progress=False)
@@ -392,11 +398,12 @@ class NeRFPPIntegrator(ADIntegrator):
         return L, T
 
     def _render_scene(self, parts, o, d, seed, path_seed, primal, catchers=True,
-                      transform=True):
+                      transform=True, camera=True):
         """Beauty and AOVs of camera rays through a scene with shapes (see
         :mod:`mi_nerfpp.objects`): the volumes up to the first surface, the surfaces path
         traced with the volumes as their light, the shadow catchers' differential shading
-        (``catchers``); ``transform=False`` leaves out the appearance transform."""
+        (``catchers``); ``transform=False`` leaves out the appearance transform;
+        ``camera=False``: the rays start on a surface (see :meth:`_volume`)."""
         n = dr.width(o)
         hit = dr.zeros(mi.Bool, n)
         far0 = None
@@ -405,7 +412,7 @@ class NeRFPPIntegrator(ADIntegrator):
                                 self.rr_depth)
             far0 = dr.gather(mi.Float, paths.far, paths.segment(0))
             hit = ~dr.isinf(far0)
-        L0, layers, opacity0 = self._volume(o, d, seed, primal, far0, transform)
+        L0, layers, opacity0 = self._volume(o, d, seed, primal, far0, transform, camera)
         surfaces = dr.zeros(mi.Color3f, n)
         if parts.objects is not None:
             # Every segment's volumes: the camera segment's from above, the others here.
@@ -483,7 +490,7 @@ class NeRFPPIntegrator(ADIntegrator):
         hits = dr.compress(dr.gather(mi.Bool, blocked, r))
         def render_hits(o, d, seed):
             return self._render_scene(parts, o, d, None, seed, primal, catchers=False,
-                                      transform=False)
+                                      transform=False, camera=False)
         hit_args = [dr.gather(mi.Point3f, o_r, hits), dr.gather(mi.Vector3f, d_r, hits),
                     dr.gather(mi.UInt32, seed_k, dr.gather(mi.UInt32, r, hits))]
         if primal:      # up to chunk_rays x catcher_samples rays: in chunks too

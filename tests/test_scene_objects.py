@@ -186,15 +186,18 @@ def test_sphere_behind_an_opaque_reconstructed_surface_is_invisible():
     assert shown['R'].max() > 10.0
 
 
-def test_mirror_sphere_reflects_the_reconstruction_from_the_hit_point():
+@pytest.mark.parametrize('near', [0.0, 0.3])
+def test_mirror_sphere_reflects_the_reconstruction_from_the_hit_point(near):
     """A perfect mirror: the pixel is render_rays along the reflected ray from the hit point
-    (parallax: not an environment lookup), through both volumes, deterministic samples."""
+    (parallax: not an environment lookup), through both volumes, deterministic samples; the
+    integrator's ``near`` applies to camera rays only."""
+    import dataclasses
     center, radius = np.array([0.0, 0.0, 0.2]), 0.3
     fg = Field(lambda x: dr.select(x[1] > 0.5, 4.0, 0.0), (0.9, 0.6, 0.1))   # a lit cap
     bg = Field(1.0, sky)
     scene = object_scene(fg, bg, {'mirror': {
         'type': 'sphere', 'center': list(center), 'radius': radius,
-        'bsdf': {'type': 'conductor', 'material': 'none'}}}, max_depth=2)
+        'bsdf': {'type': 'conductor', 'material': 'none'}}}, max_depth=2, near=near)
     c = channels(scene)
     o, d = pixel_rays(scene)
     t = sphere_hit(o, d, center, radius)
@@ -205,7 +208,8 @@ def test_mirror_sphere_reflects_the_reconstruction_from_the_hit_point():
     integ = scene.integrator()
     ys, xs = np.nonzero(hit)
     res = render_rays(mi.Point3f(*[F(p[ys, xs, i]) for i in range(3)]),
-                      mi.Vector3f(*[F(r[ys, xs, i]) for i in range(3)]), fg, bg, integ.sampling)
+                      mi.Vector3f(*[F(r[ys, xs, i]) for i in range(3)]), fg, bg,
+                      dataclasses.replace(integ.sampling, near=0.0))
     expected = npf(res.fine.rgb, len(ys)).T
     # The camera segment sees the empty lower foreground only: all of it is the reflection.
     got = np.stack([c['obj.R'], c['obj.G'], c['obj.B']], axis=-1)[ys, xs]

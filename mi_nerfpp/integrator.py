@@ -116,7 +116,8 @@ class NeRFPPIntegrator(ADIntegrator):
          inverse CDF; 0 disables hierarchical sampling. (Default: 128)
      * - near
        - |float|
-       - Foreground samples start at this ray distance (normalized units). (Default: 0)
+       - Foreground samples of camera rays start at this ray distance (normalized
+         units); rays that leave a surface start at it. (Default: 0)
      * - background
        - |bool|
        - Render the background volume (``false``: foreground over black). (Default: true)

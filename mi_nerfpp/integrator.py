@@ -76,7 +76,8 @@ class NeRFPPIntegrator(ADIntegrator):
     volumes' radiance along it, from its vertex to the next surface or to
     infinity, so the reconstruction lights and is reflected by the objects with
     parallax. Area, point, spot and directional emitters add next-event
-    estimation (their shadow rays see shapes, not the volumes); environment maps
+    estimation, their shadow rays attenuated by the volumes (``volume_shadows``;
+    the opaque end of the background at infinity excepted); environment maps
     are refused (the background volume is the environment). Shapes listed in
     ``shadow_catchers`` are not rendered: they stand for a reconstructed surface
     (the ground), and the volumes seen through them are scaled by the ratio of
@@ -162,6 +163,11 @@ class NeRFPPIntegrator(ADIntegrator):
        - |int|
        - Directions per camera sample over a catcher's hemisphere for its
          irradiance ratio. (Default: 16)
+     * - volume_shadows
+       - |bool|
+       - Attenuate the light of the scene's emitters by the volumes'
+         transmittance along each shadow ray (the reconstruction shadows the
+         objects); off: shadow rays see shapes only, and are cheaper. (Default: true)
 
     Unknown parameters, values of the wrong type and out-of-range values are
     refused with a message naming the parameter.
@@ -210,6 +216,7 @@ class NeRFPPIntegrator(ADIntegrator):
         catchers = read('shadow_catchers', str, '')
         self.shadow_catchers = tuple(c.strip() for c in catchers.split(',') if c.strip())
         self.catcher_samples = read('catcher_samples', int, 16, minimum=1)
+        self.volume_shadows = read('volume_shadows', bool, True)
         read.reject_unknown()
         self.show_progress = False
         self._model, self.meta = None, {}
@@ -429,6 +436,8 @@ class NeRFPPIntegrator(ADIntegrator):
                     dr.scatter(L_seg, L_k, later)
                     dr.scatter(T_seg, T_k, later)
             dr.scatter(T_seg, 1.0 - opacity0, paths.segment(0))
+            if self.volume_shadows:
+                paths.vertex = self._shadowed_by_volumes(paths, primal)
             _, surfaces = combine(paths, L_seg, T_seg)
             if self.appearance_image >= 0 and transform:
                 surfaces = self._transform()[0] * surfaces
@@ -447,6 +456,20 @@ class NeRFPPIntegrator(ADIntegrator):
         aovs = layers[:7] + [depth, distance, surfaces.x, surfaces.y, surfaces.z, mask,
                              dr.select(hit, z_hit, 0.0), shadow.x, shadow.y, shadow.z]
         return L0 + surfaces + shadow, aovs
+
+    def _shadowed_by_volumes(self, paths, primal):
+        """The paths' vertex light with next-event estimation attenuated by the volumes'
+        transmittance along each shadow ray: ``V - (1 - T)·V_nee``."""
+        rays = dr.compress(paths.shadow_far > 0.0)
+        if dr.width(rays) == 0:
+            return paths.vertex
+        _, T = self._volume_batch(dr.gather(mi.Point3f, paths.shadow_o, rays),
+                                  dr.gather(mi.Vector3f, paths.shadow_d, rays),
+                                  dr.gather(mi.Float, paths.shadow_far, rays), primal)
+        vertex = mi.Color3f(paths.vertex)
+        dr.scatter(vertex, dr.gather(mi.Color3f, vertex, rays)
+                   - (1.0 - T) * dr.gather(mi.Color3f, paths.nee, rays), rays)
+        return vertex
 
     def _shadow(self, parts, o, d, far0, L0, path_seed, primal):
         """Differential rendering on the shadow catchers (Debevec 1998): where a camera ray

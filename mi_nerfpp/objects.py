@@ -19,8 +19,8 @@ does not depend on the volumes, so it is traced first for every path in one symb
 the volumes are then rendered for all segments at once, in chunks, outside the loop (they
 need kernels of their own: block prefix sums, compaction).
 
-Limits: shadow rays of next-event estimation are not attenuated by the volumes (the
-reconstruction does not shadow the scene's emitters); environment maps are refused (the
+Next-event estimation records its shadow ray too, so that the integrator can attenuate its
+light by the volumes' transmittance along it. Environment maps are refused (the
 background volume is the environment; directional emitters are fine). Shapes listed as
 shadow catchers are proxies of reconstructed surfaces, not objects: paths ignore them
 (:func:`split_scene`).
@@ -86,7 +86,9 @@ class Paths:
     """Segments of ``n`` paths, ``depth`` per path, stored segment-major (segment ``k`` of path
     ``i`` at ``k·n + i``): origin, direction, length ``far`` (``inf``: it leaves the geometry),
     throughput ``beta`` before it, light ``vertex`` of the surface vertex at its end (times
-    ``beta``), and whether the path has the segment at all."""
+    ``beta``), and whether the path has the segment at all. ``nee`` is the part of ``vertex``
+    that next-event estimation adds, and ``shadow_o``, ``shadow_d``, ``shadow_far`` its
+    shadow ray (``shadow_far`` 0 where there is none), for the volumes' transmittance."""
     n: int
     depth: int
     o: mi.Point3f
@@ -95,6 +97,10 @@ class Paths:
     beta: mi.Color3f
     vertex: mi.Color3f
     valid: mi.Bool
+    nee: mi.Color3f
+    shadow_o: mi.Point3f
+    shadow_d: mi.Vector3f
+    shadow_far: mi.Float
 
     def segment(self, k):
         """Index array of segment ``k`` of every path."""
@@ -128,6 +134,8 @@ def trace_paths(scene, ray, seed, max_depth, rr_depth=5):
     seg_far = dr.full(mi.Float, dr.inf, size)
     seg_beta, seg_vertex = dr.zeros(mi.Color3f, size), dr.zeros(mi.Color3f, size)
     seg_valid = dr.zeros(mi.Bool, size)
+    seg_nee, seg_shadow_far = dr.zeros(mi.Color3f, size), dr.zeros(mi.Float, size)
+    seg_shadow_o, seg_shadow_d = dr.zeros(mi.Point3f, size), dr.zeros(mi.Vector3f, size)
 
     ctx = mi.BSDFContext()
     rng = path_rng(seed)
@@ -158,7 +166,7 @@ def trace_paths(scene, ray, seed, max_depth, rr_depth=5):
         active_next = (depth + 1 < max_depth) & si.is_valid()
         bsdf = si.bsdf(ray)
 
-        # Next-event estimation (the shadow ray sees the shapes only, not the volumes).
+        # Next-event estimation: the shapes occlude here, the volumes later (combine).
         active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         u_em = mi.Point2f(rng.next_float32(), rng.next_float32())
         ds, em_weight = scene.sample_emitter_direction(si, u_em, True, active_em)
@@ -167,6 +175,13 @@ def trace_paths(scene, ray, seed, max_depth, rr_depth=5):
         mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, pdf_em))
         Lr = dr.select(active_em, beta * mis_em * value_em * em_weight, 0.0)
         dr.scatter(seg_vertex, mi.Color3f(Le + Lr), k)
+        dr.scatter(seg_nee, mi.Color3f(Lr), k)
+        shadow = si.spawn_ray(ds.d)
+        dr.scatter(seg_shadow_o, shadow.o, k, active_em)
+        dr.scatter(seg_shadow_d, shadow.d, k, active_em)
+        # An emitter at infinity (directional): the shadow ray crosses the background
+        # volume but not its opaque end at infinity.
+        dr.scatter(seg_shadow_far, dr.minimum(ds.dist, 1e30), k, active_em)
 
         u1 = rng.next_float32()
         u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
@@ -187,7 +202,8 @@ def trace_paths(scene, ray, seed, max_depth, rr_depth=5):
         depth += 1
         active = active_next
 
-    return Paths(n, max_depth, seg_o, seg_d, seg_far, seg_beta, seg_vertex, seg_valid)
+    return Paths(n, max_depth, seg_o, seg_d, seg_far, seg_beta, seg_vertex, seg_valid, seg_nee,
+                 seg_shadow_o, seg_shadow_d, seg_shadow_far)
 
 
 def combine(paths, L, T):

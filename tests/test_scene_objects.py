@@ -358,27 +358,63 @@ def test_gradients_through_a_mirror_match_finite_differences():
         assert abs(fd - grad[i]) <= 2e-2 * abs(grad[i]) + 1e-4, (i, fd, grad[i])
 
 
+LIGHT, INTENSITY, ALBEDO, FLOOR_Y = np.array([0.1, 0.3, 0.0]), 2.0, 0.5, -0.3
+
+
+def lit_floor(fg, **integrator):
+    floor = {'type': 'rectangle', 'to_world': mi.ScalarTransform4f().translate([0, FLOOR_Y, 0])
+             .rotate([1, 0, 0], -90).scale(0.9),
+             'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': ALBEDO}}}
+    scene = object_scene(fg, EMPTY, {'floor': floor, 'lamp': {
+        'type': 'point', 'position': LIGHT.tolist(),
+        'intensity': {'type': 'rgb', 'value': INTENSITY}}},
+        origin=(0.0, 0.35, 0.75), target=(0, -0.3, 0), **integrator)
+    o, d = pixel_rays(scene)
+    t = (FLOOR_Y - o[..., 1]) / d[..., 1]
+    return scene, o + t[..., None] * d
+
+
 def test_point_light_on_a_diffuse_floor_by_next_event_estimation():
     """A floor lit by a point light in a dark reconstruction: L = ρ/π · I cosθ / r²."""
-    light, intensity, albedo, y = np.array([0.1, 0.3, 0.0]), 2.0, 0.5, -0.3
-    floor = {'type': 'rectangle', 'to_world': mi.ScalarTransform4f().translate([0, y, 0])
-             .rotate([1, 0, 0], -90).scale(0.9),
-             'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': albedo}}}
-    scene = object_scene(EMPTY, EMPTY, {'floor': floor, 'lamp': {
-        'type': 'point', 'position': light.tolist(),
-        'intensity': {'type': 'rgb', 'value': intensity}}},
-        origin=(0.0, 0.35, 0.75), target=(0, -0.3, 0))
+    scene, p = lit_floor(EMPTY)
     c = channels(scene)
-    o, d = pixel_rays(scene)
-    t = (y - o[..., 1]) / d[..., 1]
-    p = o + t[..., None] * d
     seen = (c['obj.A'] == 1.0) & (np.abs(p[..., 0]) < 0.85) & (np.abs(p[..., 2]) < 0.85)
     assert seen.sum() > 100
-    to_light = light - p[seen]
+    to_light = LIGHT - p[seen]
     r2 = np.sum(to_light ** 2, axis=-1)
-    expected = albedo / np.pi * intensity * (to_light[:, 1] / np.sqrt(r2)) / r2
+    expected = ALBEDO / np.pi * INTENSITY * (to_light[:, 1] / np.sqrt(r2)) / r2
     np.testing.assert_allclose(c['obj.R'][seen], expected, rtol=1e-4)
     np.testing.assert_allclose(c['R'][seen], expected, rtol=1e-4)
+
+
+@pytest.mark.parametrize('volume_shadows', [True, False])
+def test_reconstructed_surface_shadows_the_scene_emitters(volume_shadows):
+    """An opaque reconstructed ball between the point light and the floor: the floor points
+    whose shadow ray crosses it are dark (with volume_shadows), the others keep the closed form."""
+    center, radius = np.array([0.1, 0.1, 0.1]), 0.12
+
+    def ball(x):
+        q = mi.Vector3f(x[0] - center[0], x[1] - center[1], x[2] - center[2])
+        return dr.select(dr.norm(q) < radius, 1e4, 0.0)
+    scene, p = lit_floor(Field(ball, (0, 0, 0)), volume_shadows=volume_shadows)
+    c = channels(scene)
+    # Distance from the ball's centre to the segment floor point -> light.
+    to_light = LIGHT - p
+    length = np.linalg.norm(to_light, axis=-1)
+    u = to_light / length[..., None]
+    s = np.clip(np.sum((center - p) * u, axis=-1), 0, length)
+    miss = np.linalg.norm(p + s[..., None] * u - center, axis=-1)
+    floor = (c['obj.A'] == 1.0) & (c['fg.A'] < 1e-6) & (np.abs(p[..., 0]) < 0.85) \
+        & (np.abs(p[..., 2]) < 0.85)
+    shadowed, lit = floor & (miss < radius - 0.02), floor & (miss > radius + 0.02)
+    assert shadowed.sum() > 5 and lit.sum() > 50
+    r2 = length ** 2
+    expected = ALBEDO / np.pi * INTENSITY * (to_light[..., 1] / length) / r2
+    np.testing.assert_allclose(c['obj.R'][lit], expected[lit], rtol=1e-4)
+    if volume_shadows:
+        assert np.all(c['obj.R'][shadowed] < 1e-6)
+    else:
+        np.testing.assert_allclose(c['obj.R'][shadowed], expected[shadowed], rtol=1e-4)
 
 
 def test_chunked_render_with_shapes_matches_single_pass():

@@ -166,7 +166,8 @@ def trace_paths(scene, ray, seed, max_depth, rr_depth=5):
         active_next = (depth + 1 < max_depth) & si.is_valid()
         bsdf = si.bsdf(ray)
 
-        # Next-event estimation: the shapes occlude here, the volumes later (combine).
+        # Next-event estimation: shapes occlude here; the integrator attenuates it by the
+        # volumes along the recorded shadow ray (volume_shadows).
         active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         u_em = mi.Point2f(rng.next_float32(), rng.next_float32())
         ds, em_weight = scene.sample_emitter_direction(si, u_em, True, active_em)

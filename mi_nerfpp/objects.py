@@ -45,8 +45,9 @@ class SceneParts:
 def split_scene(scene, catcher_ids=()):
     """Split ``scene`` into its objects and its shadow catchers (shapes named by id).
 
-    Refuses catcher ids the scene does not have and environment emitters, saying what to do.
-    The scene itself serves as ``objects`` when it has no catchers.
+    Refuses catcher ids the scene does not have and, in a scene with shapes, environment
+    emitters, saying what to do. The scene itself serves as ``objects`` when it has no
+    catchers.
     """
     shapes = list(scene.shapes())
     ids = [s.id() for s in shapes]
@@ -56,12 +57,13 @@ def split_scene(scene, catcher_ids=()):
             f"nerfpp: shadow_catchers names {', '.join(missing)}, which the scene has no "
             f"shape for; its shapes are {', '.join(ids) or 'none'} (give the catcher shape an "
             f"id=\"...\" attribute and list that id)")
-    for emitter in scene.emitters():
+    for emitter in scene.emitters() if shapes else ():     # (no shapes: emitters unused)
         flags = emitter.flags()
         if (mi.has_flag(flags, mi.EmitterFlags.Infinite)
                 and not mi.has_flag(flags, mi.EmitterFlags.DeltaDirection)):
+            name = str(emitter).split('[')[0].strip()
             raise ValueError(
-                f"nerfpp: the scene has an environment emitter ({emitter}); the "
+                f"nerfpp: the scene has an environment emitter ({name}); the "
                 f"reconstruction's background volume is the environment of a nerfpp render: "
                 f"remove it (area, point, spot and directional emitters may light the objects)")
     if not catcher_ids:

@@ -313,8 +313,10 @@ def test_unknown_catcher_and_environment_emitters_are_refused():
     ball = {'ball': {'type': 'sphere', 'radius': 0.1}}
     assert "shadow_catchers names floor, which the scene has no shape for; its shapes are " \
         "ball" in refusal(object_scene(EMPTY, EMPTY, ball, shadow_catchers='floor'))
-    assert 'environment emitter' in refusal(
+    assert 'environment emitter (ConstantBackgroundEmitter)' in refusal(
         object_scene(EMPTY, EMPTY, dict(ball, sky={'type': 'constant'})))
+    # Without shapes the emitters are unused, as before: no refusal.
+    mi.render(object_scene(EMPTY, EMPTY, {'sky': {'type': 'constant'}}))
     with pytest.raises(Exception, match="nerfpp: parameter 'max_depth' must be >= 1, got -1"):
         object_scene(EMPTY, EMPTY, {}, max_depth=-1)
 

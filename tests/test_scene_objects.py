@@ -485,3 +485,20 @@ def test_foreground_only_alpha_covers_the_objects(tmp_path):
     on = c['obj.A'] == 1
     assert on.sum() > 10 and np.all(c['A'][on] == 1.0)
     np.testing.assert_array_equal(c['A'][c['obj.A'] == 0], c['fg.A'][c['obj.A'] == 0])
+
+
+def test_scene_without_shapes_renders_the_volumes_alone():
+    """No shapes: the beauty is render_layers of the camera rays (no intersection), and the
+    objects' layers are 0."""
+    from tests.helpers import scene_dict, tiny_model
+    scene = mi.load_dict(scene_dict(jitter=False))      # rays through the pixel centres
+    scene.integrator().set_model(tiny_model())
+    c = channels(scene)
+    for name in ('obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj.Z', 'shadow.R', 'shadow.G', 'shadow.B'):
+        assert np.all(c[name] == 0), name
+    o, d = pixel_rays(scene)
+    L, _ = scene.integrator().render_layers(mi.Point3f(*[F(o[..., i]) for i in range(3)]),
+                                            mi.Vector3f(*[F(d[..., i]) for i in range(3)]),
+                                            None, primal=True)
+    np.testing.assert_allclose(np.stack([c[ch] for ch in 'RGB'], -1).reshape(-1, 3),
+                               npf(L, dr.width(L)).T, rtol=1e-6, atol=1e-7)

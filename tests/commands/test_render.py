@@ -19,12 +19,15 @@ def test_render_command_writes_layered_exr_and_preview(tmp_path):
     assert r.returncode == 0, r.stderr
     assert str(out) in r.stdout
     names = set(OpenEXR.File(str(out)).channels().keys())
-    assert names == {'RGBA', 'fg', 'bg', 'depth.Z', 'distance.Y'}   # OpenEXR groups R,G,B,A and layers
+    # OpenEXR groups R,G,B,A and layers
+    assert names == {'RGBA', 'fg', 'bg', 'depth.Z', 'distance.Y', 'obj', 'obj.Z', 'shadow'}
     c = read_exr(out)
     assert set(c) == {'R', 'G', 'B', 'A', 'fg.R', 'fg.G', 'fg.B', 'fg.A', 'bg.R', 'bg.G', 'bg.B',
-                      'depth.Z', 'distance.Y'}
+                      'depth.Z', 'distance.Y', 'obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj.Z',
+                      'shadow.R', 'shadow.G', 'shadow.B'}
     assert c['R'].shape == (8, 12)
-    for ch in 'RGB':
+    for ch in 'RGB':     # a scene without shapes: the objects' layers are 0
+        assert not c[f'obj.{ch}'].any() and not c[f'shadow.{ch}'].any()
         np.testing.assert_allclose(c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'],
                                    atol=2e-6)
     assert png.stat().st_size > 0

@@ -31,11 +31,8 @@ def uniforms(seed, n, stream):
     if seed is None:
         return None
     ray, k = flat_index(dr.width(seed), n)
-    # Seeded from (ray seed, sample, stream) alone: ``PCG32(size, initstate, initseq)`` would
-    # also add each lane's index, so a ray's samples would depend on where it sits in the batch
-    # (a chunked render would differ from a single pass).
-    rng = mi.PCG32(size=dr.width(ray))
-    rng.seed(mi.UInt64(dr.gather(mi.UInt32, seed, ray)), mi.UInt64(k * 16 + stream))
+    rng = mi.PCG32(size=dr.width(ray), initstate=dr.gather(mi.UInt32, seed, ray),
+                   initseq=k * 16 + stream)
     return rng.next_float32()
 
 

@@ -125,7 +125,9 @@ class NeRFPPIntegrator(ADIntegrator):
      * - stratified
        - |bool|
        - Jitter sample positions within their strata (using the sampler); off
-         gives deterministic midpoints, as NeRF does at test time. (Default: false)
+         gives deterministic midpoints, as NeRF does at test time. Known limit: a
+         ray's jitter also depends on its place in its chunk (``chunk_rays``).
+         (Default: false)
      * - occluded_background
        - |bool|
        - Also render the background behind opaque foreground (transmittance

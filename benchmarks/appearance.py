@@ -11,7 +11,6 @@ full-image PSNR, and for the appearance run the error of the learned gains again
 ones (|log ratio|, mean and max).
 """
 import argparse
-import dataclasses
 import os
 
 import numpy as np
@@ -19,10 +18,11 @@ import numpy as np
 import mi_nerfpp  # noqa: F401
 from mi_nerfpp import appearance as app
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.evaluate import evaluate_split
 from mi_nerfpp.options import add_options, values
 from mi_nerfpp.synth import vary_exposure
-from mi_nerfpp.train import TrainConfig, Trainer
+from mi_nerfpp.train import TrainConfig
+
+from _onoff import without_and_with
 
 
 def main():
@@ -37,12 +37,8 @@ def main():
     exposed = os.path.join(args.out, 'exposed')
     true = vary_exposure(args.data, exposed, seed=1)['train']
     dataset = load_dataset(exposed)
-    for on in (False, True):
-        run = dataclasses.replace(cfg, appearance=on)
-        tr = Trainer(dataset, os.path.join(args.out, f'appearance_{on}'), run)
-        tr.run()
-        r = evaluate_split(tr.model, tr.test, os.path.join(tr.out, 'test'), run.sampling,
-                           fit_appearance=True)
+    for on, run, tr, r in without_and_with(dataset, cfg, args.out, 'appearance',
+                                           fit_appearance=True):
         line = (f'appearance={on!s:5} {run.iterations} steps: held-out PSNR (NeRF-W, right '
                 f'half) {r["psnr"]:.2f} dB, neutral {r["psnr_neutral"]:.2f} dB')
         if on:

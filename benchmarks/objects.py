@@ -5,7 +5,6 @@ prints the median warm seconds per frame of each and the ratio to the view witho
 
     python benchmarks/objects.py CHECKPOINT [--repeat 1] [-D width=640 -D height=360 -D spp=16 ...]
 """
-import argparse
 import os
 import statistics
 import sys
@@ -16,24 +15,14 @@ import drjit as dr
 import mitsuba as mi
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', 'docs'))
-from insert_objects import SCENE, variant  # noqa: E402
+from insert_objects import arguments  # noqa: E402
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument('checkpoint')
-    p.add_argument('--repeat', type=int, default=1)
-    p.add_argument('-D', '--define', action='append', default=[], metavar='NAME=VALUE')
-    args = p.parse_args()
-    defines = dict(d.split('=', 1) for d in args.define)
-    defines['checkpoint'] = os.path.abspath(args.checkpoint)
-    with open(SCENE) as f:
-        xml = f.read()
+    args, scenes = arguments(__doc__.splitlines()[0],
+                             [(('--repeat',), dict(type=int, default=1))])
     base = None
-    for name, objects, catchers in (('reconstruction alone', False, False),
-                                    ('with objects', True, False),
-                                    ('with objects and catcher', True, True)):
-        scene = mi.load_string(variant(xml, objects, catchers), **defines)
+    for label, scene in scenes():
         times = []
         for i in range(1 + args.repeat):
             t = time.perf_counter()
@@ -42,7 +31,7 @@ def main():
             times.append(time.perf_counter() - t)
         warm = statistics.median(times[1:])
         base = base or warm
-        print(f'{name}: cold {times[0]:.1f} s, warm {warm:.1f} s per frame ({warm / base:.2f}x)',
+        print(f'{label}: cold {times[0]:.1f} s, warm {warm:.1f} s per frame ({warm / base:.2f}x)',
               flush=True)
 
 

@@ -13,7 +13,6 @@ training cameras' rotation (degrees) and translation (fraction of the scene radi
 against the true poses, mean and max over the perturbed cameras.
 """
 import argparse
-import dataclasses
 import os
 
 import numpy as np
@@ -21,10 +20,11 @@ import numpy as np
 import mi_nerfpp  # noqa: F401
 from mi_nerfpp import poses
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.evaluate import evaluate_split
 from mi_nerfpp.options import add_options, values
 from mi_nerfpp.synth import perturb_poses
-from mi_nerfpp.train import TrainConfig, Trainer
+from mi_nerfpp.train import TrainConfig
+
+from _onoff import without_and_with
 
 
 def errors(c2w, record):
@@ -52,12 +52,7 @@ def main():
           f'translation error mean {trans.mean():.4f} max {trans.max():.4f} of the radius',
           flush=True)
     dataset = load_dataset(perturbed)
-    for on in (False, True):
-        run = dataclasses.replace(cfg, refine_poses=on)
-        tr = Trainer(dataset, os.path.join(args.out, f'poses_{on}'), run)
-        tr.run()
-        r = evaluate_split(tr.model, tr.test, os.path.join(tr.out, 'test'), run.sampling,
-                           fit_appearance=run.appearance)
+    for on, run, tr, r in without_and_with(dataset, cfg, args.out, 'refine_poses'):
         rot, trans = errors(poses.world_poses(tr.model, tr.train.cameras), record)
         print(f'refine_poses={on!s:5} {run.iterations} steps: held-out PSNR {r["psnr"]:.2f} dB; '
               f'rotation error mean {rot.mean():.3f}° max {rot.max():.3f}°, translation error '

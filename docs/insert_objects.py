@@ -32,22 +32,38 @@ def variant(xml, objects, catchers):
     return ET.tostring(root, encoding='unicode')
 
 
-def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+# The three renders of the comparison: (label, with objects, with the shadow catcher).
+VARIANTS = (('reconstruction alone', False, False), ('with objects', True, False),
+            ('with objects and catcher', True, True))
+
+
+def arguments(description, extra=()):
+    """Parse ``CHECKPOINT [extra options] [-D NAME=VALUE ...]``; returns ``(args, scenes)`` with
+    ``scenes()`` yielding ``(label, mitsuba scene)`` for each of :data:`VARIANTS`."""
+    p = argparse.ArgumentParser(description=description)
     p.add_argument('checkpoint')
-    p.add_argument('output')
+    for args, kwargs in extra:
+        p.add_argument(*args, **kwargs)
     p.add_argument('-D', '--define', action='append', default=[], metavar='NAME=VALUE')
     args = p.parse_args()
     defines = dict(d.split('=', 1) for d in args.define)
     defines['checkpoint'] = os.path.abspath(args.checkpoint)
     with open(SCENE) as f:
         xml = f.read()
+
+    def scenes():
+        for label, objects, catchers in VARIANTS:
+            yield label, mi.load_string(variant(xml, objects, catchers), **defines)
+    return args, scenes
+
+
+def main():
+    args, scenes = arguments(__doc__.splitlines()[0], [(('output',), {})])
     panels = []
-    for objects, catchers in ((False, False), (True, False), (True, True)):
-        scene = mi.load_string(variant(xml, objects, catchers), **defines)
+    for label, scene in scenes():
         img = np.array(mi.render(scene))[..., :3]
         panels.append(to_srgb8(img, 'linear'))
-        print(f'objects={objects} catcher={catchers}: done', flush=True)
+        print(f'{label}: done', flush=True)
     gap = np.full((panels[0].shape[0], 4, 3), 255, np.uint8)
     strip = np.concatenate([panels[0], gap, panels[1], gap, panels[2]], axis=1)
     mi.Bitmap(strip).write(args.output)

@@ -91,6 +91,9 @@ def _write_report(out: str, report: dict) -> None:
     os.replace(tmp, os.path.join(out, SFM_FILE))
 
 
+SFM_SEED = 0   # seed of COLMAP's random number generator for every run
+
+
 def run_sfm(photos, out, matching: str = 'exhaustive', camera: str = 'auto',
             hold: int = DEFAULT_HOLD, max_image_size: int = DEFAULT_MAX_IMAGE_SIZE,
             overlap: int = DEFAULT_OVERLAP, num_threads: int = -1,
@@ -149,6 +152,9 @@ def run_sfm(photos, out, matching: str = 'exhaustive', camera: str = 'auto',
     _prepare_output(out, previous is not None)
     level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2  # errors only: the progress bars say enough
+    # COLMAP's RANSAC and mapper draw from one global generator: seed it, so that the result
+    # does not depend on what ran before in the process (a test suite, a notebook).
+    pycolmap.set_random_seed(SFM_SEED)
     try:
         return _run(pycolmap, photos, out, names, params, inputs, camera, hold,
                     max_image_size, overlap, matching, num_threads, progress)

@@ -183,6 +183,9 @@ class _LateNet:
 
     def __call__(self, sample_inputs, ray_inputs, ray):
         per_ray = self.ray(ray_inputs)
+        # One kernel for all of them: a gather from an unevaluated array evaluates that array
+        # alone, so each of the ``first`` outputs would otherwise be a kernel of its own.
+        dr.eval(per_ray)
         h = [a + dr.gather(mi.Float, b, ray) for a, b in zip(self.sample(sample_inputs), per_ray)]
         return self.rest(h)
 

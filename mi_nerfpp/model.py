@@ -30,6 +30,9 @@ class LinearRadiance:
         sigma, rgb = self.field(*args, **kwargs)
         return sigma, dr.srgb_to_linear(rgb)
 
+    def density(self, x):
+        return self.field.density(x)
+
 
 class NeRFPPModel:
     """Foreground field (unit ball), optional background field (inverted sphere), normalization.

@@ -5,7 +5,9 @@ Imported as ``from tests.helpers import ...``; the fixtures built on them are in
 import os
 
 import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
+import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mi_nerfpp.model import NeRFPPModel
 
@@ -14,6 +16,34 @@ TINY_RUN = ['--iterations', '5', '--batch-rays', '256', '--samples', '8', '8', '
             '--checkpoint-every', '0', '--preview-every', '0']
 
 TINY_GRID = dict(kind='grid', resolutions=[4, 8], channels=3, hidden=8, dir_octaves=1)
+
+
+class AnalyticField:
+    """A closed-form field with the interface of :class:`mi_nerfpp.fields.Field`: ``sigma`` and
+    ``rgb`` are constants or functions of the field inputs ``x`` (the point for the foreground,
+    ``(x̂, s)`` for the background; ``rgb`` returns a Color3f or three Floats). ``shaded``
+    counts the samples whose colour was evaluated; with ``record=True``, ``shaded_x`` keeps
+    their first input (NumPy: not inside symbolic loops)."""
+
+    params = {}
+    config = {'kind': 'analytic'}
+
+    def __init__(self, sigma, rgb, record=False):
+        self.sigma, self.rgb, self.record = sigma, rgb, record
+        self.shaded, self.shaded_x = 0, []
+
+    def density(self, x):
+        if callable(self.sigma):
+            return self.sigma(x)
+        return dr.full(mi.Float, self.sigma, dr.width(x[0]))
+
+    def __call__(self, x, d, ray):
+        n = dr.width(x[0])
+        self.shaded += n
+        if self.record:
+            self.shaded_x.append(np.array(x[0]))
+        rgb = self.rgb(x) if callable(self.rgb) else [dr.full(mi.Float, c, n) for c in self.rgb]
+        return self.density(x), rgb if isinstance(rgb, mi.Color3f) else mi.Color3f(*rgb)
 
 
 def tiny_model(seed=0, background=True):

@@ -20,6 +20,7 @@ from mi_nerfpp import sampling
 from mi_nerfpp.render import (INFINITE_DELTA, MAX_DEPTH_RADIUS, Background, Foreground, Sampling,
                               Shading, composite, quadrature, render_rays, render_volume)
 from mi_nerfpp.sampling import PDF_EPSILON, flat_index, stratified
+from tests.helpers import AnalyticField
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -44,11 +45,7 @@ def rays(n_rays, seed=0, r_max=0.9):
 
 
 def constant_field(sigma, rgb):
-    def field(x, d, ray):
-        n = dr.width(x[0])
-        return (dr.full(mi.Float, sigma, n),
-                mi.Color3f(*[dr.full(mi.Float, c, n) for c in rgb]))
-    return field
+    return AnalyticField(sigma, rgb)
 
 
 def const_inputs(n_total, sigma, rgb):
@@ -377,9 +374,9 @@ def test_skipping_the_occluded_background_changes_the_composite_by_at_most_its_t
     (colours ≤ 1), and rays that see the background render it exactly as before."""
     from mi_nerfpp.render import OCCLUDED_TRANSMITTANCE
 
-    def half_opaque(x, d, ray):          # opaque for x > 0, clear elsewhere
-        n = dr.width(x[0])
-        return dr.select(x[0] > 0.0, 200.0, 0.0), mi.Color3f(*[dr.full(mi.Float, c, n) for c in (1, 0, 0)])
+    half_opaque = AnalyticField(               # opaque for x > 0, clear elsewhere
+        lambda x: dr.select(x[0] > 0.0, 200.0, 0.0),
+        lambda x: [dr.full(mi.Float, c, dr.width(x[0])) for c in (1, 0, 0)])
 
     o, d = rays(256, seed=3)
     sampling = Sampling(32, 16, 16)
@@ -397,3 +394,43 @@ def test_skipping_the_occluded_background_changes_the_composite_by_at_most_its_t
     o_in = mi.Point3f(0.5, 0.0, 0.0)
     none = render_rays(o_in, mi.Vector3f(1, 0, 0), half_opaque, bg_field, sampling, skip_occluded=True)
     assert npf(none.bg.fine.opacity)[0] == 0.0
+
+
+def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_threshold():
+    """Primal renders evaluate colour only where a sample can show (``visible_only``): not
+    behind an opaque slab (transmittance below HIDDEN_WEIGHT / 2) and not where the weight is
+    negligible. On a known density - thin haze, then an opaque slab at x in [-0.1, 0.1] - the
+    composite moves by less than HIDDEN_WEIGHT, opacity and depth stay exact, and most samples
+    behind the slab are never shaded."""
+    from mi_nerfpp.render import HIDDEN_WEIGHT
+
+    field = AnalyticField(
+        lambda x: dr.select(dr.abs(x[0]) < 0.1, 300.0, 0.01),
+        lambda x: [0.5 + 0.5 * dr.sin(7.0 * x[0]), 0.5 + 0.5 * dr.cos(5.0 * x[1]),
+                   0.5 + 0.5 * dr.sin(3.0 * x[2] + 1.0)], record=True)
+    n_rays, n_c, n_f = 512, 32, 32
+    o = mi.Point3f(dr.full(mi.Float, -0.95, n_rays), F(np.linspace(-0.3, 0.3, n_rays)), 0.0)
+    d = mi.Vector3f(1.0, 0.0, 0.0)
+    seed = mi.UInt32(np.arange(n_rays, dtype=np.uint32))
+    full = render_volume(Foreground(o, d), field, n_c, n_f, seed)
+    field.shaded, field.shaded_x = 0, []
+    lazy = render_volume(Foreground(o, d), field, n_c, n_f, seed, visible_only=True)
+    # Nothing behind the front half of the slab is shaded (the transmittance there is below
+    # exp(-300·0.1)); about half of all samples lie behind it.
+    assert np.concatenate(field.shaded_x).max() < 0.0
+    assert field.shaded < 0.6 * n_rays * (n_c + n_f), field.shaded
+    assert npf(full.fine.opacity).min() > 0.999           # every ray meets the slab
+    np.testing.assert_allclose(npf(lazy.fine.rgb, n_rays), npf(full.fine.rgb, n_rays),
+                               rtol=0, atol=HIDDEN_WEIGHT)
+    np.testing.assert_allclose(npf(lazy.fine.opacity), npf(full.fine.opacity), rtol=1e-6)
+    np.testing.assert_allclose(npf(lazy.fine.depth), npf(full.fine.depth), rtol=1e-6)
+    np.testing.assert_allclose(npf(lazy.weights), npf(full.weights), rtol=1e-6, atol=1e-9)
+    # render_rays uses it for primal renders (skip_occluded) in both volumes: each volume's
+    # skipped samples and the skipped occluded background add at most their thresholds.
+    from mi_nerfpp.render import OCCLUDED_TRANSMITTANCE
+    bg = constant_field(0.7, (0.1, 0.9, 1.0))
+    o2, d2 = rays(256, seed=4)
+    a = render_rays(o2, d2, field, bg, Sampling(32, 16, 16))
+    b = render_rays(o2, d2, field, bg, Sampling(32, 16, 16), skip_occluded=True)
+    np.testing.assert_allclose(npf(b.fine.rgb, 256), npf(a.fine.rgb, 256), rtol=0,
+                               atol=2 * HIDDEN_WEIGHT + OCCLUDED_TRANSMITTANCE)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from mi_nerfpp.render import Sampling, render_rays
+from tests.helpers import AnalyticField
 from tests.test_render import F, constant_field, npf, rays
 
 
@@ -66,25 +67,7 @@ def test_far_ends_the_background_at_the_hit(far):
 
 # ----------------------------------------------------------------------------- scenes with shapes
 
-class Field:
-    """A closed-form field: density and colour are functions of the field inputs (``x``: the
-    point for the foreground, ``(x̂, s)`` for the background)."""
-
-    params = {}
-    config = {'kind': 'analytic'}
-
-    def __init__(self, sigma, rgb):
-        self.sigma, self.rgb = sigma, rgb
-
-    def __call__(self, x, d, ray):
-        n = dr.width(x[0])
-        sigma = self.sigma(x) if callable(self.sigma) else dr.full(mi.Float, self.sigma, n)
-        rgb = self.rgb(x) if callable(self.rgb) else mi.Color3f(
-            *[dr.full(mi.Float, c, n) for c in self.rgb])
-        return sigma, rgb
-
-
-EMPTY = Field(0.0, (0.0, 0.0, 0.0))
+EMPTY = AnalyticField(0.0, (0.0, 0.0, 0.0))
 
 
 def sky(x):
@@ -140,8 +123,8 @@ def camera_z(scene, o, d, t):
 
 def test_sphere_in_front_of_the_volume_has_its_analytic_depth():
     center, radius = (0.0, 0.05, 0.3), 0.2
-    haze = Field(0.2, (0.9, 0.2, 0.1))            # a thin foreground: opacity < 0.5 before the hit
-    scene = object_scene(haze, Field(1.0, sky), {
+    haze = AnalyticField(0.2, (0.9, 0.2, 0.1))            # a thin foreground: opacity < 0.5 before the hit
+    scene = object_scene(haze, AnalyticField(1.0, sky), {
         'ball': {'type': 'sphere', 'center': list(center), 'radius': radius,
                  'bsdf': {'type': 'diffuse'}}})
     c = channels(scene)
@@ -169,13 +152,13 @@ def test_sphere_behind_an_opaque_reconstructed_surface_is_invisible():
     """An emitting sphere inside an opaque reconstructed ball is hidden; in front, it shows."""
     def opaque_ball(x):
         return dr.select(dr.norm(mi.Vector3f(x[0], x[1], x[2])) < 0.4, 1e5, 0.0)
-    fg = Field(opaque_ball, (0.5, 0.5, 0.5))
+    fg = AnalyticField(opaque_ball, (0.5, 0.5, 0.5))
     lamp = {'type': 'sphere', 'radius': 0.15, 'emitter': {'type': 'area', 'radiance': {
         'type': 'rgb', 'value': [50.0, 50.0, 50.0]}}}
-    alone = channels(object_scene(fg, Field(1.0, sky), {}, fg_samples=256))
-    hidden = channels(object_scene(fg, Field(1.0, sky), {'lamp': dict(lamp, center=[0, 0, 0])},
+    alone = channels(object_scene(fg, AnalyticField(1.0, sky), {}, fg_samples=256))
+    hidden = channels(object_scene(fg, AnalyticField(1.0, sky), {'lamp': dict(lamp, center=[0, 0, 0])},
                                    fg_samples=256))
-    shown = channels(object_scene(fg, Field(1.0, sky), {'lamp': dict(lamp, center=[0, 0.1, 0.6])},
+    shown = channels(object_scene(fg, AnalyticField(1.0, sky), {'lamp': dict(lamp, center=[0, 0.1, 0.6])},
                                   fg_samples=256))
     seen = hidden['obj.A'] > 0
     assert seen.sum() > 10                       # the rays hit it (and see the volume first)
@@ -193,8 +176,8 @@ def test_mirror_sphere_reflects_the_reconstruction_from_the_hit_point(near):
     integrator's ``near`` applies to camera rays only."""
     import dataclasses
     center, radius = np.array([0.0, 0.0, 0.2]), 0.3
-    fg = Field(lambda x: dr.select(x[1] > 0.5, 4.0, 0.0), (0.9, 0.6, 0.1))   # a lit cap
-    bg = Field(1.0, sky)
+    fg = AnalyticField(lambda x: dr.select(x[1] > 0.5, 4.0, 0.0), (0.9, 0.6, 0.1))   # a lit cap
+    bg = AnalyticField(1.0, sky)
     scene = object_scene(fg, bg, {'mirror': {
         'type': 'sphere', 'center': list(center), 'radius': radius,
         'bsdf': {'type': 'conductor', 'material': 'none'}}}, max_depth=2, near=near)
@@ -227,7 +210,7 @@ def test_white_furnace(albedo):
     albedo 1 every pixel is c (the rendering equation's solution in a furnace, interreflection
     included); with albedo ρ a convex sphere's pixel is ρ·c."""
     c_rgb = np.array([0.3, 0.5, 0.7])
-    bg = Field(1.0, tuple(c_rgb))
+    bg = AnalyticField(1.0, tuple(c_rgb))
     shapes = {'a': {'type': 'sphere', 'center': [-0.2, 0, 0], 'radius': 0.2,
                     'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': albedo}}}}
     if albedo == 1.0:
@@ -254,8 +237,8 @@ def test_white_furnace(albedo):
 def ground_fields():
     """A reconstructed ground (opaque below y = -0.3, grey) under a sky that is bright
     straight above (x̂_y > 0.7) and dim elsewhere."""
-    fg = Field(lambda x: dr.select(x[1] < -0.3, 1e4, 0.0), (0.5, 0.5, 0.5))
-    bg = Field(1.0, lambda x: mi.Color3f(dr.select(x[1] > 0.7, 4.0, 0.1)))
+    fg = AnalyticField(lambda x: dr.select(x[1] < -0.3, 1e4, 0.0), (0.5, 0.5, 0.5))
+    bg = AnalyticField(1.0, lambda x: mi.Color3f(dr.select(x[1] > 0.7, 4.0, 0.1)))
     return fg, bg
 
 
@@ -398,7 +381,7 @@ def test_reconstructed_surface_shadows_the_scene_emitters(volume_shadows):
     def ball(x):
         q = mi.Vector3f(x[0] - center[0], x[1] - center[1], x[2] - center[2])
         return dr.select(dr.norm(q) < radius, 1e4, 0.0)
-    scene, p = lit_floor(Field(ball, (0, 0, 0)), volume_shadows=volume_shadows)
+    scene, p = lit_floor(AnalyticField(ball, (0, 0, 0)), volume_shadows=volume_shadows)
     c = channels(scene)
     # Distance from the ball's centre to the segment floor point -> light.
     to_light = LIGHT - p
@@ -460,11 +443,11 @@ def test_shadow_catcher_ratio_under_a_black_disk_is_the_unblocked_cosine_fractio
     the cosine-weighted fraction R²/(R² + h²) of its irradiance: the ground seen there is
     scaled by h²/(R² + h²)."""
     R, h, ground = 0.2, 0.2, 0.5
-    fg = Field(lambda x: dr.select(x[1] < -0.3, 1e4, 0.0), (ground, ground, ground))
+    fg = AnalyticField(lambda x: dr.select(x[1] < -0.3, 1e4, 0.0), (ground, ground, ground))
     disk = {'type': 'disk', 'to_world': mi.ScalarTransform4f().translate([0, -0.3 + h, 0])
             .rotate([1, 0, 0], -90).scale(R),
             'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'rgb', 'value': 0.0}}}
-    scene = object_scene(fg, Field(1.0, (2.0, 2.0, 2.0)), dict(CATCHER, disk=disk), width=3,
+    scene = object_scene(fg, AnalyticField(1.0, (2.0, 2.0, 2.0)), dict(CATCHER, disk=disk), width=3,
                          height=3, origin=(0.0, 0.2, 0.8), target=(0, -0.3, 0), spp=16, fov=2,
                          fg_samples=128, shadow_catchers='catcher', catcher_samples=64)
     # A narrow view from below the disk's rim: the centre pixel sees the point under it.
@@ -479,7 +462,7 @@ def test_shadow_catcher_ratio_under_a_black_disk_is_the_unblocked_cosine_fractio
 def test_foreground_only_alpha_covers_the_objects(tmp_path):
     """background=false: the EXR's A is the foreground over the objects' coverage."""
     from mi_nerfpp.views import render_to_files
-    scene = object_scene(Field(0.3, (1, 1, 1)), None, {'ball': {
+    scene = object_scene(AnalyticField(0.3, (1, 1, 1)), None, {'ball': {
         'type': 'sphere', 'center': [0, 0, 0.2], 'radius': 0.2}}, background=False)
     c = render_to_files(scene, tmp_path / 'r.exr', progress=False)
     on = c['obj.A'] == 1

@@ -108,9 +108,6 @@ class TrainConfig:
     sparsity: float = option(0.01, 'weight of the sparsity prior: Cauchy loss log(1 + 2σ²) of the '
                              'density at random points of each volume (Plenoxels), which '
                              'removes haze and floaters')
-    bg_start: float = option(0.0, 'fraction of the run during which the background volume stays '
-                             'at its initialization, so that the foreground explains what lies '
-                             'inside the unit sphere before the background can paint it')
     tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
     density_bias: float = option(0.0, "grid field: initial density logit: σ = 1 everywhere, above "
@@ -219,8 +216,7 @@ class TrainConfig:
             if not (finite(getattr(self, name)) and getattr(self, name) > 0):
                 bad(name, 'a positive finite number')
         for name in ('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'density_bias',
-                     'occupancy_threshold', 'sparsity', 'appearance_prior', 'poses_start',
-                     'bg_start'):
+                     'occupancy_threshold', 'sparsity', 'appearance_prior', 'poses_start'):
             v = getattr(self, name)
             if not finite(v) or (name != 'density_bias' and v < 0):
                 bad(name, 'a finite number' if name == 'density_bias' else
@@ -454,9 +450,7 @@ class Trainer:
         if self.model.occupancy and self.iteration % cfg.occupancy_every == 0:
             self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
             self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
-        frozen = 'bg.' if self.progress() < cfg.bg_start else None
-        self.model.set_parameters({k: dr.detach(self.opt[k]) if frozen and k.startswith(frozen)
-                                   else self.opt[k] for k in self.opt.keys()})
+        self.model.set_parameters({k: self.opt[k] for k in self.opt.keys()})
         refine = self.model.poses is not None and self.progress() >= cfg.poses_start
         if self.model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
             params = self.opt['poses'] if refine else dr.detach(self.opt['poses'])

@@ -322,6 +322,33 @@ def distortion(w, m, n):
     return dr.block_sum(per_sample, n)
 
 
+def ray_distortion(res):
+    """Distortion loss of whole rays (Float per ray): both volumes' fine samples on one axis,
+    the foreground chord on ``[0, ½)`` and the background's ``v = 1 − s/s_max`` on
+    ``[½, 1)``, with weights ``w_fg`` and ``λ·w_bg`` (Eq. 4's share of each volume).
+
+    Unlike the loss of each volume on its own, it sees a ray whose weight is split between a
+    surface in the foreground and another in the background as spread out (mip-NeRF 360
+    applies it to the whole ray likewise), so it favours one volume owning a surface over a
+    half-transparent foreground in front of a background that paints the rest."""
+    fg, bg = res.fg, res.bg
+    if bg is None:
+        return distortion(fg.weights, fg.position, fg.n)
+    if bg.rays is not None:
+        raise ValueError('ray_distortion needs the background of every ray (no skip_occluded)')
+    n_rays = dr.width(fg.fine.opacity)
+    n = fg.n + bg.n
+    ray, k = flat_index(n_rays, n)
+    in_fg = k < fg.n
+    i_fg, i_bg = ray * fg.n + k, ray * bg.n + (k - fg.n)
+    lam = dr.gather(mi.Float, 1.0 - fg.fine.opacity, ray)
+    w = dr.select(in_fg, dr.gather(mi.Float, fg.weights, i_fg, in_fg),
+                  lam * dr.gather(mi.Float, bg.weights, i_bg, ~in_fg))
+    m = dr.select(in_fg, 0.5 * dr.gather(mi.Float, fg.position, i_fg, in_fg),
+                  dr.fma(0.5, dr.gather(mi.Float, bg.position, i_bg, ~in_fg), 0.5))
+    return distortion(w, m, n)
+
+
 @dataclass
 class Sampling:
     """Sample counts and placement (the integrator's XML parameters)."""

@@ -368,6 +368,71 @@ def test_distortion_loss_matches_pairwise_definition():
         np.array(distortion(F(spread.ravel()), F(m[0]), n))[0]
 
 
+def _pairwise_distortion(w, m):
+    """float64 reference: mip-NeRF 360's distortion of sorted positions ``m`` (rays × n)."""
+    delta = np.concatenate([np.diff(m, axis=1), 1 - m[:, -1:]], axis=1)
+    return (np.abs(m[:, :, None] - m[:, None, :]) * w[:, :, None] * w[:, None, :]).sum((1, 2)) \
+        + (w ** 2 * delta).sum(1) / 3
+
+
+def test_ray_distortion_puts_both_volumes_on_one_axis():
+    """The whole-ray distortion equals the pairwise definition over the foreground samples at
+    m/2 (weights w_fg) followed by the background samples at ½ + m/2 (weights λ·w_bg), and it
+    penalizes a ray whose weight is split between the volumes more than one that either
+    volume owns."""
+    from mi_nerfpp.render import RenderResult, VolumeRender, ray_distortion
+    rng = np.random.default_rng(5)
+    n_rays, n_fg, n_bg = 6, 5, 4
+
+    def result(w_fg, w_bg, m_fg, m_bg):
+        alpha = w_fg.sum(1)
+        fg = VolumeRender(None, Shading(None, F(alpha), None), F(w_fg), F(m_fg), n_fg)
+        bg = VolumeRender(None, None, F(w_bg), F(m_bg), n_bg)
+        return RenderResult(fg, bg, None, None), alpha
+
+    m_fg = np.sort(rng.uniform(0, 1, (n_rays, n_fg)), axis=1)
+    m_bg = np.sort(rng.uniform(0, 1, (n_rays, n_bg)), axis=1)
+    w_fg = rng.dirichlet(np.ones(n_fg), n_rays) * rng.uniform(0, 1, (n_rays, 1))
+    w_bg = rng.dirichlet(np.ones(n_bg), n_rays)
+    res, alpha = result(w_fg, w_bg, m_fg, m_bg)
+    ref = _pairwise_distortion(np.concatenate([w_fg, (1 - alpha)[:, None] * w_bg], axis=1),
+                               np.concatenate([0.5 * m_fg, 0.5 + 0.5 * m_bg], axis=1))
+    np.testing.assert_allclose(np.array(ray_distortion(res)), ref, rtol=1e-5, atol=1e-7)
+
+    # One surface per volume (a sample each): all in the foreground, all in the background,
+    # or half and half.
+    one = np.zeros((3, n_fg))
+    one[:, 2] = [1.0, 0.0, 0.5]
+    other = np.zeros((3, n_bg))
+    other[:, 1] = 1.0
+    split, _ = result(one, other, m_fg[:3], m_bg[:3])
+    loss = np.array(ray_distortion(split))
+    assert loss[2] > 3 * max(loss[0], loss[1]), loss
+
+
+def test_ray_distortion_gradient_matches_finite_differences():
+    """d/dθ of the whole-ray distortion of a rendered batch, where θ scales the foreground's
+    density (so it moves weight between the volumes through λ), against central differences."""
+    from mi_nerfpp.render import ray_distortion
+    o, d = rays(64, seed=9)
+    seed = mi.UInt32(np.arange(64, dtype=np.uint32))
+    bg = AnalyticField(lambda x: 2.0 + 3.0 * x[3], (0.2, 0.3, 0.4))
+
+    def loss(theta):
+        fg = AnalyticField(lambda x: theta * dr.exp(-4.0 * (dr.square(x[0]) + dr.square(x[1]))),
+                           (1.0, 0.5, 0.0))
+        return dr.mean(ray_distortion(render_rays(o, d, fg, bg, Sampling(16, 16, 16), seed)))
+
+    theta = mi.Float(1.5)
+    dr.enable_grad(theta)
+    value = loss(theta)
+    dr.backward(value)
+    eps = 1e-2
+    fd = (loss(mi.Float(1.5 + eps)).array[0] - loss(mi.Float(1.5 - eps)).array[0]) / (2 * eps)
+    assert abs(fd) > 1e-3
+    assert np.array(dr.grad(theta))[0] == pytest.approx(fd, rel=2e-2)
+
+
 def test_skipping_the_occluded_background_changes_the_composite_by_at_most_its_threshold():
     """Early termination between the volumes: rays whose foreground transmittance λ is below
     OCCLUDED_TRANSMITTANCE get no background; the composite moves by at most λ·C_bg ≤ 1e-4

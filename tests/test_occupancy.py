@@ -15,6 +15,7 @@ import mitsuba as mi
 from mi_nerfpp.occupancy import EMPTY_WEIGHT, OccupancyGrid, OccupiedVolume
 from mi_nerfpp.render import Foreground, Sampling, render_rays, render_volume
 from mi_nerfpp.sampling import stratified
+from tests.helpers import AnalyticField
 
 SIGMA = 3.0
 COLOR = (0.2, 0.6, 0.9)
@@ -29,15 +30,9 @@ def npf(x, n=None):
     return a if n is None else a.reshape(-1, n)
 
 
-class HalfSpaceField:
+def half_space_field():
     """σ = SIGMA for x > 0, else 0; constant colour."""
-
-    def density(self, x):
-        return dr.select(x[0] > 0.0, SIGMA, 0.0)
-
-    def __call__(self, x, d, ray):
-        n = dr.width(x[0])
-        return self.density(x), mi.Color3f(*[dr.full(mi.Float, c, n) for c in COLOR])
+    return AnalyticField(lambda x: dr.select(x[0] > 0.0, SIGMA, 0.0), COLOR)
 
 
 def axis_rays(n=16, seed=0):
@@ -51,7 +46,7 @@ def axis_rays(n=16, seed=0):
 
 def half_space_grid(resolution=16):
     grid = OccupancyGrid('ball', resolution)
-    grid.update(HalfSpaceField(), seed=1)
+    grid.update(half_space_field(), seed=1)
     return grid
 
 
@@ -106,7 +101,7 @@ def test_occupied_quadrature_matches_the_closed_form():
     fg = Foreground(o, d)
     vol = OccupiedVolume(fg, half_space_grid(), bins=128)
     n = 32
-    shading = render_volume(vol, HalfSpaceField(), n, 0).fine
+    shading = render_volume(vol, half_space_field(), n, 0).fine
     x_exit = np.sqrt(1.0 - (yz ** 2).sum(axis=1))       # chord ends on the unit sphere
     L_occ, L_empty = x_exit, 0.9
     # Bins are looked up at their midpoints: the bin that straddles x = 0 counts as one or the other.
@@ -120,7 +115,7 @@ def test_occupancy_converges_with_far_fewer_samples():
     """Against a 4096-sample reference without skipping, 16 + 16 samples in occupied space are
     over three times as accurate as the same budget spread over the whole chord."""
     o, d, _ = axis_rays()
-    field = HalfSpaceField()
+    field = half_space_field()
     ref = render_rays(o, d, field, None, Sampling(4096, 1, 0)).fine.opacity
     grid = half_space_grid(64)
     occ = render_rays(o, d, field, None, Sampling(16, 1, 16), occupancy={'fg': grid}).fine.opacity
@@ -134,21 +129,9 @@ def test_empty_grid_renders_nothing_in_the_foreground():
     o, d, _ = axis_rays()
     grid = OccupancyGrid('ball', 8)
     grid.update(lambda_field(0.0), seed=0)
-    res = render_rays(o, d, _ConstField(50.0), None, Sampling(16, 1, 16), occupancy={'fg': grid})
+    res = render_rays(o, d, AnalyticField(50.0, (1.0, 1.0, 1.0)), None, Sampling(16, 1, 16), occupancy={'fg': grid})
     # The field is dense everywhere, but every cell is marked empty: only ε of it is seen.
     assert npf(res.fine.opacity).max() < 1.0 - np.exp(-50.0 * EMPTY_WEIGHT * 2.0) + 1e-6
-
-
-class _ConstField:
-    def __init__(self, sigma):
-        self.sigma = sigma
-
-    def density(self, x):
-        return dr.full(mi.Float, self.sigma, dr.width(x[0]))
-
-    def __call__(self, x, d, ray):
-        n = dr.width(x[0])
-        return self.density(x), mi.Color3f(dr.full(mi.Float, 1.0, n))
 
 
 def test_checkpoint_keeps_the_occupancy(tmp_path):

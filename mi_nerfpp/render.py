@@ -225,21 +225,27 @@ def composite(fg, bg):
 def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_only=False):
     """Hierarchical sampling and quadrature of one volume (see module docs).
 
-    ``visible_only`` (primal rendering with fine samples): the colour of a sample is evaluated
-    only where it can show (:func:`_shade_visible`); the coarse pass is then not shaded and
-    ``coarse`` repeats the fine shading."""
-    if visible_only and n_fine > 0:
-        return _render_visible_samples(volume, field, n_coarse, n_fine, seed, stream)
+    ``visible_only`` (primal rendering with fine samples): both passes take densities only,
+    and colour is evaluated at the merged samples that can show (:func:`_shade_visible`); the
+    coarse pass is then not shaded and ``coarse`` repeats the fine shading."""
+    lazy = visible_only and n_fine > 0
     n_rays = dr.width(volume.lo)
+
+    def evaluate(ray, v):
+        x = volume.inputs(ray, v)
+        out = (field.density(x), None) if lazy else field(x, volume.d, ray)
+        # One kernel computes all outputs of the field; without this, every later
+        # use (gathers, block sums) would re-trace the field for its own channel.
+        dr.eval(out)
+        return out
+
     v_c = stratified(volume.lo, volume.hi, n_coarse, uniforms(seed, n_coarse, stream))
     dr.eval(v_c)
     ray_c, _ = flat_index(n_rays, n_coarse)
-    sigma_c, rgb_c = field(volume.inputs(ray_c, v_c), volume.d, ray_c)
-    # One kernel computes all outputs of the field; without this, every later
-    # use (gathers, block sums) would re-trace the field for its own channel.
-    dr.eval(sigma_c, rgb_c)
-    coarse, w_c = quadrature(volume, v_c, sigma_c, rgb_c, n_coarse)
+    sigma_c, rgb_c = evaluate(ray_c, v_c)
+    w_c, _ = weights(volume, v_c, sigma_c, n_coarse)
     if n_fine == 0:
+        coarse = shade(volume, v_c, w_c, rgb_c, n_coarse)
         return VolumeRender(coarse, coarse, w_c, volume.normalized(ray_c, v_c), n_coarse,
                             volume.distance(ray_c, v_c))
 
@@ -247,43 +253,21 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
                       uniforms(seed, n_fine, stream + 1))
     dr.eval(v_f)
     ray_f, _ = flat_index(n_rays, n_fine)
-    sigma_f, rgb_f = field(volume.inputs(ray_f, v_f), volume.d, ray_f)
-    dr.eval(sigma_f, rgb_f)
+    sigma_f, rgb_f = evaluate(ray_f, v_f)
 
     order = merge_order(v_c, n_coarse, v_f, n_fine)
     v = gather_merged(order, v_c, v_f)
     sigma = gather_merged(order, sigma_c, sigma_f)
-    rgb = gather_merged(order, rgb_c, rgb_f)
-    n = n_coarse + n_fine
-    fine, w = quadrature(volume, v, sigma, rgb, n)
-    ray, _ = flat_index(n_rays, n)
-    return VolumeRender(coarse, fine, w, volume.normalized(ray, v), n, volume.distance(ray, v))
-
-
-def _render_visible_samples(volume, field, n_coarse, n_fine, seed, stream):
-    """:func:`render_volume` for primal renders: densities first (both passes), then colour only
-    at the samples that can contribute (:func:`_shade_visible`)."""
-    n_rays = dr.width(volume.lo)
-    v_c = stratified(volume.lo, volume.hi, n_coarse, uniforms(seed, n_coarse, stream))
-    dr.eval(v_c)
-    ray_c, _ = flat_index(n_rays, n_coarse)
-    sigma_c = field.density(volume.inputs(ray_c, v_c))
-    dr.eval(sigma_c)
-    w_c, _ = weights(volume, v_c, sigma_c, n_coarse)
-    v_f = inverse_cdf(v_c, w_c, volume.lo, volume.hi, n_coarse, n_fine,
-                      uniforms(seed, n_fine, stream + 1))
-    dr.eval(v_f)
-    ray_f, _ = flat_index(n_rays, n_fine)
-    sigma_f = field.density(volume.inputs(ray_f, v_f))
-    dr.eval(sigma_f)
-    order = merge_order(v_c, n_coarse, v_f, n_fine)
-    v, sigma = gather_merged(order, v_c, v_f), gather_merged(order, sigma_c, sigma_f)
     n = n_coarse + n_fine
     w, transmittance = weights(volume, v, sigma, n)
-    rgb = _shade_visible(volume, field, v, w, transmittance, n)
+    if lazy:
+        rgb = _shade_visible(volume, field, v, w, transmittance, n)
+    else:
+        rgb = gather_merged(order, rgb_c, rgb_f)
     fine = shade(volume, v, w, rgb, n)
+    coarse = fine if lazy else shade(volume, v_c, w_c, rgb_c, n_coarse)
     ray, _ = flat_index(n_rays, n)
-    return VolumeRender(fine, fine, w, volume.normalized(ray, v), n, volume.distance(ray, v))
+    return VolumeRender(coarse, fine, w, volume.normalized(ray, v), n, volume.distance(ray, v))
 
 
 def _shade_visible(volume, field, v, w, transmittance, n):

@@ -31,8 +31,10 @@ def uniforms(seed, n, stream):
     if seed is None:
         return None
     ray, k = flat_index(dr.width(seed), n)
-    rng = mi.PCG32(size=dr.width(ray), initstate=dr.gather(mi.UInt32, seed, ray),
-                   initseq=k * 16 + stream)
+    # Seeded explicitly: PCG32's constructor would add each lane's index to the state and
+    # sequence, so a ray's samples would depend on its place in the batch (on render chunks).
+    rng = mi.PCG32(size=dr.width(ray))
+    rng.seed(mi.UInt64(dr.gather(mi.UInt32, seed, ray)), mi.UInt64(k * 16 + stream))
     return rng.next_float32()
 
 

@@ -136,16 +136,19 @@ def test_perturb_poses_moves_training_cameras_but_0_and_records_the_true_ones(ca
 def test_refinement_shrinks_the_rotation_error_of_perturbed_poses(perturbed, tmp_path):
     out, record = perturbed
     trainer = Trainer(load_dataset(out), str(tmp_path),
-                      TrainConfig(iterations=300, refine_poses=True, **FAST))
+                      TrainConfig(iterations=300, refine_poses=True, lr_poses=3e-3,
+                                  poses_start=0.1, **FAST))
     trainer.run()
     rot, trans = poses.pose_errors(poses.world_poses(trainer.model, trainer.train.cameras),
                                    record['true'])
     assert rot[0] == 0 and trans[0] < 1e-6                 # the reference never moves
     # 3 degrees and 3% of the radius given. Measured after 300 steps on this 32x24 capture
-    # (3 degrees are 1.5 pixels): rotation error mean 2.90 degrees, 14 of the 15 cameras
-    # improved; the translation error does not measurably change at this size.
-    assert rot[1:].mean() < 0.98 * 3.0, rot
-    assert np.sum(rot[1:] < 3.0) >= 12, rot
+    # (3 degrees are 1.5 pixels), seeds 0-3 of the training: rotation error mean 2.62-2.66
+    # degrees, 11-13 of the 15 cameras improved (with the defaults' slower rate, 2.90-2.95 and
+    # 9-12: too close to 3 to test); the translation error does not measurably change at
+    # this size.
+    assert rot[1:].mean() < 0.93 * 3.0, rot
+    assert np.sum(rot[1:] < 3.0) >= 10, rot
     assert trans[1:].mean() / record['radius'] < 0.03 * 1.1, trans / record['radius']
 
 

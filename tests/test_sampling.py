@@ -85,6 +85,18 @@ def test_uniforms_are_reproducible_and_independent_per_stream():
     assert len(np.unique(a)) == a.size
 
 
+def test_uniforms_of_a_ray_do_not_depend_on_its_batch():
+    # A render split into chunks must place each ray's samples as the whole frame would.
+    seed = mi.UInt32(np.random.default_rng(5).integers(0, 2 ** 32, 12, dtype=np.uint64)
+                     .astype(np.uint32))
+    whole = npf(sampling.uniforms(seed, 8, 2), 8)
+    first = npf(sampling.uniforms(mi.UInt32(np.array(seed)[:5]), 8, 2), 8)
+    last = npf(sampling.uniforms(mi.UInt32(np.array(seed)[5:]), 8, 2), 8)
+    np.testing.assert_array_equal(whole, np.concatenate([first, last]))
+    # ...and rays with different seeds still get different variates
+    assert len(np.unique(whole)) == whole.size
+
+
 # ----------------------------------------------------------------------------- bin edges
 
 def test_bin_edges_tile_the_segment():

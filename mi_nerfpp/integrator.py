@@ -125,9 +125,8 @@ class NeRFPPIntegrator(ADIntegrator):
      * - stratified
        - |bool|
        - Jitter sample positions within their strata (using the sampler); off
-         gives deterministic midpoints, as NeRF does at test time. Known limit: a
-         ray's jitter also depends on its place in its chunk (``chunk_rays``).
-         (Default: false)
+         gives deterministic midpoints, as NeRF does at test time; a ray's jitter
+         does not depend on ``chunk_rays``. (Default: false)
      * - occluded_background
        - |bool|
        - Also render the background behind opaque foreground (transmittance

@@ -51,6 +51,16 @@ def test_chunked_render_matches_single_pass(tiny_scene):
     np.testing.assert_array_equal(whole, chunked)
 
 
+def test_stratified_jitter_does_not_depend_on_chunks():
+    scene = mi.load_dict(scene_dict(stratified=True))
+    scene.integrator().set_model(tiny_model())
+    whole = np.array(mi.render(scene, seed=3))
+    scene.integrator().chunk_rays = 7
+    chunked = np.array(mi.render(scene, seed=3))
+    np.testing.assert_allclose(whole, chunked, rtol=0, atol=1e-6)
+    assert np.any(np.array(mi.render(scene, seed=4)) != chunked)    # the jitter is live
+
+
 def test_sensor_outside_unit_sphere_renders_finite_values():
     scene = mi.load_dict(scene_dict(origin=(0.0, 0.5, 3.0)))
     scene.integrator().set_model(tiny_model())

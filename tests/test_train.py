@@ -202,3 +202,26 @@ def test_pure_mlp_fields_train(dataset, tmp_path, field):
     after = _params(tr.model)
     assert tr.model.fg.kind == field and len(losses) == 3 and all(np.isfinite(losses))
     assert all(not np.array_equal(before[k], after[k]) for k in before if 'trunk' in k)
+
+
+def test_sparsity_prior_reaches_each_volume_only_after_its_start(dataset, tmp_path):
+    import drjit as dr
+    tr = Trainer(dataset, str(tmp_path),
+                 TrainConfig(iterations=10, sparsity_start=(0.5, 0.0), **SMALL))
+
+    def touched():
+        tr.model.set_parameters({k: tr.opt[k] for k in tr.opt.keys()})
+        dr.backward(tr._sparsity_loss())
+        out = {vol: any(np.any(np.array(dr.grad(tr.opt[k])) != 0)
+                        for k in tr.opt.keys() if k.startswith(vol + '.'))
+               for vol in ('fg', 'bg')}
+        for k in tr.opt.keys():
+            dr.clear_grad(tr.opt[k])
+        return out
+
+    assert touched() == {'fg': False, 'bg': True}       # progress 0: the foreground is exempt
+    tr.iteration = 5                                     # half the run
+    assert touched() == {'fg': True, 'bg': True}
+    assert TrainConfig(sparsity_start=0.3).sparsity_start == (0.3,)
+    with pytest.raises(ValueError, match='--sparsity-start must be one fraction'):
+        TrainConfig(sparsity_start=(0.1, 0.2, 0.3))

@@ -117,8 +117,9 @@ class TrainConfig:
                                    'applies: one for both volumes, or one for the foreground '
                                    'and one for the background. 0.15 leaves the ground inside '
                                    'the foreground sphere to the foreground more often (the '
-                                   "default capture's mattes: |alpha - alpha_gt| 0.27 -> 0.05) "
-                                   'but leaves floaters: -0.3 to -1.4 dB held-out PSNR measured',
+                                   "default capture's mattes: |alpha - alpha_gt| 0.26 -> 0.05) "
+                                   'but leaves floaters: -0.8 to -1.4 dB held-out PSNR on a '
+                                   'small capture',
                                    type=float, nargs='+', metavar='F', default_help='(default: 0)')
     tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')

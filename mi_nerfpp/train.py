@@ -69,6 +69,12 @@ def _comma_floats(text):
     return values
 
 
+def _as_tuple(value):
+    """An option of one or more numbers as a tuple (from Python, one number may be given
+    bare); the values are checked where the option is validated."""
+    return (value,) if isinstance(value, (int, float)) else tuple(value)
+
+
 @dataclass
 class TrainConfig:
     """Options of a training run; the ``optimize`` command line is generated from these fields."""
@@ -247,14 +253,11 @@ class TrainConfig:
             bad('adam_beta2', 'a number in (0, 1)')
         if not (finite(self.fg_warp) and 0 <= self.fg_warp < 1):
             bad('fg_warp', 'a radius in [0, 1)')
-        if isinstance(self.sparsity_start, (int, float)):   # from Python: one number
-            self.sparsity_start = (float(self.sparsity_start),)
-        self.sparsity_start = tuple(float(f) for f in self.sparsity_start)
+        self.sparsity_start = _as_tuple(self.sparsity_start)
         if (len(self.sparsity_start) not in (1, 2)
                 or not all(finite(f) and 0 <= f <= 1 for f in self.sparsity_start)):
             bad('sparsity_start', 'one fraction in [0, 1], or two (foreground, background)')
-        if isinstance(self.bg_s_ratio, (int, float)):      # from Python: one number
-            self.bg_s_ratio = (float(self.bg_s_ratio),)
+        self.bg_s_ratio = _as_tuple(self.bg_s_ratio)
         if (not self.bg_s_ratio or not all(finite(q) and 0 < q <= 1 for q in self.bg_s_ratio)
                 or len(self.bg_s_ratio) not in (1, len(self.levels('inverted_sphere')))):
             bad('bg_s_ratio', 'one number in (0, 1], or one per background grid level')

@@ -118,7 +118,9 @@ class OccupancyGrid:
 
 
 class OccupiedVolume:
-    """A volume of :mod:`.render` re-parametrized by occupied length (see module docs)."""
+    """A volume of :mod:`.render` re-parametrized by occupied length (see module docs): its
+    sample coordinate is ``u``, and ``inputs`` and ``distance`` take the wrapped volume's own
+    parameter, ``parameter(ray, u)`` (the protocol of :class:`~.render.Volume`)."""
 
     def __init__(self, volume, grid, bins):
         self.base, self.bins = volume, int(bins)
@@ -137,8 +139,9 @@ class OccupiedVolume:
         self.lo = dr.zeros(mi.Float, n_rays)
         self.hi = dr.ones(mi.Float, n_rays)
 
-    def base_parameter(self, ray, u):
-        """The wrapped volume's parameter ``v`` at occupied-length fraction ``u``."""
+    def parameter(self, ray, u):
+        """The wrapped volume's parameter ``v`` at occupied-length fraction ``u`` (a binary
+        search in the ray's bins: renders compute it once per sample)."""
         K = self.bins
         target = u * dr.gather(mi.Float, self.total, ray)
         base = ray * K
@@ -149,14 +152,14 @@ class OccupiedVolume:
         hi = dr.gather(mi.Float, self.base.hi, ray)
         return dr.fma((mi.Float(b - base) + frac) * (1.0 / K), hi - lo, lo)
 
-    def inputs(self, ray, u):
-        return self.base.inputs(ray, self.base_parameter(ray, u))
+    def inputs(self, ray, v):
+        return self.base.inputs(ray, v)
 
     def delta_scale(self, ray):
         return dr.gather(mi.Float, self.total, ray) * self.base.delta_scale(ray)
 
-    def distance(self, ray, u):
-        return self.base.distance(ray, self.base_parameter(ray, u))
+    def distance(self, ray, v):
+        return self.base.distance(ray, v)
 
     def normalized(self, ray, u):
         return u

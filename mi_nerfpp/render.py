@@ -90,12 +90,25 @@ class RenderResult:
 
 # ----------------------------------------------------------------------------- volumes
 
-class Foreground:
-    """The unit-sphere volume, parametrized by ray distance ``t``; ``far`` (per ray, or None)
-    ends the segment there (the ray hit a surface), ``inf`` leaves it whole."""
+class Volume:
+    """What :func:`render_volume` asks of a volume. Samples are drawn in a *sample
+    coordinate* ``v`` on ``[lo, hi]`` per ray, where the quadrature's intervals are measured
+    (``δ = Δv · delta_scale``); the field inputs and distances are functions of the *ray
+    parameter* ``parameter(ray, v)``, which is ``v`` itself for the volumes here and the
+    occupied-length inverse for :class:`~.occupancy.OccupiedVolume`. Renders compute it
+    once per sample and pass it to ``inputs`` and ``distance``."""
 
     infinite_last = False
     open = None
+
+    def parameter(self, ray, v):
+        """The ray parameter of sample coordinate ``v`` (the identity here)."""
+        return v
+
+
+class Foreground(Volume):
+    """The unit-sphere volume, parametrized by ray distance ``t``; ``far`` (per ray, or None)
+    ends the segment there (the ray hit a surface), ``inf`` leaves it whole."""
 
     def __init__(self, o, d, near=0.0, far=None):
         self.o, self.d = o, d
@@ -124,7 +137,7 @@ class Foreground:
         return (v - lo) / dr.maximum(hi - lo, 1e-6)
 
 
-class Background:
+class Background(Volume):
     """The inverted-sphere volume, parametrized by ``v = 1 - s/s_max`` (see module docs).
 
     ``far`` (per ray, or None) ends the segment at that ray distance: ``v`` then stops at
@@ -198,18 +211,17 @@ def weights(volume, v, sigma, n):
     return transmittance * (1.0 - dr.exp(-tau)), transmittance
 
 
-def shade(volume, v, w, rgb, n):
-    """Colour, opacity and depth of ``n`` samples per ray with weights ``w``."""
-    ray, _ = flat_index(dr.width(volume.lo), n)
-    r, g, b, opacity, depth = dr.block_sum([w * rgb.x, w * rgb.y, w * rgb.z, w,
-                                            w * volume.distance(ray, v)], n)
+def shade(w, rgb, distance, n):
+    """Colour, opacity and depth of ``n`` samples per ray with weights ``w`` at ``distance``."""
+    r, g, b, opacity, depth = dr.block_sum([w * rgb.x, w * rgb.y, w * rgb.z, w, w * distance], n)
     return Shading(rgb=mi.Color3f(r, g, b), opacity=opacity, depth=depth)
 
 
 def quadrature(volume, v, sigma, rgb, n):
     """Composite ``n`` sorted samples per ray. Returns ``(Shading, weights)``."""
     w, _ = weights(volume, v, sigma, n)
-    return shade(volume, v, w, rgb, n), w
+    ray, _ = flat_index(dr.width(volume.lo), n)
+    return shade(w, rgb, volume.distance(ray, volume.parameter(ray, v)), n), w
 
 
 def composite(fg, bg):
@@ -231,58 +243,63 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
     lazy = visible_only and n_fine > 0
     n_rays = dr.width(volume.lo)
 
-    def evaluate(ray, v):
-        x = volume.inputs(ray, v)
+    def evaluate(ray, t):
+        x = volume.inputs(ray, t)
         out = (field.density(x), None) if lazy else field(x, volume.d, ray)
         # One kernel computes all outputs of the field; without this, every later
         # use (gathers, block sums) would re-trace the field for its own channel.
         dr.eval(out)
         return out
 
-    v_c = stratified(volume.lo, volume.hi, n_coarse, uniforms(seed, n_coarse, stream))
-    dr.eval(v_c)
     ray_c, _ = flat_index(n_rays, n_coarse)
-    sigma_c, rgb_c = evaluate(ray_c, v_c)
+    v_c = stratified(volume.lo, volume.hi, n_coarse, uniforms(seed, n_coarse, stream))
+    t_c = volume.parameter(ray_c, v_c)
+    dr.eval(v_c, t_c)
+    sigma_c, rgb_c = evaluate(ray_c, t_c)
     w_c, _ = weights(volume, v_c, sigma_c, n_coarse)
     if n_fine == 0:
-        coarse = shade(volume, v_c, w_c, rgb_c, n_coarse)
+        distance_c = volume.distance(ray_c, t_c)
+        coarse = shade(w_c, rgb_c, distance_c, n_coarse)
         return VolumeRender(coarse, coarse, w_c, volume.normalized(ray_c, v_c), n_coarse,
-                            volume.distance(ray_c, v_c))
+                            distance_c)
 
+    ray_f, _ = flat_index(n_rays, n_fine)
     v_f = inverse_cdf(v_c, w_c, volume.lo, volume.hi, n_coarse, n_fine,
                       uniforms(seed, n_fine, stream + 1))
-    dr.eval(v_f)
-    ray_f, _ = flat_index(n_rays, n_fine)
-    sigma_f, rgb_f = evaluate(ray_f, v_f)
+    t_f = volume.parameter(ray_f, v_f)
+    dr.eval(v_f, t_f)
+    sigma_f, rgb_f = evaluate(ray_f, t_f)
 
     order = merge_order(v_c, n_coarse, v_f, n_fine)
-    v = gather_merged(order, v_c, v_f)
+    v, t = gather_merged(order, v_c, v_f), gather_merged(order, t_c, t_f)
     sigma = gather_merged(order, sigma_c, sigma_f)
     n = n_coarse + n_fine
+    ray, _ = flat_index(n_rays, n)
     w, transmittance = weights(volume, v, sigma, n)
     if lazy:
-        rgb = _shade_visible(volume, field, v, w, transmittance, n)
+        rgb = _shade_visible(volume, field, t, w, transmittance, n)
     else:
         rgb = gather_merged(order, rgb_c, rgb_f)
-    fine = shade(volume, v, w, rgb, n)
-    coarse = fine if lazy else shade(volume, v_c, w_c, rgb_c, n_coarse)
-    ray, _ = flat_index(n_rays, n)
-    return VolumeRender(coarse, fine, w, volume.normalized(ray, v), n, volume.distance(ray, v))
+    distance = volume.distance(ray, t)
+    fine = shade(w, rgb, distance, n)
+    coarse = fine if lazy else shade(w_c, rgb_c, volume.distance(ray_c, t_c), n_coarse)
+    return VolumeRender(coarse, fine, w, volume.normalized(ray, v), n, distance)
 
 
-def _shade_visible(volume, field, v, w, transmittance, n):
-    """Colours of the samples at ``v`` (``n`` per ray, weights ``w``), evaluated only where
-    they can show and zero elsewhere: not behind the point where a ray's transmittance falls
-    below ``HIDDEN_WEIGHT / 2`` (early ray termination: all later weights sum to less) and not
-    where a sample's own weight is below ``HIDDEN_WEIGHT / (2n)``. Colours lie in [0, 1], so
-    the composite moves by less than ``HIDDEN_WEIGHT``; its opacity and depth are exact."""
+def _shade_visible(volume, field, t, w, transmittance, n):
+    """Colours of the samples at ray parameters ``t`` (``n`` per ray, weights ``w``), evaluated
+    only where they can show and zero elsewhere: not behind the point where a ray's
+    transmittance falls below ``HIDDEN_WEIGHT / 2`` (early ray termination: all later weights
+    sum to less) and not where a sample's own weight is below ``HIDDEN_WEIGHT / (2n)``. Colours
+    lie in [0, 1], so the composite moves by less than ``HIDDEN_WEIGHT``; its opacity and depth
+    are exact."""
     dr.eval(w, transmittance)
     shown = dr.compress((transmittance >= 0.5 * HIDDEN_WEIGHT)
                         & (w >= 0.5 * HIDDEN_WEIGHT / n))
-    rgb = dr.zeros(mi.Color3f, dr.width(v))
+    rgb = dr.zeros(mi.Color3f, dr.width(t))
     if dr.width(shown) > 0:
         ray = shown // n
-        _, rgb_shown = field(volume.inputs(ray, dr.gather(mi.Float, v, shown)), volume.d, ray)
+        _, rgb_shown = field(volume.inputs(ray, dr.gather(mi.Float, t, shown)), volume.d, ray)
         dr.scatter(rgb, rgb_shown, shown)
     return rgb
 

@@ -82,7 +82,8 @@ def test_samples_skip_the_empty_region():
     vol = OccupiedVolume(Foreground(o, d), half_space_grid(), bins=128)
     n = 16
     u = stratified(vol.lo, vol.hi, n)
-    x = npf(vol.inputs(*_ray_index(16, n), u)[0], n)
+    ray, = _ray_index(16, n)
+    x = npf(vol.inputs(ray, vol.parameter(ray, u))[0], n)
     bin_width = 1.9 / 128            # chords here are at most 1.9 long (|o| <= 0.95)
     assert (x > -bin_width).all()
     # Uniform in occupied length: equal steps in x.

@@ -37,7 +37,7 @@ def identity(n_images: int) -> mi.TensorXf:
     """The parameters of ``n_images`` identity transforms."""
     if n_images < 1:
         raise ValueError(f'appearance needs at least one image, got {n_images}')
-    return mi.TensorXf(np.zeros((n_images, PARAMS), np.float32))
+    return dr.zeros(mi.TensorXf, (n_images, PARAMS))
 
 
 def transform_rays(params: mi.TensorXf, image, rgb: mi.Color3f) -> mi.Color3f:

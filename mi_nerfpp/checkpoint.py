@@ -32,6 +32,7 @@ import zipfile
 import mitsuba as mi
 import numpy as np
 
+from .arrays import owned
 from .fields import make_field
 from .files import atomic_write_path
 from .frame import Normalization
@@ -114,7 +115,7 @@ def load_checkpoint(path, seed=0):
                                   f'the config needs {tuple(expected[k].shape)}')
         if not np.all(np.isfinite(v)):
             raise CheckpointError(f"{path}: parameter '{k}' contains NaN or inf")
-        values[k] = mi.TensorXf(np.ascontiguousarray(v, dtype=np.float32))
+        values[k] = owned(v)
     model.set_parameters(values)
     state = {k[len('state/'):]: v for k, v in z.items() if k.startswith('state/')}
     return model, config.get('meta', {}), state

@@ -130,6 +130,10 @@ class Field:
                 raise ValueError(f"parameter '{k}': shape {tuple(v.shape)} does not match "
                                  f"the field's {tuple(self.params[k].shape)}")
             self.params[k] = mi.TensorXf(v)
+        for i, tex in enumerate(getattr(self, 'textures', ())):
+            # Let go of the previous tensors now (a frozen training step, which sets them on
+            # lookup, would keep its recording's inputs alive otherwise).
+            tex.set_tensor(self.params[f'grid{i}'])
 
 
 class _Net:

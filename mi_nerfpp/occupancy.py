@@ -25,6 +25,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .arrays import owned
 from .geometry import grid_coordinates
 from .sampling import cdf_bin, flat_index
 
@@ -67,7 +68,7 @@ class OccupancyGrid:
             density = np.asarray(density, dtype=np.float32).ravel()
             if density.size != n:
                 raise ValueError(f'occupancy grid of {self.shape} needs {n} values, got {density.size}')
-            self.density = mi.Float(density)
+            self.density = owned(density, mi.Float)    # a training step may release it
 
     @property
     def config(self):

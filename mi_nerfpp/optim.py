@@ -34,10 +34,15 @@ def adam(params: dict, lr: float = LR_MLP, lazy: bool = False, beta_2: float = A
 def set_learning_rates(opt, progress: float, lr_grid: float = LR_GRID, lr_mlp: float = LR_MLP,
                        lr_final: float = LR_FINAL, by_name: dict | None = None) -> None:
     """Grid or MLP rate by name (``by_name``: the rate of particular parameters), times
-    ``lr_final ** progress`` (progress clamped to [0, 1])."""
+    ``lr_final ** progress`` (progress clamped to [0, 1]).
+
+    The rates are opaque arrays, not Python floats: a frozen training step
+    (:func:`drjit.freeze`) reads them as inputs, so it sees each step's rate instead of the
+    one it was recorded with, and no kernel is compiled per rate."""
     decay = lr_final ** min(max(progress, 0.0), 1.0)
     by_name = by_name or {}
-    opt.set_learning_rate({k: by_name.get(k, lr_grid if is_grid(k) else lr_mlp) * decay
+    opt.set_learning_rate({k: dr.opaque(dr.leaf_t(opt[k]),
+                                        by_name.get(k, lr_grid if is_grid(k) else lr_mlp) * decay)
                            for k in opt.keys()})
 
 

@@ -39,7 +39,7 @@ def zeros(n_images: int) -> mi.TensorXf:
     """The parameters of ``n_images`` identity corrections."""
     if n_images < 1:
         raise ValueError(f'pose refinement needs at least one image, got {n_images}')
-    return mi.TensorXf(np.zeros((n_images, PARAMS), np.float32))
+    return dr.zeros(mi.TensorXf, (n_images, PARAMS))
 
 
 def rotate(omega: mi.Vector3f, v: mi.Vector3f) -> mi.Vector3f:

@@ -7,7 +7,10 @@ composited in linear light; for sRGB photos the composite is sRGB-encoded before
 see :meth:`~mi_nerfpp.model.NeRFPPModel.radiance_fields`),
 back-propagate with Dr.Jit and take an Adam step (``drjit.opt``). Learning rates
 decay exponentially to ``lr_final`` times their start over the run (:mod:`.optim`, shared
-with :mod:`.ambiguity`).
+with :mod:`.ambiguity`). With ``freeze`` (the default) the kernels of a step are recorded once
+by :func:`drjit.freeze` and replayed: a step is a function of :meth:`Trainer._step_inputs`
+alone (optimizer, occupancy grids, ray bank, random draws as Dr.Jit arrays, and the phase of
+the run as Python values, whose change records the step anew).
 
 The run directory holds ``model.npz`` (the latest checkpoint, written atomically with
 the optimizer and RNG state and the loss history, so ``resume=True`` continues exactly);
@@ -21,7 +24,9 @@ a checkpoint trained with another value cannot be resumed.
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
+import gc
 import inspect
 import json
 import math
@@ -35,6 +40,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import appearance as app, occupancy as occ, optim, poses, priors
+from .arrays import owned
 from .checkpoint import load_checkpoint, save_checkpoint
 from .data import pixel_rays
 from .fields import GridField
@@ -170,6 +176,9 @@ class TrainConfig:
     color_width: int = option(_grid_default('hidden'), 'grid field: width of the colour MLP',
                               shapes_model=True)
     seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
+    freeze: bool = option(True, 'record the kernels of a training step once and replay them '
+                          '(drjit.freeze) instead of tracing every step in Python; re-recorded '
+                          'when a prior starts or the grids change resolution')
     checkpoint_every: int = option(500, 'iterations between checkpoints (0: only at the end)')
     preview_every: int = option(500, 'iterations between held-out previews (0: never)')
     downscale: int = option(None, 'integer image downscale factor (default: the smallest that '
@@ -341,11 +350,24 @@ class RayBank:
             image.append(np.full(h * w, k, np.uint32))
         o, d, c = (np.concatenate(a).astype(np.float32) for a in (o, d, c))
         self.size = len(c)
-        self.o = mi.Point3f(*[mi.Float(o[:, i]) for i in range(3)])
-        self.d = mi.Vector3f(*[mi.Float(d[:, i]) for i in range(3)])
-        self.rgb = mi.Color3f(*[mi.Float(c[:, i]) for i in range(3)])
-        self.image = mi.UInt32(np.concatenate(image))
+        # Owned copies (:mod:`.arrays`): a frozen step of another Trainer may outlive this one.
+        self.o = mi.Point3f(*[owned(o[:, i], mi.Float) for i in range(3)])
+        self.d = mi.Vector3f(*[owned(d[:, i], mi.Float) for i in range(3)])
+        self.rgb = mi.Color3f(*[owned(c[:, i], mi.Float) for i in range(3)])
+        self.image = owned(np.concatenate(image), mi.UInt32)
         dr.eval(self.o, self.d, self.rgb, self.image)
+
+    def arrays(self):
+        """The bank's Dr.Jit arrays (a frozen step takes them as inputs)."""
+        return self.o, self.d, self.rgb, self.image
+
+    @classmethod
+    def from_arrays(cls, o, d, rgb, image):
+        """A bank over the arrays of :meth:`arrays`."""
+        bank = cls.__new__(cls)
+        bank.o, bank.d, bank.rgb, bank.image = o, d, rgb, image
+        bank.size = dr.width(rgb)
+        return bank
 
     def batch(self, index):
         """``(origin, direction, colour)`` of the rays ``index``."""
@@ -423,6 +445,10 @@ class Trainer:
         self.opt = optim.adam(self.model.parameters(), config.lr_mlp, lazy=config.lazy_adam,
                               beta_2=config.adam_beta2)
         self._restore_optimizer(state)
+        # One step's kernels, recorded on the first call and replayed after (drjit.freeze):
+        # tracing the step in Python took ~18 of ~76 ms (README, "Measured performance").
+        self._compute = (dr.freeze(self._forward_backward) if config.freeze
+                         else self._forward_backward)
 
     # ------------------------------------------------------------------ optimizer state
     def _optimizer_state(self):
@@ -439,9 +465,11 @@ class Trainer:
             if f'adam.m/{k}' not in state:
                 continue
             value, promoted, lr, _ = self.opt.state[k]
+            # Owned copies: the first frozen step releases them (see :mod:`.arrays`).
             self.opt.state[k] = (value, promoted, lr,
-                                 (mi.UInt32(state[f'adam.t/{k}']), mi.Float(state[f'adam.m/{k}']),
-                                  mi.Float(state[f'adam.v/{k}']), None))
+                                 (dr.opaque(mi.UInt32, int(np.ravel(state[f'adam.t/{k}'])[0])),
+                                  owned(state[f'adam.m/{k}'], mi.Float),
+                                  owned(state[f'adam.v/{k}'], mi.Float), None))
 
     # ------------------------------------------------------------------ training
     def progress(self):
@@ -465,46 +493,101 @@ class Trainer:
         self._coarse_to_fine()
         optim.set_learning_rates(self.opt, self.progress(), cfg.lr_grid, cfg.lr_mlp, cfg.lr_final,
                                  {'appearance': cfg.lr_appearance, 'poses': cfg.lr_poses})
-        index = self.rng.integers(0, self.rays.size, cfg.batch_rays)
-        seed = mi.UInt32(self.rng.integers(0, 2 ** 32, cfg.batch_rays, dtype=np.uint64)
-                         .astype(np.uint32))
-        o, d, gt = self.rays.batch(index)
         if self.model.occupancy and self.iteration % cfg.occupancy_every == 0:
             self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
             self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
-        self.model.set_parameters({k: self.opt[k] for k in self.opt.keys()})
-        refine = self.model.poses is not None and self.progress() >= cfg.poses_start
-        if self.model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
-            params = self.opt['poses'] if refine else dr.detach(self.opt['poses'])
-            o, d = poses.correct_rays(params, self.rays.images(index), o, d)
-        res = render_rays(o, d, *self.model.radiance_fields(), cfg.sampling, seed=seed,
-                          occupancy=self.model.occupancy, ray_gradients=refine)
+        inputs = self._step_inputs()
+        # No cyclic garbage collection while a step is recorded: releasing a collected
+        # array that maps NumPy memory cannot be recorded (:mod:`.arrays`).
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            loss, fine = self._compute(inputs)
+        finally:
+            if collecting:
+                gc.enable()
+        # The model's fields read the parameters after the update (previews, evaluations);
+        # a replayed frozen step runs no Python, so the step itself cannot set them.
+        self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+        self.iteration += 1
+        return float(loss.array[0]), float(fine.array[0])
+
+    def _step_inputs(self):
+        """Everything a step reads, as :func:`drjit.freeze` traverses it: the optimizer (its
+        parameters, moments and learning rates), the occupancy grids, this step's random
+        draws (Dr.Jit arrays from a generator seeded by the run's RNG, so a resumed run
+        draws the same), and as Python values the phase of the run (which priors apply) and
+        the grids' shapes: a change of either records the step anew."""
+        cfg, n, p = self.cfg, self.cfg.batch_rays, self.progress()
+        gen = dr.rng(seed=int(self.rng.integers(0, 2 ** 63)))
+        sparse = [field is not None and p >= start for field, start in zip(
+            (self.model.fg, self.model.bg), cfg.sparsity_start * (2 // len(cfg.sparsity_start)))]
+        grids = [k for k in self.opt.keys() if optim.is_grid(k)] if cfg.tv > 0 else []
+        draws = {
+            'index': gen.integers(mi.UInt32, n, 0, self.rays.size),
+            'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
+            'sparsity': [[gen.random(mi.Float, n) for _ in range(4)] if on else None
+                         for on in sparse] if cfg.sparsity > 0 else [None, None],
+            'tv': {k: gen.integers(mi.UInt32, min(cfg.tv_cells, self._cells(k)), 0,
+                                   self._cells(k)) for k in grids},
+        }
+        dr.eval(draws)
+        phase = dict(refine=self.model.poses is not None and p >= cfg.poses_start,
+                     entropy=cfg.opacity_entropy > 0 and p >= cfg.entropy_start,
+                     shapes=tuple(tuple(self.opt[k].shape) for k in self.opt.keys()))
+        return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': self.rays.arrays(),
+                'occupancy': {k: g.density for k, g in self.model.occupancy.items()}}
+
+    def _cells(self, key):
+        shape = self.opt[key].shape
+        return shape[0] * shape[1] * shape[2]
+
+    def _forward_backward(self, inputs):
+        """Loss, gradients and the Adam update of one step from :meth:`_step_inputs` alone
+        (recorded once and replayed when ``freeze`` is on). Returns ``(loss, fine-pass
+        MSE)`` as Dr.Jit arrays."""
+        cfg, model = self.cfg, self.model
+        opt, draws, phase = inputs['opt'], inputs['draws'], inputs['phase']
+        rays = RayBank.from_arrays(*inputs['rays'])
+        index = draws['index']
+        o, d, gt = rays.batch(index)
+        occupancy = {}
+        for k, grid in model.occupancy.items():       # the model's grids are left untouched
+            occupancy[k] = copy.copy(grid)
+            occupancy[k].density = inputs['occupancy'][k]
+        model.set_parameters({k: opt[k] for k in opt.keys()})
+        refine = phase['refine']
+        if model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
+            params = opt['poses'] if refine else dr.detach(opt['poses'])
+            o, d = poses.correct_rays(params, rays.images(index), o, d)
+        res = render_rays(o, d, *model.radiance_fields(), cfg.sampling, seed=draws['seed'],
+                          occupancy=occupancy, ray_gradients=refine)
         # Radiance is linear; the loss compares it in the encoding of the images, after the
         # image's colour transform when appearance is learned.
-        encode = self.model.loss_encoding
-        if self.model.appearance is not None:
-            image, params = self.rays.images(index), self.opt['appearance']
+        encode = model.loss_encoding
+        if model.appearance is not None:
+            image, params = rays.images(index), opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
         fine = optim.mse(encode(res.fine.rgb), gt)
         loss = fine + optim.mse(encode(res.coarse.rgb), gt)
-        if self.model.appearance is not None and cfg.appearance_prior > 0:
-            loss += cfg.appearance_prior * app.prior(self.opt['appearance'])
+        if model.appearance is not None and cfg.appearance_prior > 0:
+            loss += cfg.appearance_prior * app.prior(opt['appearance'])
         if cfg.distortion > 0 and cfg.distortion_scope == 'ray':
             loss += cfg.distortion * dr.mean(ray_distortion(res))
         elif cfg.distortion > 0:
             for vol in (res.fg, res.bg):
                 if vol is not None:
                     loss += cfg.distortion * dr.mean(distortion(vol.weights, vol.position, vol.n))
-        if cfg.opacity_entropy > 0 and self.progress() >= cfg.entropy_start:
+        if phase['entropy']:
             loss += cfg.opacity_entropy * priors.opacity_entropy(res.fg.fine.opacity)
         if cfg.sparsity > 0:
-            loss += cfg.sparsity * self._sparsity_loss()
+            loss += cfg.sparsity * self._sparsity_loss(draws['sparsity'])
         if cfg.tv > 0:
-            loss += cfg.tv * self._tv_loss()
+            loss += cfg.tv * sum((priors.grid_tv(opt[k], idx) for k, idx in draws['tv'].items()),
+                                 mi.Float(0.0))
         dr.backward(loss)
-        self.opt.step()
-        self.iteration += 1
-        return float(loss.array[0]), float(fine.array[0])
+        opt.step()
+        return loss, fine
 
     def _coarse_to_fine(self):
         """Double the grids' resolution at each ``coarse_to_fine`` fraction of the run passed."""
@@ -520,28 +603,14 @@ class Trainer:
                     field.upsample(level, target)
                     self.opt[key] = field.params[f'grid{level}']   # new shape: fresh Adam moments
 
-    def _sparsity_loss(self):
-        """Cauchy sparsity of each volume's density at ``batch_rays`` random points, once the
-        run has passed the volume's ``sparsity_start``."""
-        n = self.cfg.batch_rays
+    def _sparsity_loss(self, points):
+        """Cauchy sparsity of each volume's density at ``batch_rays`` random points (``points``:
+        4 uniform Floats per volume, None where the run has not reached the volume's
+        ``sparsity_start``)."""
         total = mi.Float(0.0)
-        starts = self.cfg.sparsity_start * (2 // len(self.cfg.sparsity_start))
-        for field, start in zip((self.model.fg, self.model.bg), starts):
-            if field is None or self.progress() < start:
-                continue
-            u = [mi.Float(self.rng.random(n, dtype=np.float32)) for _ in range(4)]
-            total += priors.cauchy_sparsity(field.density(priors.random_points(field.domain, u)))
-        return total
-
-    def _tv_loss(self):
-        """Total variation of every grid level, estimated on random cells (see :func:`grid_tv`)."""
-        total = mi.Float(0.0)
-        for k in self.opt.keys():
-            if optim.is_grid(k):
-                shape = self.opt[k].shape
-                cells = shape[0] * shape[1] * shape[2]
-                idx = mi.UInt32(self.rng.integers(0, cells, min(self.cfg.tv_cells, cells)))
-                total += priors.grid_tv(self.opt[k], idx)
+        for field, u in zip((self.model.fg, self.model.bg), points):
+            if field is not None and u is not None:
+                total += priors.cauchy_sparsity(field.density(priors.random_points(field.domain, u)))
         return total
 
     def data_summary(self):

@@ -211,7 +211,7 @@ def test_sparsity_prior_reaches_each_volume_only_after_its_start(dataset, tmp_pa
 
     def touched():
         tr.model.set_parameters({k: tr.opt[k] for k in tr.opt.keys()})
-        dr.backward(tr._sparsity_loss())
+        dr.backward(tr._sparsity_loss(tr._step_inputs()['draws']['sparsity']))
         out = {vol: any(np.any(np.array(dr.grad(tr.opt[k])) != 0)
                         for k in tr.opt.keys() if k.startswith(vol + '.'))
                for vol in ('fg', 'bg')}
@@ -225,3 +225,39 @@ def test_sparsity_prior_reaches_each_volume_only_after_its_start(dataset, tmp_pa
     assert TrainConfig(sparsity_start=0.3).sparsity_start == (0.3,)
     with pytest.raises(ValueError, match='--sparsity-start must be one fraction'):
         TrainConfig(sparsity_start=(0.1, 0.2, 0.3))
+
+
+@pytest.mark.parametrize('extra', [dict(sparsity_start=(0.5,)),
+                                   dict(refine_poses=True, poses_start=0.5, appearance=True,
+                                        tv=0.01, tv_cells=256, occupancy_every=3)])
+def test_frozen_step_replays_the_traced_step(dataset, tmp_path, extra):
+    """A frozen step (recorded once, replayed) computes what tracing every step computes:
+    each step's learning rate and random draws reach the replay, and a prior that starts
+    half-way (or pose refinement) records the step anew instead of replaying the old one."""
+    cfg = dict(iterations=8, seed=3, **SMALL, **extra)
+    runs = {}
+    for freeze in (False, True):
+        tr = Trainer(dataset, str(tmp_path / str(freeze)), TrainConfig(freeze=freeze, **cfg))
+        losses = [tr.step()[0] for _ in range(8)]
+        runs[freeze] = losses, _params(tr.model)
+    # Recorded once, once more when Dr.Jit makes the first step's constants opaque, and once
+    # when the prior or the pose refinement starts: not every step (8).
+    assert tr._compute.n_recordings <= 3
+    (traced, p_traced), (frozen, p_frozen) = runs[False], runs[True]
+    assert len(set(traced)) == 8                        # the steps differ from each other
+    np.testing.assert_allclose(frozen, traced, rtol=1e-4)
+    for k in p_traced:
+        np.testing.assert_allclose(p_frozen[k], p_traced[k], rtol=1e-3, atol=1e-5, err_msg=k)
+
+
+def test_owned_arrays_do_not_share_numpy_memory():
+    """What a frozen step may release is a copy, never a view of a NumPy buffer (whose
+    release Dr.Jit cannot record): writing to the source after the copy changes nothing."""
+    import drjit as dr
+    import mitsuba as mi
+    from mi_nerfpp.arrays import owned
+    a = np.zeros((64, 1024), np.float32)        # page-aligned: the case NumPy may lend out
+    t, f = owned(a), owned(a.ravel(), mi.Float)
+    a[:] = 7.0
+    assert t.shape == (64, 1024) and dr.all(t.array == 0.0) and dr.all(f == 0.0)
+    np.testing.assert_array_equal(owned(np.arange(6, dtype=np.uint32), mi.UInt32), np.arange(6))

@@ -29,7 +29,6 @@ import json
 import os
 import zipfile
 
-import mitsuba as mi
 import numpy as np
 
 from .arrays import owned

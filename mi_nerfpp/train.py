@@ -503,6 +503,12 @@ class Trainer:
         gc.disable()
         try:
             loss, fine = self._compute(inputs)
+        except RuntimeError as e:
+            # Ctrl-C (or SIGTERM) while a step is being recorded reaches us wrapped by
+            # drjit.freeze; unwrapped, it stops the run with a checkpoint as anywhere else.
+            if isinstance(e.__cause__, KeyboardInterrupt):
+                raise e.__cause__ from None
+            raise
         finally:
             if collecting:
                 gc.enable()

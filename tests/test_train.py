@@ -261,3 +261,24 @@ def test_owned_arrays_do_not_share_numpy_memory():
     a[:] = 7.0
     assert t.shape == (64, 1024) and dr.all(t.array == 0.0) and dr.all(f == 0.0)
     np.testing.assert_array_equal(owned(np.arange(6, dtype=np.uint32), mi.UInt32), np.arange(6))
+
+
+def test_ctrl_c_while_a_step_is_recorded_saves_a_checkpoint(dataset, tmp_path, monkeypatch):
+    """drjit.freeze wraps an exception raised while it records the step in a RuntimeError:
+    a Ctrl-C there must still stop the run like a Ctrl-C anywhere else (checkpoint saved),
+    and the run must go on from it."""
+    import mi_nerfpp.train as train_module
+    original, calls = train_module.ray_distortion, []
+
+    def interrupted_once(res):
+        calls.append(1)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return original(res)
+
+    monkeypatch.setattr(train_module, 'ray_distortion', interrupted_once)
+    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=4, **SMALL))
+    assert tr.run() is False
+    assert os.path.exists(tmp_path / 'model.npz') and tr.iteration == 0
+    resumed = Trainer(dataset, str(tmp_path), TrainConfig(iterations=4, **SMALL), resume=True)
+    assert resumed.run() is True and resumed.iteration == 4

@@ -92,3 +92,30 @@ def separation(alpha: np.ndarray, alpha_gt: np.ndarray, depth: np.ndarray | None
         rel = np.abs(np.asarray(depth, np.float64) - depth_gt) / np.where(valid, depth_gt, 1.0)
         out['depth_error'] = float(np.median(rel[valid])) if valid.any() else float('nan')
     return out
+
+
+# Search range, in pixels, of :func:`equivalent_blur`.
+MAX_BLUR = 8.0
+
+
+def equivalent_blur(pred: np.ndarray, reference: np.ndarray) -> float:
+    """How blurred ``pred`` is, in pixels: the standard deviation of the Gaussian blur of
+    ``reference`` whose PSNR against ``reference`` equals that of ``pred``. 0 for a perfect
+    ``pred``; ``inf`` when even a blur of :data:`MAX_BLUR` pixels scores better (errors
+    other than blur dominate). A single number for "renders are blurred", against a
+    noise-free reference."""
+    from scipy.ndimage import gaussian_filter
+    pred, reference = _check_pair(pred, reference)
+    target = psnr(pred, reference)
+
+    def score(sigma):
+        return psnr(gaussian_filter(reference, (sigma, sigma, 0)), reference)
+    if target == float('inf'):
+        return 0.0
+    if score(MAX_BLUR) > target:
+        return float('inf')
+    lo, hi = 0.0, MAX_BLUR
+    for _ in range(30):          # the PSNR of a blur falls as it widens: bisect
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if score(mid) > target else (lo, mid)
+    return 0.5 * (lo + hi)

@@ -119,3 +119,18 @@ def test_masked_psnr_scores_only_the_masked_pixels():
     assert np.isnan(masked_psnr(pred, gt, np.zeros((4, 4), bool)))
     with pytest.raises(ValueError, match='mask shape'):
         masked_psnr(pred, gt, np.ones((2, 2), bool))
+
+
+def test_equivalent_blur_recovers_the_blur_of_a_blurred_image():
+    from scipy.ndimage import gaussian_filter
+    rng = np.random.default_rng(3)
+    reference = gaussian_filter(rng.uniform(size=(48, 64, 3)), (0.7, 0.7, 0))
+    for sigma in (0.6, 1.3, 2.5):
+        blurred = gaussian_filter(reference, (sigma, sigma, 0))
+        assert metrics.equivalent_blur(blurred, reference) == pytest.approx(sigma, abs=0.01)
+
+
+def test_equivalent_blur_of_a_perfect_and_of_a_hopeless_prediction(gt):
+    assert metrics.equivalent_blur(gt, gt) == 0.0
+    # An error no blur of the reference comes near: a constant offset of half the range.
+    assert metrics.equivalent_blur(np.clip(gt + 0.5, 0, 1), gt) == math.inf

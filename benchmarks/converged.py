@@ -1,0 +1,98 @@
+"""How far a trained model is from the truth, without the capture's Monte Carlo noise.
+
+    python benchmarks/converged.py RUN [--spp 1024] [--train-every 8]
+
+A synthetic capture's images are 64-spp renders: a model scored against them loses points to
+their noise too (``benchmarks/noise_ceiling.py``). For a run of a synthetic capture (a folder
+written by ``optimize``), this renders every test view and every ``--train-every``-th training
+view of the ground-truth scene at ``--spp`` samples per pixel (close to converged; cached next
+to the capture in ``DATA/converged/``, keyed by camera, scene file and spp), and prints per view,
+in the 8-bit sRGB encoding of the capture:
+
+* ``capture``: PSNR of the capture's image against the converged one (its noise);
+* ``model``: PSNR of the model's render against the converged image, also over the pixels
+  inside and outside the true foreground mask (``gt/*.exr``'s ``fg.A``);
+* ``blur``: the standard deviation, in pixels, of the Gaussian blur of the converged image
+  that scores the same PSNR as the model (``mi_nerfpp.metrics.equivalent_blur``: how blurred
+  the reconstruction is, as one number; ``inf`` where errors other than blur dominate).
+"""
+import argparse
+import glob
+import hashlib
+import json
+import os
+
+import numpy as np
+
+import mi_nerfpp  # noqa: F401
+import mitsuba as mi
+from mi_nerfpp.commands import open_run_or_exit
+from mi_nerfpp.data import mitsuba_sensor_dict
+from mi_nerfpp.exr import read_exr
+from mi_nerfpp.frame import MITSUBA_NEAR_CLIP
+from mi_nerfpp.metrics import equivalent_blur, masked_psnr, psnr
+from mi_nerfpp.preview import to_srgb8
+from mi_nerfpp.views import ViewRenderer, encoded_rgb
+
+def converged(scene, scene_sha, world_camera, spp, cache):
+    """The view rendered at ``spp`` (8-bit sRGB as float), cached under its key in ``cache``."""
+    key = hashlib.sha256(json.dumps([scene_sha, spp, world_camera.K.tolist(),
+                                     world_camera.c2w.tolist(), world_camera.width,
+                                     world_camera.height]).encode()).hexdigest()[:16]
+    path = os.path.join(cache, f'{key}.npy')
+    if os.path.isfile(path):
+        return np.load(path)
+    desc = mitsuba_sensor_dict(world_camera, spp=spp, pixel_format='rgb')
+    desc['near_clip'] = MITSUBA_NEAR_CLIP
+    image = np.array(mi.render(scene, sensor=mi.load_dict(desc), spp=spp, seed=104729))
+    image = to_srgb8(image[..., :3]).astype(np.float64) / 255.0
+    os.makedirs(cache, exist_ok=True)
+    tmp = path + '.tmp.npy'
+    np.save(tmp, image)
+    os.replace(tmp, path)
+    return image
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('run', help='run folder written by optimize on a synthetic capture')
+    ap.add_argument('--spp', type=int, default=1024)
+    ap.add_argument('--train-every', type=int, default=8)
+    a = ap.parse_args()
+    model, _, cfg, dataset = open_run_or_exit(a.run)
+    data = dataset.root
+    try:
+        with open(os.path.join(data, 'capture.json')) as f:
+            capture = json.load(f)
+    except OSError:
+        raise SystemExit(f'{data}: no capture.json; this benchmark needs a capture written by '
+                         f'`python -m mi_nerfpp synth`') from None
+    scene = mi.load_file(capture['scene_path'])
+    renderer = ViewRenderer(model, cfg.sampling, cfg.model == 'nerfpp')
+    cache = os.path.join(data, 'converged')
+    print(f'{"view":>10} {"capture":>8} {"model":>6} {"fg":>6} {"bg":>6} {"blur px":>7}')
+    rows = {}
+    for split, step in (('train', a.train_every), ('test', 1)):
+        views = getattr(dataset, split)
+        gts = sorted(glob.glob(os.path.join(data, split, 'gt', '*.exr')))
+        for i in range(0, len(views), step):
+            camera = views.cameras[i]
+            truth = converged(scene, capture['scene_sha256'],
+                              dataset.normalization.to_world_camera(camera), a.spp, cache)
+            pred = np.clip(encoded_rgb(renderer.render(camera), model.color_space), 0, 1)
+            inside = read_exr(gts[i])['fg.A'] > 0.5
+            row = [psnr(views.images[i], truth), psnr(pred, truth), masked_psnr(pred, truth, inside),
+                   masked_psnr(pred, truth, ~inside)]
+            row.append(equivalent_blur(pred, truth))
+            rows.setdefault(split, []).append(row)
+            print(f'{split:>5} {i:4d} {row[0]:8.2f} {row[1]:6.2f} {row[2]:6.2f} {row[3]:6.2f} '
+                  f'{row[4]:7.2f}', flush=True)
+    for split, values in rows.items():
+        m = np.nanmean(np.array(values), axis=0)
+        print(f'{split} mean: capture {m[0]:.2f} dB, model {m[1]:.2f} dB (foreground {m[2]:.2f}, '
+              f'background {m[3]:.2f}), as blurred as the converged image by a Gaussian of '
+              f'{np.median([v[4] for v in values]):.2f} px (median)')
+
+
+if __name__ == '__main__':
+    main()

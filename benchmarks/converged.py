@@ -14,7 +14,10 @@ in the 8-bit sRGB encoding of the capture:
   inside and outside the true foreground mask (``gt/*.exr``'s ``fg.A``);
 * ``blur``: the standard deviation, in pixels, of the Gaussian blur of the converged image
   that scores the same PSNR as the model (``mi_nerfpp.metrics.equivalent_blur``: how blurred
-  the reconstruction is, as one number; ``inf`` where errors other than blur dominate).
+  the reconstruction is, as one number; ``inf`` where errors other than blur dominate);
+* ``far`` and ``near``: where the background is, over the pixels outside the true mask whose
+  ray hits a surface (not the sky): the share whose rendered ``depth.Z`` is more than
+  ``FAR``x the true depth (content painted at infinity) and the share within ``NEAR`` of it.
 """
 import argparse
 import glob
@@ -33,6 +36,10 @@ from mi_nerfpp.frame import MITSUBA_NEAR_CLIP
 from mi_nerfpp.metrics import equivalent_blur, masked_psnr, psnr
 from mi_nerfpp.preview import to_srgb8
 from mi_nerfpp.views import ViewRenderer, encoded_rgb
+from quality import ray_distance_to_z
+
+FAR = 4.0      # a depth more than this many times the truth counts as 'at infinity'
+NEAR = 0.25    # relative depth error that counts as 'right'
 
 def converged(scene, scene_sha, world_camera, spp, cache):
     """The view rendered at ``spp`` (8-bit sRGB as float), cached under its key in ``cache``."""
@@ -70,7 +77,8 @@ def main():
     scene = mi.load_file(capture['scene_path'])
     renderer = ViewRenderer(model, cfg.sampling, cfg.model == 'nerfpp')
     cache = os.path.join(data, 'converged')
-    print(f'{"view":>10} {"capture":>8} {"model":>6} {"fg":>6} {"bg":>6} {"blur px":>7}')
+    print(f'{"view":>10} {"capture":>8} {"model":>6} {"fg":>6} {"bg":>6} {"blur px":>7} '
+          f'{"far":>5} {"near":>5}')
     rows = {}
     for split, step in (('train', a.train_every), ('test', 1)):
         views = getattr(dataset, split)
@@ -79,19 +87,27 @@ def main():
             camera = views.cameras[i]
             truth = converged(scene, capture['scene_sha256'],
                               dataset.normalization.to_world_camera(camera), a.spp, cache)
-            pred = np.clip(encoded_rgb(renderer.render(camera), model.color_space), 0, 1)
-            inside = read_exr(gts[i])['fg.A'] > 0.5
+            layers = renderer.render(camera)
+            pred = np.clip(encoded_rgb(layers, model.color_space), 0, 1)
+            gt = read_exr(gts[i])
+            inside = gt['fg.A'] > 0.5
             row = [psnr(views.images[i], truth), psnr(pred, truth), masked_psnr(pred, truth, inside),
                    masked_psnr(pred, truth, ~inside)]
             row.append(equivalent_blur(pred, truth))
+            surface = ~inside & (gt['depth.Z'] > 0)
+            true_z = ray_distance_to_z(gt['depth.Z'], camera)[surface]
+            z = layers['depth.Z'][surface]
+            row += [np.mean(z > FAR * true_z), np.mean(np.abs(z - true_z) < NEAR * true_z)]
             rows.setdefault(split, []).append(row)
             print(f'{split:>5} {i:4d} {row[0]:8.2f} {row[1]:6.2f} {row[2]:6.2f} {row[3]:6.2f} '
-                  f'{row[4]:7.2f}', flush=True)
+                  f'{row[4]:7.2f} {100 * row[5]:4.0f}% {100 * row[6]:4.0f}%', flush=True)
     for split, values in rows.items():
         m = np.nanmean(np.array(values), axis=0)
         print(f'{split} mean: capture {m[0]:.2f} dB, model {m[1]:.2f} dB (foreground {m[2]:.2f}, '
               f'background {m[3]:.2f}), as blurred as the converged image by a Gaussian of '
-              f'{np.median([v[4] for v in values]):.2f} px (median)')
+              f'{np.median([v[4] for v in values]):.2f} px (median); background depth: '
+              f'{100 * m[5]:.0f} % of its surface pixels beyond {FAR:g}x the truth, '
+              f'{100 * m[6]:.0f} % within {100 * NEAR:.0f} %')
 
 
 if __name__ == '__main__':

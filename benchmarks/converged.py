@@ -30,16 +30,15 @@ import numpy as np
 import mi_nerfpp  # noqa: F401
 import mitsuba as mi
 from mi_nerfpp.commands import open_run_or_exit
-from mi_nerfpp.data import mitsuba_sensor_dict
 from mi_nerfpp.exr import read_exr
-from mi_nerfpp.frame import MITSUBA_NEAR_CLIP
 from mi_nerfpp.metrics import equivalent_blur, masked_psnr, psnr
-from mi_nerfpp.preview import to_srgb8
 from mi_nerfpp.views import ViewRenderer, encoded_rgb
+from noise_ceiling import render_encoded
 from quality import ray_distance_to_z
 
 FAR = 4.0      # a depth more than this many times the truth counts as 'at infinity'
 NEAR = 0.25    # relative depth error that counts as 'right'
+
 
 def converged(scene, scene_sha, world_camera, spp, cache):
     """The view rendered at ``spp`` (8-bit sRGB as float), cached under its key in ``cache``."""
@@ -49,10 +48,7 @@ def converged(scene, scene_sha, world_camera, spp, cache):
     path = os.path.join(cache, f'{key}.npy')
     if os.path.isfile(path):
         return np.load(path)
-    desc = mitsuba_sensor_dict(world_camera, spp=spp, pixel_format='rgb')
-    desc['near_clip'] = MITSUBA_NEAR_CLIP
-    image = np.array(mi.render(scene, sensor=mi.load_dict(desc), spp=spp, seed=104729))
-    image = to_srgb8(image[..., :3]).astype(np.float64) / 255.0
+    image = render_encoded(scene, world_camera, spp, seed=104729)
     os.makedirs(cache, exist_ok=True)
     tmp = path + '.tmp.npy'
     np.save(tmp, image)

@@ -24,6 +24,15 @@ from mi_nerfpp.preview import to_srgb8
 from mi_nerfpp.synth import default_capture
 
 
+def render_encoded(scene, world_camera, spp, seed):
+    """The ground-truth scene seen by ``world_camera`` at ``spp``, in the capture's 8-bit sRGB
+    encoding (as floats in [0, 1]), with the sensor ``synth`` renders through."""
+    desc = mitsuba_sensor_dict(world_camera, spp=spp, pixel_format='rgb')
+    desc['near_clip'] = MITSUBA_NEAR_CLIP
+    image = np.array(mi.render(scene, sensor=mi.load_dict(desc), spp=spp, seed=seed))
+    return to_srgb8(image[..., :3]).astype(np.float64) / 255.0
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('data', nargs='?')
@@ -36,11 +45,8 @@ def main():
     spp = int(capture['spp'])
     scores = []
     for i, camera in enumerate(dataset.test.cameras):
-        desc = mitsuba_sensor_dict(dataset.normalization.to_world_camera(camera), spp=spp,
-                                   pixel_format='rgb')
-        desc['near_clip'] = MITSUBA_NEAR_CLIP
-        image = np.array(mi.render(scene, sensor=mi.load_dict(desc), spp=spp, seed=7919 + i))
-        again = to_srgb8(image[..., :3]).astype(np.float64) / 255.0
+        again = render_encoded(scene, dataset.normalization.to_world_camera(camera), spp,
+                               7919 + i)
         scores.append(psnr(again, dataset.test.images[i]))
         print(f'test view {i}: {scores[-1]:.2f} dB between two {spp}-spp renders')
     print(f'mean {np.mean(scores):.2f} dB: each capture image is ~{np.mean(scores) + 3:.1f} dB '

@@ -108,12 +108,12 @@ def test_learned_gains_match_the_applied_ones(runs, exposed):
     assert np.abs(exposure - true_exposure).mean() < 0.1
 
 
-EXACT = dict(FAST, distortion=0.0, appearance=True)
+EXACT = dict(FAST, appearance=True)
 
 
 def test_checkpoint_round_trips_and_resumes_exactly_with_appearance(exposed, tmp_path):
     saved = per_image_parameters_resume_exactly(load_dataset(exposed[0]), tmp_path, EXACT, FAST,
-                                                'appearance', '--appearance', atol=1e-5)
+                                                'appearance', '--appearance')
     assert np.any(saved != 0)
 
 
@@ -134,7 +134,7 @@ def test_integrator_renders_a_training_image_appearance(tmp_path):
     c = {n: image1[..., i] for i, n in enumerate(LAYERS)}
     n = {k: neutral[..., i] for i, k in enumerate(LAYERS)}
     for ch, g, b in (('R', 2.0, 0.05), ('G', 1.0, 0.0), ('B', 0.5, 0.1)):
-        np.testing.assert_allclose(c[ch], g * n[ch] + b, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(c[ch], g * n[ch] + b, rtol=1e-4)
         np.testing.assert_allclose(c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'],
                                    atol=1e-5)      # the layers still recombine
 

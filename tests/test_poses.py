@@ -27,7 +27,7 @@ def test_rotation_matches_rodrigues_and_image_0_is_the_gauge():
     np.testing.assert_allclose(np.array(out).ravel(), poses.rotation_matrix(omega) @ v, atol=1e-6)
     small = np.array([1e-4, 2e-4, -1e-4])           # the Taylor branch
     out = poses.rotate(mi.Vector3f(*map(float, small)), mi.Vector3f(*map(float, v)))
-    np.testing.assert_allclose(np.array(out).ravel(), poses.rotation_matrix(small) @ v, atol=1e-7)
+    np.testing.assert_allclose(np.array(out).ravel(), poses.rotation_matrix(small) @ v)
 
     params = mi.TensorXf(np.tile(np.float32([0.1, 0.2, 0.3, 0.4, 0.5, 0.6]), (2, 1)))
     dr.enable_grad(params)
@@ -152,12 +152,12 @@ def test_refinement_shrinks_the_rotation_error_of_perturbed_poses(perturbed, tmp
     assert trans[1:].mean() / record['radius'] < 0.03 * 1.1, trans / record['radius']
 
 
-EXACT = dict(FAST, distortion=0.0, refine_poses=True, poses_start=0.0)
+EXACT = dict(FAST, refine_poses=True, poses_start=0.0)
 
 
 def test_checkpoint_round_trips_and_resumes_exactly_with_pose_refinement(perturbed, tmp_path):
     saved = per_image_parameters_resume_exactly(load_dataset(perturbed[0]), tmp_path, EXACT,
-                                                FAST, 'poses', '--refine-poses', atol=1e-7)
+                                                FAST, 'poses', '--refine-poses')
     assert np.any(saved[1:] != 0) and np.all(saved[0] == 0)
 
 

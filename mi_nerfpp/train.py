@@ -81,6 +81,11 @@ def _as_tuple(value):
     return (value,) if isinstance(value, (int, float)) else tuple(value)
 
 
+def per_volume(values):
+    """An option of one value for both volumes or one per volume, as (foreground, background)."""
+    return tuple(values) * (2 // len(values))
+
+
 @dataclass
 class TrainConfig:
     """Options of a training run; the ``optimize`` command line is generated from these fields."""
@@ -122,9 +127,11 @@ class TrainConfig:
     opacity_entropy: float = option(0.0, 'weight of the binary-entropy prior on the foreground '
                                     'opacity of each ray (pushes it to 0 or 1)')
     entropy_start: float = option(0.0, 'fraction of the run after which the entropy prior applies')
-    sparsity: float = option(0.01, 'weight of the sparsity prior: Cauchy loss log(1 + 2σ²) of the '
-                             'density at random points of each volume (Plenoxels), which '
-                             'removes haze and floaters')
+    sparsity: tuple = option((0.01,), 'weight of the sparsity prior: Cauchy loss log(1 + 2σ²) '
+                             'of the density at random points of each volume (Plenoxels), which '
+                             'removes haze and floaters: one for both volumes, or one for the '
+                             'foreground and one for the background',
+                             type=float, nargs='+', metavar='W', default_help='(default: 0.01)')
     sparsity_start: tuple = option((0.0,), 'fraction of the run after which the sparsity prior '
                                    'applies: one for both volumes, or one for the foreground '
                                    'and one for the background. 0.15 leaves the ground inside '
@@ -246,7 +253,7 @@ class TrainConfig:
             if not (finite(getattr(self, name)) and getattr(self, name) > 0):
                 bad(name, 'a positive finite number')
         for name in ('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'density_bias',
-                     'occupancy_threshold', 'sparsity', 'appearance_prior', 'poses_start'):
+                     'occupancy_threshold', 'appearance_prior', 'poses_start'):
             v = getattr(self, name)
             if not finite(v) or (name != 'density_bias' and v < 0):
                 bad(name, 'a finite number' if name == 'density_bias' else
@@ -264,6 +271,9 @@ class TrainConfig:
             bad('adam_beta2', 'a number in (0, 1)')
         if not (finite(self.fg_warp) and 0 <= self.fg_warp < 1):
             bad('fg_warp', 'a radius in [0, 1)')
+        self.sparsity = _as_tuple(self.sparsity)
+        if len(self.sparsity) not in (1, 2) or not all(finite(w) and w >= 0 for w in self.sparsity):
+            bad('sparsity', 'one finite number >= 0, or two (foreground, background)')
         self.sparsity_start = _as_tuple(self.sparsity_start)
         if (len(self.sparsity_start) not in (1, 2)
                 or not all(finite(f) and 0 <= f <= 1 for f in self.sparsity_start)):
@@ -528,14 +538,16 @@ class Trainer:
         the grids' shapes: a change of either records the step anew."""
         cfg, n, p = self.cfg, self.cfg.batch_rays, self.progress()
         gen = dr.rng(seed=int(self.rng.integers(0, 2 ** 63)))
-        sparse = [field is not None and p >= start for field, start in zip(
-            (self.model.fg, self.model.bg), cfg.sparsity_start * (2 // len(cfg.sparsity_start)))]
+        sparse = [field is not None and weight > 0 and p >= start
+                  for field, weight, start in zip((self.model.fg, self.model.bg),
+                                                  per_volume(cfg.sparsity),
+                                                  per_volume(cfg.sparsity_start))]
         grids = [k for k in self.opt.keys() if optim.is_grid(k)] if cfg.tv > 0 else []
         draws = {
             'index': gen.integers(mi.UInt32, n, 0, self.rays.size),
             'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
             'sparsity': [[gen.random(mi.Float, n) for _ in range(4)] if on else None
-                         for on in sparse] if cfg.sparsity > 0 else [None, None],
+                         for on in sparse],
             'tv': {k: gen.integers(mi.UInt32, min(cfg.tv_cells, self._cells(k)), 0,
                                    self._cells(k)) for k in grids},
         }
@@ -588,8 +600,7 @@ class Trainer:
                     loss += cfg.distortion * dr.mean(distortion(vol.weights, vol.position, vol.n))
         if phase['entropy']:
             loss += cfg.opacity_entropy * priors.opacity_entropy(res.fg.fine.opacity)
-        if cfg.sparsity > 0:
-            loss += cfg.sparsity * self._sparsity_loss(draws['sparsity'])
+        loss += self._sparsity_loss(draws['sparsity'])
         if cfg.tv > 0:
             loss += cfg.tv * sum((priors.grid_tv(opt[k], idx) for k, idx in draws['tv'].items()),
                                  mi.Float(0.0))
@@ -612,13 +623,15 @@ class Trainer:
                     self.opt[key] = field.params[f'grid{level}']   # new shape: fresh Adam moments
 
     def _sparsity_loss(self, points):
-        """Cauchy sparsity of each volume's density at ``batch_rays`` random points (``points``:
-        4 uniform Floats per volume, None where the run has not reached the volume's
-        ``sparsity_start``)."""
+        """Cauchy sparsity of each volume's density at ``batch_rays`` random points, weighted
+        by the volume's ``sparsity`` (``points``: 4 uniform Floats per volume, None where the
+        weight is 0 or the run has not reached the volume's ``sparsity_start``)."""
         total = mi.Float(0.0)
-        for field, u in zip((self.model.fg, self.model.bg), points):
+        for field, weight, u in zip((self.model.fg, self.model.bg), per_volume(self.cfg.sparsity),
+                                    points):
             if field is not None and u is not None:
-                total += priors.cauchy_sparsity(field.density(priors.random_points(field.domain, u)))
+                total += weight * priors.cauchy_sparsity(
+                    field.density(priors.random_points(field.domain, u)))
         return total
 
     def data_summary(self):

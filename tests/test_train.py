@@ -218,6 +218,29 @@ def test_sparsity_prior_reaches_each_volume_only_after_its_start(dataset, tmp_pa
         TrainConfig(sparsity_start=(0.1, 0.2, 0.3))
 
 
+def test_sparsity_prior_weighs_each_volume_by_its_own_weight(dataset, tmp_path):
+    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=10, sparsity=(0.02, 0.005),
+                                                     **SMALL))
+    assert tr.cfg.sparsity == (0.02, 0.005)
+    points = tr._step_inputs()['draws']['sparsity']
+    assert all(u is not None for u in points)
+
+    def loss(weights):
+        tr.cfg.sparsity = weights
+        return float(tr._sparsity_loss(points).array[0])
+
+    fg, bg = loss((1.0, 0.0)), loss((0.0, 1.0))
+    assert fg > 0 and bg > 0
+    assert loss((0.02, 0.005)) == pytest.approx(0.02 * fg + 0.005 * bg, rel=1e-5)
+    assert loss((0.01,)) == pytest.approx(0.01 * (fg + bg), rel=1e-5)
+    # A volume whose weight is 0 draws no points (and costs nothing).
+    tr.cfg.sparsity = (0.01, 0.0)
+    assert tr._step_inputs()['draws']['sparsity'][1] is None
+    for bad in ((0.01, 0.01, 0.01), (-0.01,), (0.01, float('nan'))):
+        with pytest.raises(ValueError, match='--sparsity must be one finite number >= 0, or two'):
+            TrainConfig(sparsity=bad)
+
+
 @pytest.mark.parametrize('extra', [dict(sparsity_start=(0.5,)),
                                    dict(refine_poses=True, poses_start=0.5, appearance=True,
                                         tv=0.01, tv_cells=256, occupancy_every=3)])

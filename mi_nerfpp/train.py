@@ -271,13 +271,12 @@ class TrainConfig:
             bad('adam_beta2', 'a number in (0, 1)')
         if not (finite(self.fg_warp) and 0 <= self.fg_warp < 1):
             bad('fg_warp', 'a radius in [0, 1)')
-        self.sparsity = _as_tuple(self.sparsity)
-        if len(self.sparsity) not in (1, 2) or not all(finite(w) and w >= 0 for w in self.sparsity):
-            bad('sparsity', 'one finite number >= 0, or two (foreground, background)')
-        self.sparsity_start = _as_tuple(self.sparsity_start)
-        if (len(self.sparsity_start) not in (1, 2)
-                or not all(finite(f) and 0 <= f <= 1 for f in self.sparsity_start)):
-            bad('sparsity_start', 'one fraction in [0, 1], or two (foreground, background)')
+        for name, ok, one in (('sparsity', lambda w: w >= 0, 'one finite number >= 0'),
+                              ('sparsity_start', lambda f: 0 <= f <= 1, 'one fraction in [0, 1]')):
+            v = _as_tuple(getattr(self, name))          # per volume: see per_volume()
+            setattr(self, name, v)
+            if len(v) not in (1, 2) or not all(finite(x) and ok(x) for x in v):
+                bad(name, f'{one}, or two (foreground, background)')
         self.bg_s_ratio = _as_tuple(self.bg_s_ratio)
         if (not self.bg_s_ratio or not all(finite(q) and 0 < q <= 1 for q in self.bg_s_ratio)
                 or len(self.bg_s_ratio) not in (1, len(self.levels('inverted_sphere')))):
@@ -625,11 +624,11 @@ class Trainer:
     def _sparsity_loss(self, points):
         """Cauchy sparsity of each volume's density at ``batch_rays`` random points, weighted
         by the volume's ``sparsity`` (``points``: 4 uniform Floats per volume, None where the
-        weight is 0 or the run has not reached the volume's ``sparsity_start``)."""
+        volume is absent, its weight is 0 or the run has not reached its ``sparsity_start``)."""
         total = mi.Float(0.0)
         for field, weight, u in zip((self.model.fg, self.model.bg), per_volume(self.cfg.sparsity),
                                     points):
-            if field is not None and u is not None:
+            if u is not None:
                 total += weight * priors.cauchy_sparsity(
                     field.density(priors.random_points(field.domain, u)))
         return total

@@ -5,7 +5,9 @@
 Trains ``--iterations`` steps (default 1500) from scratch with the given options (the same
 flags and defaults as ``optimize``), then prints one line: held-out PSNR (mean and per test
 view), held-out PSNR over the pixels whose direction at least ``SEEN_BY`` training views saw
-(``mi_nerfpp.data.direction_coverage``: the rest is extrapolation), PSNR of every 8th
+(``mi_nerfpp.data.direction_coverage``: the rest is extrapolation), with the synthetic ground
+truth held-out PSNR over the pixels that meet no surface (the environment map: true depth 0,
+mean over the test views that have such pixels), PSNR of every 8th
 training view (the generalization gap; with the synthetic ground truth also split into the
 pixels whose true foreground mask is 1 and 0, to see which volume's fit stalls), foreground/background
 separation against the synthetic ground truth (``mi_nerfpp.metrics.separation``: mean
@@ -74,7 +76,7 @@ def main():
         return layers, psnr(np.clip(encoded_rgb(layers, space), 0, 1), split.images[i])
 
     gts = sorted(glob.glob(os.path.join(data, 'test', 'gt', '*.exr')))
-    test, seen, sep = [], [], []
+    test, seen, sep, sky = [], [], [], []
     for i in range(len(trainer.test)):
         layers, p = score(trainer.test, i)
         test.append(p)
@@ -84,7 +86,11 @@ def main():
         if a.pictures:
             _picture(a.pictures, i, layers, trainer.test.images[i], space)
         if i < len(gts):
-            sep.append(separation(layers['fg.A'], read_exr(gts[i])['fg.A']))
+            truth = read_exr(gts[i])
+            sep.append(separation(layers['fg.A'], truth['fg.A']))
+            # The ground truth's depth is 0 where a ray meets no surface (the environment map).
+            sky.append(masked_psnr(np.clip(encoded_rgb(layers, space), 0, 1), trainer.test.images[i],
+                                   truth['depth.Z'] <= 0))
     train, train_fg, train_bg = [], [], []
     train_gts = sorted(glob.glob(os.path.join(data, 'train', 'gt', '*.exr')))
     for i in range(0, len(trainer.train), 8):
@@ -101,7 +107,9 @@ def main():
     occupied = {k: round(g.fraction(), 3) for k, g in trainer.model.occupancy.items()}
     print(f'{cfg.iterations} steps: held-out PSNR {np.mean(test):.2f} dB '
           f'(views {", ".join(f"{p:.1f}" for p in test)}); seen by >= {SEEN_BY} training views '
-          f'{np.nanmean(seen):.2f} dB (worst {np.nanmin(seen):.1f}); training views '
+          f'{np.nanmean(seen):.2f} dB (worst {np.nanmin(seen):.1f}); '
+          + (f'sky {np.nanmean(sky):.2f} dB; ' if sky else '')
+          + f'training views '
           f'{np.mean(train):.2f} dB{split}; |alpha - alpha_gt| {mean.get("alpha_error", np.nan):.3f}, '
           f'leak {mean.get("leak", np.nan):.3f}, soft alpha {100 * mean.get("soft_fraction", np.nan):.0f}%; '
           f'occupied cells {occupied or "-"}')

@@ -16,7 +16,7 @@ import numpy as np
 from .exr import write_exr
 from .files import atomic_write_path
 from .frame import SCENE_NEAR_CLIP
-from .metrics import psnr, ssim
+from .metrics import SOFT_ALPHA, SOFT_ALPHA_WARNING, psnr, soft_alpha_fraction, ssim
 from .preview import write_png
 from .render import Sampling
 from .scene_xml import write_render_xml
@@ -27,7 +27,9 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
                    progress=None, fit_appearance=False):
     """Render every view of ``split``, write ``{name}_NNN.exr``/``.png`` and return the metrics.
 
-    Returns a dict with per-view PSNR/SSIM, their means and the render time. Renders are
+    Returns a dict with per-view PSNR/SSIM, their means and the render time; with a
+    ``background`` also per view and on average ``soft_alpha``, the fraction of pixels whose
+    foreground opacity is neither in nor out of the matte (:func:`soft_alpha_fraction`). Renders are
     neutral (no appearance transform). ``fit_appearance``: held-out photos have their own
     exposure, so they are scored as NeRF-W does - a per-channel gain and bias is fitted (linear
     least squares in linear light, :func:`~mi_nerfpp.appearance.fit_affine`) on the left half
@@ -51,6 +53,8 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
         view = {'view': i, 'image': os.path.basename(split.image_paths[i]),
                 'psnr': float(psnr(np.clip(pred, 0, 1), gt)),
                 'ssim': float(ssim(np.clip(pred, 0, 1), gt))}
+        if background:
+            view['soft_alpha'] = soft_alpha_fraction(layers['fg.A'])
         if fit_appearance:
             view['psnr_neutral'], view['ssim_neutral'] = view['psnr'], view['ssim']
             view['psnr'], view['ssim'], view['gain'], view['bias'] = _fitted_right_half(
@@ -60,7 +64,7 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
     result = {'views': views, 'render_seconds': seconds}
     if fit_appearance:
         result['scoring'] = 'appearance fitted on the left half of each view, right half scored'
-    for key in ('psnr', 'ssim', 'psnr_neutral', 'ssim_neutral'):
+    for key in ('psnr', 'ssim', 'psnr_neutral', 'ssim_neutral', 'soft_alpha'):
         if views and key in views[0]:
             result[key] = float(np.mean([v[key] for v in views]))
     return result
@@ -81,6 +85,25 @@ def _fitted_right_half(linear, gt, color_space):
     fitted = fitted.astype(np.float32)
     return (float(psnr(fitted, right)), float(ssim(fitted, right)), gain.tolist(),
             bias.tolist())
+
+
+def matte_warning(test_metrics):
+    """A warning (str) when the held-out foreground matte is soft, else None.
+
+    ``test_metrics``: the dict of :func:`evaluate_split`. A soft matte means that a surface is
+    split between the volumes - typically the ground inside the unit sphere painted by the
+    background with a half-transparent foreground over it - which the initialization decides
+    (on the default capture: one seed of three)."""
+    soft = test_metrics.get('soft_alpha')
+    if soft is None or soft <= SOFT_ALPHA_WARNING:
+        return None
+    lo, hi = SOFT_ALPHA
+    return (f'warning: the foreground matte is soft: {100 * soft:.1f} % of the held-out pixels have '
+            f'{lo} < fg.A < {hi} (a clean matte has at most {100 * SOFT_ALPHA_WARNING:.0f} %, mostly '
+            f'object edges). A surface is likely split between the volumes (e.g. the ground inside '
+            f'the unit sphere painted by the background behind a half-transparent foreground), '
+            f'which the random initialization decides. The beauty pass is unaffected; for '
+            f'compositing, train again with another --seed and compare "soft_alpha" in metrics.json.')
 
 
 def finish_run(out, model, held_out, cfg, checkpoint_path, metrics):

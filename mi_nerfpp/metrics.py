@@ -69,8 +69,25 @@ def ssim(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> float:
         pred, gt, win_size=win_size, channel_axis=-1, data_range=data_range))
 
 
+# A foreground opacity strictly inside this band is "soft": neither in the matte nor out of it.
+SOFT_ALPHA = (0.05, 0.95)
+# Held-out soft-alpha fraction above which a run's foreground matte is reported as soft (issue
+# 9's target for a clean matte: at most 15 % of the pixels). Measured on the default capture
+# after 10 minutes: 3.4 % where the foreground owns the lawn (seed 0), 25.5 % where the
+# background paints it behind a half-transparent foreground (seed 2).
+SOFT_ALPHA_WARNING = 0.15
+
+
+def soft_alpha_fraction(alpha: np.ndarray, soft: tuple[float, float] = SOFT_ALPHA) -> float:
+    """Fraction of pixels whose foreground opacity lies strictly between ``soft[0]`` and
+    ``soft[1]``: half-transparent foreground, which a compositor lays over a new plate as a
+    veil. Object edges and motion blur are legitimately soft; a few percent of the pixels."""
+    alpha = np.asarray(alpha, np.float64)
+    return float(np.mean((alpha > soft[0]) & (alpha < soft[1])))
+
+
 def separation(alpha: np.ndarray, alpha_gt: np.ndarray, depth: np.ndarray | None = None,
-               depth_gt: np.ndarray | None = None, soft: tuple[float, float] = (0.05, 0.95)) -> dict:
+               depth_gt: np.ndarray | None = None, soft: tuple[float, float] = SOFT_ALPHA) -> dict:
     """How cleanly a render splits foreground from background, against ground truth.
 
     ``alpha``: the foreground opacity (``fg.A``); ``alpha_gt``: the true mask (1 where the
@@ -86,7 +103,7 @@ def separation(alpha: np.ndarray, alpha_gt: np.ndarray, depth: np.ndarray | None
     empty, full = alpha_gt == 0, alpha_gt == 1
     out = {'alpha_error': float(np.mean(np.abs(alpha - alpha_gt))),
            'leak': float(np.mean(alpha[empty])) if empty.any() else float('nan'),
-           'soft_fraction': float(np.mean((alpha > soft[0]) & (alpha < soft[1])))}
+           'soft_fraction': soft_alpha_fraction(alpha, soft)}
     if depth is not None and depth_gt is not None:
         valid = full & (np.asarray(depth_gt) > 0)
         rel = np.abs(np.asarray(depth, np.float64) - depth_gt) / np.where(valid, depth_gt, 1.0)

@@ -107,6 +107,22 @@ def test_separation_against_a_hand_computed_example():
         separation(alpha, gt[:, :2])
 
 
+def test_soft_alpha_fraction_counts_the_open_band_only():
+    from mi_nerfpp.metrics import soft_alpha_fraction
+    alpha = np.array([[0.0, 0.05, 0.06, 0.5], [0.94, 0.95, 1.0, 0.2]])
+    assert soft_alpha_fraction(alpha) == pytest.approx(4 / 8)      # 0.06, 0.5, 0.94, 0.2
+    assert soft_alpha_fraction(alpha, (0.1, 0.9)) == pytest.approx(2 / 8)
+
+
+def test_matte_warning_only_above_the_threshold():
+    from mi_nerfpp.evaluate import matte_warning
+    from mi_nerfpp.metrics import SOFT_ALPHA_WARNING
+    assert matte_warning({'psnr': 25.0}) is None                     # no background volume
+    assert matte_warning({'soft_alpha': SOFT_ALPHA_WARNING}) is None
+    text = matte_warning({'soft_alpha': 0.255})
+    assert '25.5 %' in text and '--seed' in text and 'soft_alpha' in text
+
+
 def test_masked_psnr_scores_only_the_masked_pixels():
     from mi_nerfpp.metrics import masked_psnr
     gt = np.zeros((4, 4, 3))

@@ -147,6 +147,15 @@ def test_optimize_command_end_to_end(capture, tmp_path):
     assert np.isfinite(metrics['test']['psnr']) and metrics['train_samples_per_second'] > 0
     assert (out / 'preview' / 'iter_000030.png').exists() and (out / 'training.png').exists()
     assert (out / 'test' / 'test_000.exr').exists()
+    # The soft-alpha score is that of the written mattes, and the warning follows it.
+    from mi_nerfpp.exr import read_exr
+    from mi_nerfpp.metrics import SOFT_ALPHA_WARNING, soft_alpha_fraction
+    for view in metrics['test']['views']:
+        fg_a = read_exr(str(out / 'test' / f'test_{view["view"]:03d}.exr'))['fg.A']
+        assert view['soft_alpha'] == pytest.approx(soft_alpha_fraction(fg_a))
+    soft = metrics['test']['soft_alpha']
+    assert soft == pytest.approx(np.mean([v['soft_alpha'] for v in metrics['test']['views']]))
+    assert ('the foreground matte is soft' in r.stderr) == (soft > SOFT_ALPHA_WARNING), (soft, r.stderr[-2000:])
     # The written scene renders as is, from anywhere.
     r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'render', str(out / 'render.xml'),
                         '-o', str(tmp_path / 'v.exr')], capture_output=True, text=True,

@@ -12,7 +12,9 @@ def add_parser(sub):
 
 
 def run(args):
-    from ..evaluate import finish_run
+    import sys
+
+    from ..evaluate import finish_run, matte_warning
     from ..train import samples_per_second
     from . import open_run_or_exit
 
@@ -25,5 +27,8 @@ def run(args):
     if 'test' in metrics:
         print(f'{len(held_out)} held-out views: PSNR {metrics["test"]["psnr"]:.2f} dB, '
               f'SSIM {metrics["test"]["ssim"]:.3f}; written to {args.run}/metrics.json and test/')
+        warning = matte_warning(metrics['test'])
+        if warning:
+            print(warning, file=sys.stderr)
     else:
         print(f'{dataset.root} has no test or validation views to evaluate')

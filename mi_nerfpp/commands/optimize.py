@@ -191,7 +191,7 @@ def plot_history(history, path):
 
 def report(trainer, inp: Inputs, progress_log, wall_seconds):
     """Evaluate the held-out views, write the run's files and print the summary."""
-    from ..evaluate import finish_run
+    from ..evaluate import finish_run, matte_warning
 
     out = inp.out
     metrics = finish_run(out, trainer.model, trainer.test if len(trainer.test) else
@@ -212,6 +212,9 @@ def report(trainer, inp: Inputs, progress_log, wall_seconds):
             print(f'  (scored NeRF-W style: each view\'s appearance fitted on its left half, '
                   f'right half scored; neutral whole views: PSNR '
                   f'{metrics["test"]["psnr_neutral"]:.2f} dB)')
+        warning = matte_warning(metrics['test'])
+        if warning:
+            print(warning, file=sys.stderr)
     written = ['model.npz', 'metrics.json', 'training.png']
     if 'test' in metrics:
         written[2:2] = ['test/*.exr|png', 'render.xml']

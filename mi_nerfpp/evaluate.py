@@ -102,7 +102,7 @@ def matte_warning(test_metrics):
             f'{lo} < fg.A < {hi} (a clean matte has at most {100 * SOFT_ALPHA_WARNING:.0f} %, mostly '
             f'object edges). A surface is likely split between the volumes (e.g. the ground inside '
             f'the unit sphere painted by the background behind a half-transparent foreground), '
-            f'which the random initialization decides. The beauty pass is unaffected; for '
+            f'which the random initialization decides. This concerns the layers, not the beauty pass: for '
             f'compositing, train again with another --seed and compare "soft_alpha" in metrics.json.')
 
 

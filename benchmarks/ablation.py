@@ -72,33 +72,32 @@ def main():
     space = trainer.model.color_space
 
     def score(split, i):
+        """A view's layers, its image as scored (clipped) and its PSNR."""
         layers = renderer.render(split.cameras[i])
-        return layers, psnr(np.clip(encoded_rgb(layers, space), 0, 1), split.images[i])
+        pred = np.clip(encoded_rgb(layers, space), 0, 1)
+        return layers, pred, psnr(pred, split.images[i])
 
     gts = sorted(glob.glob(os.path.join(data, 'test', 'gt', '*.exr')))
     test, seen, sep, sky = [], [], [], []
     for i in range(len(trainer.test)):
-        layers, p = score(trainer.test, i)
+        layers, pred, p = score(trainer.test, i)
         test.append(p)
         mask = direction_coverage(trainer.test.cameras[i], trainer.train.cameras) >= SEEN_BY
-        seen.append(masked_psnr(np.clip(encoded_rgb(layers, space), 0, 1), trainer.test.images[i],
-                                mask))
+        seen.append(masked_psnr(pred, trainer.test.images[i], mask))
         if a.pictures:
             _picture(a.pictures, i, layers, trainer.test.images[i], space)
         if i < len(gts):
             truth = read_exr(gts[i])
             sep.append(separation(layers['fg.A'], truth['fg.A']))
             # The ground truth's depth is 0 where a ray meets no surface (the environment map).
-            sky.append(masked_psnr(np.clip(encoded_rgb(layers, space), 0, 1), trainer.test.images[i],
-                                   truth['depth.Z'] <= 0))
+            sky.append(masked_psnr(pred, trainer.test.images[i], truth['depth.Z'] <= 0))
     train, train_fg, train_bg = [], [], []
     train_gts = sorted(glob.glob(os.path.join(data, 'train', 'gt', '*.exr')))
     for i in range(0, len(trainer.train), 8):
-        layers, p = score(trainer.train, i)
+        _, pred, p = score(trainer.train, i)
         train.append(p)
         if len(train_gts) == len(trainer.train):
             inside = read_exr(train_gts[i])['fg.A'] > 0.5
-            pred = np.clip(encoded_rgb(layers, space), 0, 1)
             train_fg.append(masked_psnr(pred, trainer.train.images[i], inside))
             train_bg.append(masked_psnr(pred, trainer.train.images[i], ~inside))
     split = (f' (true foreground {np.nanmean(train_fg):.2f}, background {np.nanmean(train_bg):.2f})'

@@ -493,11 +493,20 @@ class Trainer:
         return p
 
     def step(self):
-        """One optimization step. Returns ``(loss, fine-pass MSE)`` as Python floats."""
-        if self.model.poses is None:
-            return self._step()
-        with poses.gradient_scope():
-            return self._step()
+        """One optimization step. Returns ``(loss, fine-pass MSE)`` as Python floats.
+
+        A Ctrl-C (or SIGTERM) anywhere in the step raises :class:`KeyboardInterrupt`, also when
+        it lands in Python code that Dr.Jit calls and re-raises wrapped (:func:`_interrupt_in`)."""
+        try:
+            if self.model.poses is None:
+                return self._step()
+            with poses.gradient_scope():
+                return self._step()
+        except RuntimeError as e:
+            interrupt = _interrupt_in(e)
+            if interrupt is None:
+                raise
+            raise interrupt from None
 
     def _step(self):
         cfg = self.cfg
@@ -514,12 +523,6 @@ class Trainer:
         gc.disable()
         try:
             loss, fine = self._compute(inputs)
-        except RuntimeError as e:
-            # Ctrl-C (or SIGTERM) while a step is being recorded reaches us wrapped by
-            # drjit.freeze; unwrapped, it stops the run with a checkpoint as anywhere else.
-            if isinstance(e.__cause__, KeyboardInterrupt):
-                raise e.__cause__ from None
-            raise
         finally:
             if collecting:
                 gc.enable()
@@ -730,6 +733,18 @@ def _signals_deferred(enabled):
 
 def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt(f'signal {signum}')
+
+
+def _interrupt_in(error):
+    """The :class:`KeyboardInterrupt` that ``error`` wraps, or None. Dr.Jit re-raises an
+    exception from Python code that it calls - a step being recorded by ``drjit.freeze``, a
+    loop body, a search predicate - as a RuntimeError caused by it, once per level: a Ctrl-C
+    or SIGTERM that lands there arrives as such a chain."""
+    while error is not None:
+        if isinstance(error, KeyboardInterrupt):
+            return error
+        error = error.__cause__
+    return None
 
 
 def data_conflicts(stored: dict, now: dict) -> list[str]:

@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -289,20 +290,42 @@ def test_owned_arrays_do_not_share_numpy_memory():
     np.testing.assert_array_equal(owned(np.arange(6, dtype=np.uint32), mi.UInt32), np.arange(6))
 
 
-def test_ctrl_c_while_a_step_is_recorded_saves_a_checkpoint(dataset, tmp_path, monkeypatch):
-    """drjit.freeze wraps an exception raised while it records the step in a RuntimeError:
-    a Ctrl-C there must still stop the run like a Ctrl-C anywhere else (checkpoint saved),
-    and the run must go on from it."""
+def _interrupt_in_a_loop_body():
+    """A Ctrl-C that lands in Python code which Dr.Jit calls (here a loop body): Dr.Jit
+    re-raises it wrapped in a RuntimeError."""
+    def body(i):
+        raise KeyboardInterrupt('signal 15')
+    dr.while_loop((mi.UInt32(0),), lambda i: i < 3, body)
+
+
+@pytest.mark.parametrize('where', ['recorded', 'recorded_loop', 'occupancy_loop'])
+def test_ctrl_c_while_a_step_is_recorded_saves_a_checkpoint(dataset, tmp_path, monkeypatch,
+                                                             where):
+    """drjit.freeze wraps an exception raised while it records the step in a RuntimeError, and
+    a Dr.Jit loop wraps one raised in its body (so inside a recording it arrives wrapped twice):
+    a Ctrl-C there, or in the occupancy refresh before the recorded part, must still stop the
+    run like a Ctrl-C anywhere else (checkpoint saved), and the run must go on from it."""
     import mi_nerfpp.train as train_module
-    original, calls = train_module.ray_distortion, []
+    calls = []
 
-    def interrupted_once(res):
-        calls.append(1)
-        if len(calls) == 1:
-            raise KeyboardInterrupt
-        return original(res)
+    def once(original, interrupt):
+        def wrapped(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 1:
+                interrupt()
+            return original(*args, **kwargs)
+        return wrapped
 
-    monkeypatch.setattr(train_module, 'ray_distortion', interrupted_once)
+    def ctrl_c():
+        raise KeyboardInterrupt
+
+    if where == 'occupancy_loop':
+        from mi_nerfpp.model import NeRFPPModel as NeRFPP
+        monkeypatch.setattr(NeRFPP, 'update_occupancy',
+                            once(NeRFPP.update_occupancy, _interrupt_in_a_loop_body))
+    else:
+        monkeypatch.setattr(train_module, 'ray_distortion', once(
+            train_module.ray_distortion, ctrl_c if where == 'recorded' else _interrupt_in_a_loop_body))
     tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=4, **SMALL))
     assert tr.run() is False
     assert os.path.exists(tmp_path / 'model.npz') and tr.iteration == 0

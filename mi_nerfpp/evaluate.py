@@ -92,8 +92,9 @@ def matte_warning(test_metrics):
 
     ``test_metrics``: the dict of :func:`evaluate_split`. A soft matte means that a surface is
     split between the volumes - typically the ground inside the unit sphere painted by the
-    background with a half-transparent foreground over it - which the initialization decides
-    (on the default capture: one seed of three)."""
+    background with a half-transparent foreground over it - which the background's random
+    initialization decides (on the default capture at 1,500 steps: one seed of five; README,
+    tuning table)."""
     soft = test_metrics.get('soft_alpha')
     if soft is None or soft <= SOFT_ALPHA_WARNING:
         return None
@@ -102,8 +103,9 @@ def matte_warning(test_metrics):
             f'{lo} < fg.A < {hi} (a clean matte has at most {100 * SOFT_ALPHA_WARNING:.0f} %, mostly '
             f'object edges). A surface is likely split between the volumes (e.g. the ground inside '
             f'the unit sphere painted by the background behind a half-transparent foreground), '
-            f'which the random initialization decides. This concerns the layers, not the beauty pass: for '
-            f'compositing, train again with another --seed and compare "soft_alpha" in metrics.json.')
+            f'which the random initialization of the background decides. This concerns the layers, '
+            f'not the beauty pass: for compositing, train again with another --seed (it draws a new '
+            f'background) and compare "soft_alpha" in metrics.json.')
 
 
 def finish_run(out, model, held_out, cfg, checkpoint_path, metrics):

@@ -2,7 +2,8 @@
 
 One training step: draw a batch of random rays across all training images, render
 them with :func:`mi_nerfpp.render.render_rays` (the same code the integrator uses),
-take the squared error of the coarse and the fine composite against the pixels (radiance is
+take the colour loss (Charbonnier by default, or the squared error) of the coarse and the
+fine composite against the pixels (radiance is
 composited in linear light; for sRGB photos the composite is sRGB-encoded before the loss,
 see :meth:`~mi_nerfpp.model.NeRFPPModel.radiance_fields`),
 back-propagate with Dr.Jit and take an Adam step (``drjit.opt``). Learning rates
@@ -116,6 +117,9 @@ class TrainConfig:
     adam_beta2: float = option(optim.ADAM_BETA2, "decay of Adam's second-moment estimate")
     lr_final: float = option(optim.LR_FINAL, 'learning rates decay exponentially to this '
                              'fraction of their start over the run')
+    color_loss: str = option('charbonnier', "colour loss of the coarse and fine composites: "
+                             "'charbonnier' (mip-NeRF 360's robust loss) or 'mse' (the "
+                             "paper's squared error)", choices=tuple(optim.COLOR_LOSSES))
     distortion: float = option(0.01, 'weight of the mip-NeRF 360 distortion loss against '
                                'floaters and haze (0: off; with occupancy sampling it measured '
                                '+0.4 dB after 2 minutes on the default capture)')
@@ -267,6 +271,8 @@ class TrainConfig:
         if self.bg_grid_levels is not None and (not self.bg_grid_levels
                                                 or min(self.bg_grid_levels) < 2):
             bad('bg_grid_levels', 'one or more resolutions of at least 2')
+        if self.color_loss not in optim.COLOR_LOSSES:
+            bad('color_loss', ' or '.join(f"'{k}'" for k in optim.COLOR_LOSSES))
         if not (finite(self.adam_beta2) and 0 < self.adam_beta2 < 1):
             bad('adam_beta2', 'a number in (0, 1)')
         if not (finite(self.fg_warp) and 0 <= self.fg_warp < 1):
@@ -590,8 +596,10 @@ class Trainer:
         if model.appearance is not None:
             image, params = rays.images(index), opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
-        fine = optim.mse(encode(res.fine.rgb), gt)
-        loss = fine + optim.mse(encode(res.coarse.rgb), gt)
+        color_loss = optim.COLOR_LOSSES[cfg.color_loss]
+        pred, coarse = encode(res.fine.rgb), encode(res.coarse.rgb)
+        loss = color_loss(pred, gt) + color_loss(coarse, gt)
+        fine = dr.detach(optim.mse(pred, gt))     # for the PSNR shown while training
         if model.appearance is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])
         if cfg.distortion > 0 and cfg.distortion_scope == 'ray':

@@ -1,0 +1,69 @@
+"""Colour losses (mi_nerfpp.optim): values against hand computation, gradients against central
+finite differences, and the training option that picks one."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import mi_nerfpp  # noqa: F401
+import drjit as dr
+import mitsuba as mi
+
+from mi_nerfpp import optim
+from mi_nerfpp.train import TrainConfig
+
+PRED = np.array([[0.2, 0.5, 0.9, 0.31], [0.0, 0.25, 0.7, 0.6], [1.0, 0.4, 0.1, 0.3]])
+GT = np.array([[0.25, 0.5, 0.3, 0.3], [0.1, 0.2, 0.7, 0.0], [0.9, 0.45, 0.15, 0.31]])
+
+
+def color(a):
+    return mi.Color3f(*[mi.Float(np.asarray(c, np.float32)) for c in a])
+
+
+def loss_value(f, pred):
+    return f(color(pred), color(GT)).array[0]
+
+
+def test_charbonnier_value():
+    eps, w = optim.CHARBONNIER_EPS, optim.CHARBONNIER_WEIGHT
+    expected = w * np.mean(np.sqrt((PRED - GT) ** 2 + eps ** 2))
+    assert loss_value(optim.charbonnier, PRED) == pytest.approx(expected, rel=1e-5)
+    # Equal images cost w·ε, the floor of the loss.
+    assert loss_value(optim.charbonnier, GT) == pytest.approx(w * eps, rel=1e-5)
+    assert loss_value(optim.mse, PRED) == pytest.approx(np.mean((PRED - GT) ** 2), rel=1e-5)
+
+
+@pytest.mark.parametrize('name', sorted(optim.COLOR_LOSSES))
+def test_color_loss_gradient_matches_finite_differences(name):
+    f = optim.COLOR_LOSSES[name]
+    x = [mi.Float(np.asarray(c, np.float32)) for c in PRED]
+    dr.enable_grad(x)
+    dr.backward(f(mi.Color3f(*x), color(GT)))
+    grad = np.array([np.array(dr.grad(c)) for c in x])
+    h = 1e-3
+    fd = np.zeros_like(PRED)
+    for idx in np.ndindex(PRED.shape):
+        hi, lo = PRED.copy(), PRED.copy()
+        hi[idx] += h
+        lo[idx] -= h
+        fd[idx] = (loss_value(f, hi) - loss_value(f, lo)) / (2 * h)
+    np.testing.assert_allclose(grad, fd, rtol=2e-2, atol=2e-4)
+
+
+def test_charbonnier_weighs_large_errors_less_than_the_squared_error():
+    """Its gradient is bounded by w/n per entry: an error of 0.6 pulls no harder than one of 0.05,
+    where the squared error pulls twelve times harder."""
+    n = PRED.size
+    x = [mi.Float(np.asarray(c, np.float32)) for c in PRED]
+    dr.enable_grad(x)
+    dr.backward(optim.charbonnier(mi.Color3f(*x), color(GT)))
+    grad = np.abs(np.array([np.array(dr.grad(c)) for c in x]))
+    assert grad.max() <= optim.CHARBONNIER_WEIGHT / n * (1 + 1e-5)
+    big, small = (0, 2), (0, 0)      # errors 0.6 and 0.05
+    assert grad[big] == pytest.approx(grad[small], rel=2e-3)
+
+
+def test_unknown_color_loss_is_rejected():
+    with pytest.raises(ValueError, match="--color-loss must be 'charbonnier' or 'mse', got l1"):
+        TrainConfig(color_loss='l1')
+    assert TrainConfig().color_loss == 'charbonnier'

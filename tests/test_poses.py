@@ -135,9 +135,13 @@ def test_perturb_poses_moves_training_cameras_but_0_and_records_the_true_ones(ca
 
 def test_refinement_shrinks_the_rotation_error_of_perturbed_poses(perturbed, tmp_path):
     out, record = perturbed
+    # The squared-error loss these thresholds were measured with. With the Charbonnier loss
+    # (the default since) the same 300 steps measured weaker refinement, rotation error
+    # 2.69 / 2.84 degrees and translation 3.29 % of the radius for seeds 0 / 1 (README,
+    # "Camera pose refinement"): too close to the 3 degrees and 3 % given to test.
     trainer = Trainer(load_dataset(out), str(tmp_path),
                       TrainConfig(iterations=300, refine_poses=True, lr_poses=3e-3,
-                                  poses_start=0.1, **FAST))
+                                  poses_start=0.1, color_loss='mse', **FAST))
     trainer.run()
     rot, trans = poses.pose_errors(poses.world_poses(trainer.model, trainer.train.cameras),
                                    record['true'])

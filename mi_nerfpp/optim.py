@@ -62,9 +62,8 @@ def charbonnier(a, b, eps: float = CHARBONNIER_EPS, weight: float = CHARBONNIER_
     over rays and channels of two ``Color3f`` batches. Like an absolute error, it weighs the
     large errors of a few pixels (a capture's Monte Carlo noise, specular glints) less than
     the squared error does."""
-    d = a - b
-    return weight * dr.mean(dr.sqrt(dr.square(d.x) + eps * eps) + dr.sqrt(dr.square(d.y) + eps * eps)
-                            + dr.sqrt(dr.square(d.z) + eps * eps)) / 3.0
+    c = dr.sqrt(dr.square(a - b) + eps * eps)
+    return weight * dr.mean(c.x + c.y + c.z) / 3.0
 
 
 COLOR_LOSSES = {'charbonnier': charbonnier, 'mse': mse}

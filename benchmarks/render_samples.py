@@ -1,0 +1,46 @@
+"""Does rendering with more samples per ray than a model was trained with improve it?
+
+    python benchmarks/render_samples.py RUN [--samples FG BG FINE ...]
+
+Renders the held-out views of a training run (a folder written by ``optimize``) once with the
+sample counts it was trained with and once with each ``--samples`` triple (coarse foreground,
+coarse background, fine per volume: the ``nerfpp`` integrator's ``fg_samples``,
+``bg_samples`` and ``fine_samples``), and prints the held-out PSNR of each, with the PSNR per
+view and the render time of all views. The renders go to a temporary folder; the run is not
+changed.
+"""
+import argparse
+import dataclasses
+import tempfile
+
+import mi_nerfpp  # noqa: F401
+from mi_nerfpp.commands import open_run_or_exit
+from mi_nerfpp.evaluate import evaluate_split
+from mi_nerfpp.render import Sampling
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('run')
+    ap.add_argument('--samples', type=int, nargs=3, action='append',
+                    metavar=('FG', 'BG', 'FINE'),
+                    help='sample counts to compare (repeatable; default: 32 32 32, 16 16 48 and '
+                         '32 32 16)')
+    a = ap.parse_args()
+    model, _, cfg, dataset = open_run_or_exit(a.run)
+    if not len(dataset.test):
+        raise SystemExit(f'error: {a.run}: its dataset has no test views to score')
+    trained = dataclasses.astuple(cfg.sampling)[:3]
+    others = [tuple(s) for s in (a.samples or [(32, 32, 32), (16, 16, 48), (32, 32, 16)])]
+    with tempfile.TemporaryDirectory() as out:
+        for samples in [trained] + [s for s in others if s != trained]:
+            m = evaluate_split(model, dataset.test, out, Sampling(*samples, near=cfg.sampling.near))
+            label = ' '.join(map(str, samples)) + (' (trained)' if samples == trained else '')
+            views = ', '.join(f"{v['psnr']:.2f}" for v in m['views'])
+            print(f'samples {label}: held-out PSNR {m["psnr"]:.2f} dB (views {views}); '
+                  f'{m["render_seconds"]:.1f} s for {len(dataset.test)} views', flush=True)
+
+
+if __name__ == '__main__':
+    main()

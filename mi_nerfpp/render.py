@@ -234,18 +234,37 @@ def composite(fg, bg):
                    depth=fg.depth + lam * bg.depth)
 
 
-def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_only=False):
+def scale_gradient(x, scale):
+    """``x`` unchanged, with the gradient that reaches it through the result times ``scale``."""
+    return x + (x - dr.detach(x)) * (scale - 1.0)
+
+
+def near_gradient_scale(distance, radius):
+    """Gradient scale ``min(1, (t/radius)²)`` of samples at ``distance`` t from the camera
+    (Philip and Deschaintre 2023, "Floaters No More"): a sample near a camera covers a large part
+    of its image, so its gradients are large and the field grows floaters there; scaling them by
+    the square of the distance evens out the pull per unit of scene."""
+    return dr.minimum(dr.square(distance * (1.0 / radius)), 1.0)
+
+
+def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_only=False,
+                  near_gradient=0.0):
     """Hierarchical sampling and quadrature of one volume (see module docs).
 
     ``visible_only`` (primal rendering with fine samples): both passes take densities only,
     and colour is evaluated at the merged samples that can show (:func:`_shade_visible`); the
-    coarse pass is then not shaded and ``coarse`` repeats the fine shading."""
+    coarse pass is then not shaded and ``coarse`` repeats the fine shading.
+    ``near_gradient`` (training; 0: off): the gradients of samples within this distance of the
+    ray's origin are scaled down by :func:`near_gradient_scale`; values are unchanged."""
     lazy = visible_only and n_fine > 0
     n_rays = dr.width(volume.lo)
 
     def evaluate(ray, t):
         x = volume.inputs(ray, t)
         out = (field.density(x), None) if lazy else field(x, volume.d, ray)
+        if near_gradient > 0 and not lazy:
+            scale = near_gradient_scale(dr.detach(volume.distance(ray, t)), near_gradient)
+            out = tuple(scale_gradient(v, scale) for v in out)
         # One kernel computes all outputs of the field; without this, every later
         # use (gathers, block sums) would re-trace the field for its own channel.
         dr.eval(out)
@@ -383,7 +402,7 @@ def _render_visible_background(o, d, fg, render, seed, far=None):
 
 
 def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
-                skip_occluded=False, ray_gradients=False, far=None):
+                skip_occluded=False, ray_gradients=False, far=None, near_gradient=0.0):
     """Render rays ``o + t·d`` (``|d| = 1``) through the foreground and background volumes.
 
     ``bg_field=None`` renders the foreground volume alone (a bounded NeRF).
@@ -404,6 +423,7 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
     surface: both volumes are integrated on ``[near, far]`` only, the background is then not
     opaque (``fine.opacity < 1``: ``1 - fine.opacity`` is the light that reaches the
     surface), and a ray with ``far = inf`` renders exactly as without ``far``.
+    ``near_gradient`` (training): see :func:`render_volume`.
     """
     o, d = mi.Point3f(o), mi.Vector3f(d)
     if not ray_gradients:
@@ -418,7 +438,7 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
 
     fg = render_volume(volume(Foreground(o, d, sampling.near, far), 'fg'), fg_field,
                        sampling.fg_samples, sampling.fine_samples, seed, stream=0,
-                       visible_only=skip_occluded)
+                       visible_only=skip_occluded, near_gradient=near_gradient)
     bg = None
     if bg_field is not None and skip_occluded:
         bg = _render_visible_background(o, d, fg, lambda o, d, seed, far: render_volume(
@@ -426,7 +446,8 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
             sampling.fine_samples, seed, stream=2, visible_only=True), seed, far)
     elif bg_field is not None:
         bg = render_volume(volume(Background(o, d, far), 'bg'), bg_field,
-                           sampling.bg_samples, sampling.fine_samples, seed, stream=2)
+                           sampling.bg_samples, sampling.fine_samples, seed, stream=2,
+                           near_gradient=near_gradient)
     return RenderResult(fg=fg, bg=bg,
                         coarse=composite(fg.coarse, bg.coarse if bg else None),
                         fine=composite(fg.fine, bg.fine if bg else None))

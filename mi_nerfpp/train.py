@@ -146,6 +146,9 @@ class TrainConfig:
                                    "held-out PSNR over '0' (the prior from the start)",
                                    type=float, nargs='+', metavar='F',
                                    default_help='(default: 0.15 0.5)')
+    near_gradient: float = option(0.5, 'scale the gradients of samples within this distance of '
+                                  'their camera by (distance / this)² (Floaters No More: fewer '
+                                  'floaters near the cameras; 0: off)')
     tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
     density_bias: float = option(0.0, "grid field: initial density logit: σ = 1 everywhere, above "
@@ -257,7 +260,7 @@ class TrainConfig:
             if not (finite(getattr(self, name)) and getattr(self, name) > 0):
                 bad(name, 'a positive finite number')
         for name in ('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'density_bias',
-                     'occupancy_threshold', 'appearance_prior', 'poses_start'):
+                     'occupancy_threshold', 'appearance_prior', 'poses_start', 'near_gradient'):
             v = getattr(self, name)
             if not finite(v) or (name != 'density_bias' and v < 0):
                 bad(name, 'a finite number' if name == 'density_bias' else
@@ -589,7 +592,8 @@ class Trainer:
             params = opt['poses'] if refine else dr.detach(opt['poses'])
             o, d = poses.correct_rays(params, rays.images(index), o, d)
         res = render_rays(o, d, *model.radiance_fields(), cfg.sampling, seed=draws['seed'],
-                          occupancy=occupancy, ray_gradients=refine)
+                          occupancy=occupancy, ray_gradients=refine,
+                          near_gradient=cfg.near_gradient)
         # Radiance is linear; the loss compares it in the encoding of the images, after the
         # image's colour transform when appearance is learned.
         encode = model.loss_encoding

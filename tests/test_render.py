@@ -499,3 +499,43 @@ def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_
     b = render_rays(o2, d2, field, bg, Sampling(32, 16, 16), skip_occluded=True)
     np.testing.assert_allclose(npf(b.fine.rgb, 256), npf(a.fine.rgb, 256), rtol=0,
                                atol=2 * HIDDEN_WEIGHT + OCCLUDED_TRANSMITTANCE)
+
+
+def test_scale_gradient_keeps_the_value_and_scales_the_gradient():
+    from mi_nerfpp.render import scale_gradient
+    x = mi.Float(0.3, -1.2, 2.5)
+    s = mi.Float(0.25, 1.0, 0.0)
+    dr.enable_grad(x)
+    y = scale_gradient(dr.square(x), s)
+    assert np.array_equal(np.array(y), np.array(dr.square(dr.detach(x))))
+    dr.backward(dr.sum(y))
+    assert np.allclose(np.array(dr.grad(x)), 2 * np.array([0.3, -1.2, 2.5]) * np.array(s))
+
+
+def test_near_gradient_scales_each_sample_by_its_squared_distance():
+    """Floaters No More: ``near_gradient=R`` leaves the image unchanged and multiplies the
+    gradient of each sample at distance t < R by (t/R)². With R beyond every sample, all of
+    them are scaled, so doubling R quarters the gradient exactly; with R below every sample
+    (strata midpoints, none closer than half a stratum) the gradient is unchanged."""
+    o, d = rays(32, seed=4)
+
+    def render(theta, radius):
+        fg = AnalyticField(lambda x: theta * (1.0 + dr.square(x[0])),
+                           lambda x: mi.Color3f(theta * (0.2 + 0.1 * x[0]), 0.5 + 0.1 * x[1], theta * x[2]))
+        return render_rays(o, d, fg, None, Sampling(8, 8, 8), seed=None, near_gradient=radius)
+
+    grads, images = [], []
+    for radius in (0.0, 1e-4, 4.0, 8.0):
+        theta = mi.Float(0.7)
+        dr.enable_grad(theta)
+        res = render(theta, radius)
+        loss = dr.mean(res.fine.rgb.x + res.fine.rgb.z + res.coarse.rgb.x + res.fine.opacity)
+        dr.backward(loss)
+        grads.append(np.array(dr.grad(theta))[0])
+        images.append(np.array(dr.detach(res.fine.rgb)))
+    for image in images[1:]:
+        assert np.array_equal(image, images[0])
+    assert abs(grads[0]) > 1e-3
+    assert grads[1] == pytest.approx(grads[0], rel=1e-6)
+    assert grads[3] == pytest.approx(grads[2] / 4, rel=1e-5)
+    assert 0 < grads[2] < grads[0]

@@ -147,7 +147,8 @@ class TrainConfig:
                                    type=float, nargs='+', metavar='F',
                                    default_help='(default: 0.15 0.5)')
     near_gradient: float = option(0.5, 'scale the gradients of samples within this distance of '
-                                  'their camera by (distance / this)² (Floaters No More: fewer '
+                                  'their camera (in the units of the unit sphere of NeRF++) by '
+                                  '(distance / this)² (Floaters No More: fewer '
                                   'floaters near the cameras; 0: off)')
     tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
@@ -422,6 +423,9 @@ class Trainer:
         self.checkpoint_path = os.path.join(out_dir, 'model.npz')
         remove_stale_temporaries(out_dir, 'model.npz')    # left by a process killed mid-save
         normalization = config.model_normalization(dataset.normalization)
+        # --near-gradient is a length in the dataset's frame (NeRF++'s unit sphere); the NeRF
+        # baseline's model frame is shrunk about it.
+        self.near_gradient = config.near_gradient * normalization.scale / dataset.normalization.scale
         splits = in_model_frame(dataset, normalization)
         self.train, self.validation, self.test = (splits[k] for k in ('train', 'validation',
                                                                       'test'))
@@ -593,7 +597,7 @@ class Trainer:
             o, d = poses.correct_rays(params, rays.images(index), o, d)
         res = render_rays(o, d, *model.radiance_fields(), cfg.sampling, seed=draws['seed'],
                           occupancy=occupancy, ray_gradients=refine,
-                          near_gradient=cfg.near_gradient)
+                          near_gradient=self.near_gradient)
         # Radiance is linear; the loss compares it in the encoding of the images, after the
         # image's colour transform when appearance is learned.
         encode = model.loss_encoding

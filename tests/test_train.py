@@ -87,7 +87,11 @@ def test_nerf_baseline_has_one_volume_in_a_larger_sphere(dataset, tmp_path):
     assert max(radii) == pytest.approx(1 / 8, rel=1e-6)
     assert tr.model.normalization.scale == pytest.approx(dataset.normalization.scale * 1.1 / 8)
     assert tr.cfg.sampling.fg_samples == 32 and tr.cfg.sampling.fine_samples == 32
+    # --near-gradient is a length of NeRF++'s frame: shrunk with the baseline's cameras.
+    assert tr.near_gradient == pytest.approx(tr.cfg.near_gradient * 1.1 / 8)
     tr.run()
+    nerfpp = Trainer(dataset, str(tmp_path / 'nerfpp'), TrainConfig(iterations=1, **SMALL))
+    assert nerfpp.near_gradient == tr.cfg.near_gradient
 
 
 def test_resume_with_other_model_options_is_refused_naming_the_difference(dataset, tmp_path):

@@ -16,9 +16,10 @@ volume a grid field in every run so that only the foreground field differs:
   NeRF-MLP (σ and a feature from a γ^10(x) trunk, γ^4(d) injected at a one-layer colour head)
   versus vanilla (same σ trunk; colour from a separate 4-layer MLP with γ^10(x) and γ^10(d)
   at its input);
-* grid + MLP fields, ``--grid-iterations`` steps each: the default colour head (grid features
-  and γ^4(d) into one hidden layer of 32), the same head with γ^10(d), and a vanilla-style head
-  (features and γ^10(d) into 4 hidden layers of 64).
+* grid + MLP fields, ``--grid-iterations`` steps each: the late-injection colour head (grid
+  features and γ^4(d) into one hidden layer of 32; the default until 2026-11-25, γ^2(d) since),
+  the same head with γ^10(d), and a vanilla-style head (features and γ^10(d) into 4 hidden
+  layers of 64).
 
 Same batch (512 rays), samples (32 coarse + 32 fine per volume), learning rates and seed for
 all. Reported: PSNR / SSIM over the full images and PSNR over the object's pixels (ground-truth
@@ -36,7 +37,7 @@ RUNS = [
     # name, family, TrainConfig options
     ('NeRF-MLP', 'mlp', dict(field='nerf', bg_field='grid')),
     ('vanilla MLP', 'mlp', dict(field='vanilla', bg_field='grid')),
-    ('grid, γ^4(d) late (default)', 'grid', dict()),
+    ('grid, γ^4(d) late (default until 2026-11-25)', 'grid', dict(dir_octaves=4)),
     ('grid, γ^10(d) late', 'grid', dict(dir_octaves=10)),
     ('grid, vanilla colour MLP', 'grid', dict(dir_octaves=10, color_layers=4, color_width=64)),
 ]

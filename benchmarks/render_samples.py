@@ -16,7 +16,6 @@ import tempfile
 import mi_nerfpp  # noqa: F401
 from mi_nerfpp.commands import open_run_or_exit
 from mi_nerfpp.evaluate import evaluate_split
-from mi_nerfpp.render import Sampling
 
 
 def main():
@@ -31,11 +30,14 @@ def main():
     model, _, cfg, dataset = open_run_or_exit(a.run)
     if not len(dataset.test):
         raise SystemExit(f'error: {a.run}: its dataset has no test views to score')
-    trained = dataclasses.astuple(cfg.sampling)[:3]
+    base = cfg.sampling
+    trained = (base.fg_samples, base.bg_samples, base.fine_samples)
     others = [tuple(s) for s in (a.samples or [(32, 32, 32), (16, 16, 48), (32, 32, 16)])]
     with tempfile.TemporaryDirectory() as out:
-        for samples in [trained] + [s for s in others if s != trained]:
-            m = evaluate_split(model, dataset.test, out, Sampling(*samples, near=cfg.sampling.near))
+        for samples in [trained] + [o for o in others if o != trained]:
+            fg, bg, fine = samples
+            sampling = dataclasses.replace(base, fg_samples=fg, bg_samples=bg, fine_samples=fine)
+            m = evaluate_split(model, dataset.test, out, sampling)
             label = ' '.join(map(str, samples)) + (' (trained)' if samples == trained else '')
             views = ', '.join(f"{v['psnr']:.2f}" for v in m['views'])
             print(f'samples {label}: held-out PSNR {m["psnr"]:.2f} dB (views {views}); '

@@ -212,15 +212,24 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
 
     t = time.perf_counter()
     n_pairs = len(listed) * (len(listed) - 1) // 2 if matching == 'exhaustive' else None
+    matcher = pycolmap.FeatureMatchingOptions()
+    matcher.num_threads = num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    # Geometric verification's RANSAC draws from its own generator, seeded from the clock unless
+    # given a seed (which set_random_seed does not reach): the verified pairs varied run to run.
+    verification.ransac.random_seed = SFM_SEED
     with bar(f'matching ({matching})', 1, 'stage') as b:
         try:
             if matching == 'exhaustive':
-                pycolmap.match_exhaustive(database)
+                pycolmap.match_exhaustive(database, matching_options=matcher,
+                                          verification_options=verification)
             else:
                 pairing = pycolmap.SequentialPairingOptions()
                 pairing.overlap = overlap
                 pairing.loop_detection = False
-                pycolmap.match_sequential(database, pairing_options=pairing)
+                pycolmap.match_sequential(database, matching_options=matcher,
+                                          pairing_options=pairing,
+                                          verification_options=verification)
         except Exception as e:  # noqa: BLE001
             raise SfmError(f'{photos}: COLMAP feature matching failed ({e})') from e
         b.update(1)
@@ -341,6 +350,7 @@ def _map(pycolmap, database, image_dir, workspace, n_images, num_threads, bar):
     for k, relaxed in enumerate(attempts):
         options = pycolmap.IncrementalPipelineOptions()
         options.num_threads = num_threads
+        options.random_seed = SFM_SEED     # the mapper's own generators (see the matching)
         for key, value in relaxed.items():
             setattr(options.mapper, key, value)
         attempt_dir = os.path.join(workspace, f'mapping_{k}')

@@ -72,6 +72,16 @@ def test_most_photos_register_and_the_rest_are_listed(photos, sfm):
     assert stems == sorted(os.path.splitext(n)[0] for n in report['registered'])
 
 
+def test_a_second_run_verifies_the_same_pairs_and_registers_the_same_photos(photos, sfm,
+                                                                           tmp_path):
+    # Geometric verification and the mapper are seeded (mi_nerfpp.sfm.SFM_SEED): before, the
+    # verified pairs varied from run to run (59 or 60 here) and one CI run registered 11 of 20.
+    report, _ = sfm
+    again = run_sfm(photos[0], str(tmp_path / 'again'), progress=False)
+    assert again['verified_pairs'] == report['verified_pairs']
+    assert sorted(again['registered']) == sorted(report['registered'])
+
+
 def test_camera_centres_match_the_ground_truth_after_alignment(photos, sfm):
     report, out = sfm
     ds = load_dataset(out)

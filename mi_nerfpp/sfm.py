@@ -91,7 +91,7 @@ def _write_report(out: str, report: dict) -> None:
     os.replace(tmp, os.path.join(out, SFM_FILE))
 
 
-SFM_SEED = 0   # seed of COLMAP's random number generator for every run
+SFM_SEED = 0   # seed of COLMAP's random generators (global, RANSAC, mapper) for every run
 
 
 def run_sfm(photos, out, matching: str = 'exhaustive', camera: str = 'auto',
@@ -215,8 +215,8 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
     matcher = pycolmap.FeatureMatchingOptions()
     matcher.num_threads = num_threads
     verification = pycolmap.TwoViewGeometryOptions()
-    # Geometric verification's RANSAC draws from its own generator, seeded from the clock unless
-    # given a seed (which set_random_seed does not reach): the verified pairs varied run to run.
+    # Geometric verification's RANSAC has its own seed, unset by default (-1), which
+    # set_random_seed does not reach: unseeded, the verified pairs varied from run to run.
     verification.ransac.random_seed = SFM_SEED
     with bar(f'matching ({matching})', 1, 'stage') as b:
         try:

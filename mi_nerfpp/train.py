@@ -108,7 +108,7 @@ class TrainConfig:
                              metavar='FG')
     bg_samples: int = option(16, 'coarse background samples per ray', joint='--samples',
                              metavar='BG')
-    fine_samples: int = option(16, 'fine samples per ray and volume', joint='--samples',
+    fine_samples: int = option(8, 'fine samples per ray and volume', joint='--samples',
                                metavar='FINE')
     lr_grid: float = option(optim.LR_GRID, 'learning rate of the feature grids')
     lr_mlp: float = option(optim.LR_MLP, 'learning rate of the MLPs')

@@ -11,11 +11,13 @@
 COLMAP's camera frame is OpenCV's (x right, y down, z forward) and an image's pose is
 ``cam_from_world``: the quaternion ``(qw, qx, qy, qz)`` and translation ``t`` of
 ``x_cam = R x_world + t``; the camera-to-world matrix is its inverse. Intrinsics come from the
-camera model: ``SIMPLE_PINHOLE`` and ``PINHOLE`` are read as they are; every other model
-(``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``, ``FULL_OPENCV``, the fisheye models, ...) is
-read as a pinhole when its distortion parameters are all zero, and otherwise the images are
-undistorted to pinhole with COLMAP's own undistorter (pycolmap) once, into
-``ROOT/undistorted/`` (reused while it is newer than the model), which is then read instead.
+camera model: ``SIMPLE_PINHOLE`` and ``PINHOLE`` are read as they are; the other
+perspective models (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``, ``FULL_OPENCV``, ``FOV``,
+the division models) are read as a pinhole when their distortion parameters are all zero.
+Otherwise (and always for the fisheye models, which are no pinhole even without distortion
+coefficients) the images are undistorted to pinhole with COLMAP's own undistorter (pycolmap)
+once, into ``ROOT/undistorted/`` (reused while it is newer than the model; see
+:mod:`mi_nerfpp.data.undistort`), which is then read instead.
 
 Every ``llff_hold``-th image (in sorted name order) is held out as the test split, as for
 LLFF. The sparse points are read (:func:`read_model`) but do not enter the normalization:
@@ -31,6 +33,7 @@ import numpy as np
 
 from .dataset import Dataset, Frame, make_dataset, make_splits
 from .errors import DatasetError
+from .undistort import is_fresh, undistort_model
 
 IMAGE_FOLDER = 'images'
 UNDISTORTED_FOLDER = 'undistorted'
@@ -50,9 +53,12 @@ MODEL_IDS = {name: (model_id, n) for model_id, (name, n) in CAMERA_MODELS.items(
 # Models with a single focal length (f, cx, cy, ...).
 _SINGLE_FOCAL = {'SIMPLE_PINHOLE', 'SIMPLE_RADIAL', 'RADIAL', 'SIMPLE_RADIAL_FISHEYE',
                  'RADIAL_FISHEYE', 'SIMPLE_DIVISION', 'SIMPLE_FISHEYE'}
-# Models that are not distortion-free even with zero extra parameters (FOV's omega = 0 is a
-# pinhole, but fisheye projections are never one).
-_ALWAYS_DISTORTED = {'SIMPLE_FISHEYE', 'FISHEYE', 'EUCM'}
+# Models that are no pinhole even with zero extra parameters: the fisheye projections
+# (r = f * theta, which the distortion coefficients only adjust; pycolmap's
+# Camera.is_perspective_fisheye) and EUCM. FOV's omega = 0 is a pinhole.
+_ALWAYS_DISTORTED = {'SIMPLE_RADIAL_FISHEYE', 'RADIAL_FISHEYE', 'OPENCV_FISHEYE',
+                     'THIN_PRISM_FISHEYE', 'RAD_TAN_THIN_PRISM_FISHEYE', 'SIMPLE_FISHEYE',
+                     'FISHEYE', 'EUCM'}
 
 
 @dataclass
@@ -68,10 +74,19 @@ class ColmapCamera:
     @property
     def is_pinhole(self) -> bool:
         """Whether the model projects like a pinhole (no distortion) with these parameters."""
+        return self.model not in _ALWAYS_DISTORTED and not self._has_coefficients
+
+    @property
+    def is_bare_fisheye(self) -> bool:
+        """A fisheye whose distortion coefficients are all zero (or that has none):
+        COLMAP's undistorter takes it for undistorted and leaves it as it is."""
+        return self.model in _ALWAYS_DISTORTED and self.model != 'EUCM' \
+            and not self._has_coefficients
+
+    @property
+    def _has_coefficients(self) -> bool:
         n_intrinsic = 3 if self.model in _SINGLE_FOCAL else 4
-        if self.model in _ALWAYS_DISTORTED:
-            return False
-        return bool(np.all(self.params[n_intrinsic:] == 0))
+        return bool(np.any(self.params[n_intrinsic:] != 0))
 
     @property
     def K(self) -> np.ndarray:
@@ -329,40 +344,30 @@ def pinhole_model(root, model_folder: str | None = None, progress: bool = True) 
                         if not c.is_pinhole})
     if not distorted:
         return model, image_folder
+    bare = sorted({f'{c.camera_id} ({c.model})' for c in model.cameras.values()
+                   if c.is_bare_fisheye})
+    if bare:
+        raise DatasetError(f'{model_folder}: cameras {", ".join(bare)} are fisheyes without '
+                           f'distortion coefficients, which COLMAP\'s undistorter leaves as '
+                           f'they are; undistort the images to pinhole yourself, or export the '
+                           f'model as transforms.json (OPENCV_FISHEYE), which mi-nerfpp '
+                           f'undistorts')
     out = os.path.join(root, UNDISTORTED_FOLDER)
     undistorted_model = os.path.join(out, 'sparse')
     if not _up_to_date(undistorted_model, model_folder):
         if progress:
             print(f'{root}: cameras {", ".join(distorted)} have lens distortion; undistorting '
                   f'the images to pinhole with COLMAP into {out}/ (done once)')
-        undistort(model_folder, image_folder, out)
+        undistort_model(model_folder, image_folder, out)
     return read_model(undistorted_model), os.path.join(out, IMAGE_FOLDER)
 
 
 def _up_to_date(result_folder: str, source_folder: str) -> bool:
+    """Whether the undistorted model in ``result_folder`` is newer than the model files."""
     if _model_extension(result_folder) is None:
         return False
-    newest_source = max(os.path.getmtime(os.path.join(source_folder, f))
-                        for f in os.listdir(source_folder))
-    return min(os.path.getmtime(os.path.join(result_folder, f))
-               for f in os.listdir(result_folder)) >= newest_source
-
-
-def undistort(model_folder: str, image_folder: str, out: str) -> None:
-    """COLMAP's undistorter: ``out/images/`` and ``out/sparse/`` with PINHOLE cameras."""
-    import shutil
-
-    import pycolmap
-    tmp = out + '.partial'
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        pycolmap.undistort_images(tmp, model_folder, image_folder)
-    except Exception as e:  # noqa: BLE001 - pycolmap raises ValueError/RuntimeError alike
-        raise DatasetError(f'{model_folder}: COLMAP could not undistort the images into '
-                           f'{out} ({type(e).__name__}: {e}); undistort them yourself (colmap '
-                           f'image_undistorter) and point at the result') from e
-    shutil.rmtree(out, ignore_errors=True)
-    os.replace(tmp, out)
+    return is_fresh([os.path.join(result_folder, f) for f in os.listdir(result_folder)],
+                    [os.path.join(source_folder, f) for f in os.listdir(source_folder)])
 
 
 def colmap_frames(model: ColmapModel, image_folder: str) -> list[Frame]:

@@ -37,7 +37,8 @@ def write_colmap(root, cams, model='SIMPLE_PINHOLE', extra=(), fmt='bin', images
     intrinsics = {'SIMPLE_PINHOLE': [K[0, 0], K[0, 2], K[1, 2]],
                   'PINHOLE': [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
                   'SIMPLE_RADIAL': [K[0, 0], K[0, 2], K[1, 2]],
-                  'OPENCV': [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]}[model]
+                  'OPENCV': [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+                  'OPENCV_FISHEYE': [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]}[model]
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(pycolmap.Camera(
         model=model, width=W, height=H, params=intrinsics + list(extra), camera_id=1))
@@ -152,6 +153,33 @@ def test_distorted_model_is_undistorted_once(tmp_path, capsys):
     load_dataset(tmp_path, llff_hold=0)
     assert 'lens distortion' not in capsys.readouterr().out
     assert os.path.getmtime(tmp_path / 'undistorted' / 'sparse' / 'cameras.bin') == stamp
+
+
+@pytest.mark.parametrize('model, extra', [('OPENCV_FISHEYE', [0.0] * 4), ('OPENCV_FISHEYE',
+                                                                          [0.01, 0, 0, 0])])
+def test_fisheye_is_never_read_as_a_pinhole(tmp_path, model, extra):
+    """OPENCV_FISHEYE is the equidistant projection r = f theta even with k1..k4 = 0 (it was
+    once read as a pinhole then). COLMAP's undistorter takes a fisheye without coefficients for
+    undistorted and copies it: that is refused, naming the model and a way out."""
+    cams = ground_truth_cameras()
+    rec = write_colmap(tmp_path, cams, model, extra=extra)
+    camera = read_model(tmp_path / 'sparse' / '0').cameras[1]
+    assert not camera.is_pinhole
+    if not any(extra):
+        assert camera.is_bare_fisheye
+        with pytest.raises(DatasetError, match=r'sparse/0: cameras 1 \(OPENCV_FISHEYE\) are '
+                                               r'fisheyes without distortion coefficients'):
+            load_dataset(tmp_path)
+        return
+    ds = load_dataset(tmp_path, llff_hold=0)
+    pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), rec.cameras[1])
+    by_name = {c.name: c for c in cams}
+    for cam in ds.train.cameras:
+        world = ds.normalization.to_world_camera(cam)
+        w2c = np.linalg.inv(by_name[cam.name].c2w)
+        np.testing.assert_allclose(project(world, POINTS)[0],
+                                   pinhole.img_from_cam(POINTS @ w2c[:3, :3].T + w2c[:3, 3]),
+                                   atol=1e-8)
 
 
 def test_errors_name_the_file_and_the_fix(tmp_path):

@@ -1,0 +1,351 @@
+"""Lens distortion: images undistorted to pinhole cameras with COLMAP (pycolmap), once, cached.
+
+mi-nerfpp's cameras are pinholes. Two readers meet lens distortion, and both undistort the
+images once into a cache folder next to the dataset:
+
+- a COLMAP model whose cameras have distortion (:mod:`mi_nerfpp.data.colmap`): the whole model
+  goes through COLMAP's own undistorter (:func:`undistort_model`) into ``ROOT/undistorted/``
+  (``images/`` and ``sparse/`` with PINHOLE cameras);
+- a ``transforms.json`` with OpenCV or OpenCV-fisheye coefficients
+  (:mod:`mi_nerfpp.data.blender`): each distorted image is resampled to a pinhole camera
+  (:func:`undistort_views`) into ``<json stem>_undistorted/``: the images at their paths
+  relative to the JSON file, as PNG (EXR stays EXR), and ``cameras.json``, the distorted and
+  the pinhole camera of every image as COLMAP camera models.
+
+One rule makes the pinhole camera for both: COLMAP's ``undistort_camera`` with
+:func:`camera_options` (the same focal lengths; the image size and principal point chosen so
+that every pixel of the pinhole image lies inside the distorted one, so there are no blank
+borders). The image is resampled as COLMAP's undistorter does it: each pinhole pixel centre is
+unprojected with the pinhole camera and projected with the distorted one (pycolmap's
+``cam_from_img`` / ``img_from_cam``), and the distorted image is interpolated bilinearly there.
+:func:`undistort_views` does this in floating point so that 16-bit PNGs, EXR and alpha keep
+their precision (pycolmap's bitmaps are 8-bit RGB); for 8-bit images its result equals
+``pycolmap.undistort_image``'s up to rounding (tests/data/test_undistort.py checks it).
+
+A cache is written into ``<cache>.partial`` and renamed onto ``<cache>`` only when complete
+(:func:`atomic_folder`), so an interrupted run never leaves a cache that is reused; it is reused
+while it is at least as new as everything it was made from (:func:`is_fresh`).
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from .errors import DatasetError
+
+# The index of a transforms.json undistortion cache (written last: its time stamps the cache).
+CACHE_INDEX = 'cameras.json'
+PARTIAL_SUFFIX = '.partial'
+# Pinhole pixels interpolated per block (bounds the memory of the pixel map of one block).
+_BLOCK_PIXELS = 1 << 21
+
+
+def camera_options():
+    """COLMAP's options for the pinhole camera of a distorted one (its defaults: no blank
+    pixels, so the pinhole image is cropped to where the distorted image has content)."""
+    import pycolmap
+    return pycolmap.UndistortCameraOptions()
+
+
+def pycolmap_camera(camera):
+    """A ``pycolmap.Camera`` of a camera description with ``model`` (COLMAP's model name),
+    ``width``, ``height`` and ``params`` (e.g. :class:`mi_nerfpp.data.colmap.ColmapCamera`)."""
+    import pycolmap
+    return pycolmap.Camera(model=camera.model, width=int(camera.width),
+                           height=int(camera.height),
+                           params=np.asarray(camera.params, dtype=np.float64))
+
+
+# ----------------------------------------------------------------------------- caches
+def is_fresh(results: Iterable[str], sources: Iterable[str]) -> bool:
+    """Whether every file of ``results`` exists and none is older than any of ``sources``."""
+    results = list(results)
+    if not results or not all(os.path.isfile(path) for path in results):
+        return False
+    newest_source = max((os.path.getmtime(path) for path in sources), default=-np.inf)
+    return min(os.path.getmtime(path) for path in results) >= newest_source
+
+
+@contextlib.contextmanager
+def atomic_folder(out: str) -> Iterator[str]:
+    """Yield an empty folder ``out + '.partial'`` to write into; on success it replaces ``out``.
+
+    A run that fails or is killed mid-write leaves at most the ``.partial`` folder, which is
+    never read and is removed by the next run; ``out`` is either the old folder or the new one.
+
+    Raises:
+        DatasetError: the folder cannot be created (e.g. the dataset is on a read-only disk).
+    """
+    tmp = out + PARTIAL_SUFFIX
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        os.makedirs(tmp)
+    except OSError as e:
+        raise DatasetError(f'{out}: cannot write the undistorted images here ({e.strerror}); '
+                           f'copy the dataset to a writable place') from e
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(tmp, out)
+
+
+# ----------------------------------------------------------------------------- COLMAP models
+def undistort_model(model_folder: str, image_folder: str, out: str) -> None:
+    """COLMAP's undistorter on a whole model: ``out/images/`` and ``out/sparse/`` with PINHOLE
+    cameras, written atomically.
+
+    Raises:
+        DatasetError: COLMAP fails (the message names the model and the way out).
+    """
+    import pycolmap
+    with atomic_folder(out) as tmp:
+        try:
+            pycolmap.undistort_images(tmp, model_folder, image_folder,
+                                      undistort_options=camera_options())
+        except Exception as e:  # noqa: BLE001 - pycolmap raises ValueError/RuntimeError alike
+            raise DatasetError(f'{model_folder}: COLMAP could not undistort the images into '
+                               f'{out} ({type(e).__name__}: {e}); undistort them yourself '
+                               f'(colmap image_undistorter) and point at the result') from e
+
+
+# ----------------------------------------------------------------------------- single images
+@dataclass
+class View:
+    """One image to undistort.
+
+    Attributes:
+        image_path: the distorted image.
+        name: its path in the cache, relative to the cache folder (``.png``, or ``.exr``
+            for EXR images).
+        camera: its distorted camera as a COLMAP model (``model``, ``width``, ``height``,
+            ``params``), for the image as :func:`~mi_nerfpp.data.images.read_image` returns
+            it (EXIF orientation applied).
+    """
+
+    image_path: str
+    name: str
+    camera: object
+
+
+@dataclass
+class Pinhole:
+    """An undistorted image and its pinhole camera."""
+
+    image_path: str
+    K: np.ndarray
+    width: int
+    height: int
+
+
+def undistort_views(views: list[View], out: str, sources: Iterable[str] = (),
+                    what: str = '', progress: bool = True) -> list[Pinhole]:
+    """The undistorted images and pinhole cameras of ``views``, from the cache folder ``out``
+    when it is up to date, else made there (atomically) first.
+
+    The cache is up to date when its index is at least as new as ``sources`` (e.g. the JSON
+    file the cameras come from) and every image, and it lists every view with the same image,
+    the same distorted camera and the same pycolmap version. Views whose distorted cameras
+    have the same image size get pinhole cameras of one size (the smallest COLMAP chooses for
+    them, cropped about the centre), so the images of one split keep one size.
+
+    Args:
+        what: the dataset file named in the info line (printed when ``progress``).
+
+    Raises:
+        DatasetError: an unreadable image, two views with one cache name, a cache folder that
+            cannot be written.
+    """
+    import pycolmap
+    out = os.path.abspath(out)
+    names = {}
+    for view in views:
+        if view.name in names:
+            raise DatasetError(f'{view.image_path} and {names[view.name]} would both be '
+                               f'undistorted to {os.path.join(out, view.name)}: rename one')
+        names[view.name] = view.image_path
+    index_path = os.path.join(out, CACHE_INDEX)
+    models = ', '.join(sorted({view.camera.model for view in views}))
+    sources = list(sources) + [view.image_path for view in views]
+    entries = [_entry(view, out) for view in views]
+    cached = _read_index(index_path) if is_fresh([index_path], sources) else None
+    if cached is not None and cached.get('pycolmap') == pycolmap.__version__ and all(
+            cached['images'].get(view.name, {}).get('source') == entry['source']
+            and cached['images'][view.name].get('distorted') == entry['distorted']
+            and 'pinhole' in cached['images'][view.name]
+            and os.path.isfile(os.path.join(out, view.name))
+            for view, entry in zip(views, entries)):
+        if progress:
+            print(f'{what}: lens distortion ({models}) in {len(views)} images: reading them '
+                  f'undistorted to pinhole cameras from {out}/')
+        return [_pinhole(out, view.name, cached['images'][view.name]['pinhole'])
+                for view in views]
+
+    if progress:
+        print(f'{what}: lens distortion ({models}) in {len(views)} images: undistorting them '
+              f'to pinhole cameras with COLMAP into {out}/ (once; redone when the cameras or '
+              f'images change)')
+    pinholes = _pinhole_cameras([view.camera for view in views])
+    with atomic_folder(out) as tmp, _progress(len(views), progress) as bar:
+        maps = {}
+        for view, entry, pinhole in zip(views, entries, pinholes):
+            pixels = _read_pixels(view.image_path)
+            if pixels.shape[:2] != (view.camera.height, view.camera.width):
+                raise DatasetError(f'{view.image_path}: image is {pixels.shape[1]}x'
+                                   f'{pixels.shape[0]} but its camera is {view.camera.width}x'
+                                   f'{view.camera.height}: fix the metadata or the image')
+            key = (json.dumps(entry['distorted']), pinhole.width, pinhole.height,
+                   tuple(pinhole.params))
+            if key not in maps:     # one map at a time: views of one camera share it
+                maps = {key: _pixel_map(pycolmap_camera(view.camera), pinhole)}
+            path = os.path.join(tmp, view.name)
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            _write_pixels(path, warp(pixels, maps[key]))
+            entry['pinhole'] = {'model': 'PINHOLE', 'width': pinhole.width,
+                                'height': pinhole.height,
+                                'params': [float(p) for p in pinhole.params]}
+            bar.update(1)
+        with open(os.path.join(tmp, CACHE_INDEX), 'w') as f:
+            json.dump({'about': f'images of {os.path.basename(what)} undistorted to pinhole '
+                                f'cameras by mi-nerfpp with COLMAP; redone when the cameras '
+                                f'or images change',
+                       'pycolmap': pycolmap.__version__,
+                       'images': {view.name: entry for view, entry in zip(views, entries)}},
+                      f, indent=1)
+    return [_pinhole(out, view.name, entry['pinhole']) for view, entry in zip(views, entries)]
+
+
+def _entry(view: View, out: str) -> dict:
+    """The cache index entry of a view, without its pinhole camera (JSON values, so that an
+    entry read back compares equal)."""
+    camera = view.camera
+    return json.loads(json.dumps({
+        'source': os.path.relpath(os.path.abspath(view.image_path), out),
+        'distorted': {'model': camera.model, 'width': int(camera.width),
+                      'height': int(camera.height),
+                      'params': [float(p) for p in camera.params]}}))
+
+
+def _read_index(path: str) -> dict | None:
+    try:
+        with open(path) as f:
+            index = json.load(f)
+        return index if isinstance(index, dict) and isinstance(index.get('images'), dict) \
+            else None
+    except (OSError, ValueError):
+        return None
+
+
+def _pinhole(out: str, name: str, camera: dict) -> Pinhole:
+    fx, fy, cx, cy = camera['params']
+    return Pinhole(os.path.join(out, name), np.array([[fx, 0.0, cx], [0.0, fy, cy],
+                                                      [0.0, 0.0, 1.0]]),
+                   int(camera['width']), int(camera['height']))
+
+
+def _pinhole_cameras(cameras) -> list:
+    """COLMAP's pinhole camera of each camera; those of one source size cropped to one size."""
+    import pycolmap
+    options = camera_options()
+    pinholes = [pycolmap.undistort_camera(options, pycolmap_camera(c)) for c in cameras]
+    common = {}
+    for camera, pinhole in zip(cameras, pinholes):
+        size = (int(camera.width), int(camera.height))
+        w, h = common.get(size, (pinhole.width, pinhole.height))
+        common[size] = (min(w, pinhole.width), min(h, pinhole.height))
+    cropped = []
+    for camera, pinhole in zip(cameras, pinholes):
+        width, height = common[(int(camera.width), int(camera.height))]
+        fx, fy, cx, cy = pinhole.params
+        cropped.append(pycolmap.Camera(
+            model='PINHOLE', width=width, height=height,
+            params=[fx, fy, cx - (pinhole.width - width) // 2,
+                    cy - (pinhole.height - height) // 2]))
+    return cropped
+
+
+def _pixel_map(distorted, pinhole) -> np.ndarray:
+    """(2, H, W) float32 (row, column) of each pinhole pixel centre in the distorted image, in
+    the array-index convention of :func:`scipy.ndimage.map_coordinates` (pixel (i, j) centred
+    at integer (i, j), i.e. continuous pixel coordinates minus 0.5)."""
+    width, height = pinhole.width, pinhole.height
+    coords = np.empty((2, height, width), dtype=np.float32)
+    rows = max(1, _BLOCK_PIXELS // width)
+    for y0 in range(0, height, rows):
+        x, y = np.meshgrid(np.arange(width) + 0.5, np.arange(y0, min(y0 + rows, height)) + 0.5)
+        rays = pinhole.cam_from_img(np.stack([x.ravel(), y.ravel()], axis=1))
+        source = distorted.img_from_cam(np.column_stack([rays, np.ones(len(rays))]),
+                                        check_cheirality=False) - 0.5
+        coords[0, y0:y0 + rows] = source[:, 1].reshape(x.shape)
+        coords[1, y0:y0 + rows] = source[:, 0].reshape(x.shape)
+    return coords
+
+
+def warp(pixels: np.ndarray, coords: np.ndarray) -> np.ndarray:
+    """``pixels`` (H, W, C) resampled bilinearly at ``coords`` (:func:`_pixel_map`); outside
+    the image is 0 (as in COLMAP); integer pixels are rounded back to their type."""
+    from scipy.ndimage import map_coordinates
+    channels = [map_coordinates(pixels[..., c].astype(np.float32), coords, order=1,
+                                mode='constant', cval=0.0) for c in range(pixels.shape[2])]
+    result = np.stack(channels, axis=-1)
+    if np.issubdtype(pixels.dtype, np.integer):
+        info = np.iinfo(pixels.dtype)
+        result = np.clip(np.round(result), info.min, info.max).astype(pixels.dtype)
+    return result
+
+
+def _read_pixels(path: str) -> np.ndarray:
+    """An image as stored, (H, W, C): uint8 or uint16 for PNG/JPEG (EXIF orientation applied,
+    alpha kept), float32 RGB[A] for EXR (colour premultiplied, as stored)."""
+    from .images import _read_exr, _read_ldr
+    try:
+        if path.lower().endswith('.exr'):
+            rgb, alpha = _read_exr(path)
+            pixels = rgb if alpha is None else np.concatenate([rgb, alpha], axis=2)
+        else:
+            pixels = _read_ldr(path)
+            if pixels.dtype == np.bool_:
+                pixels = pixels.astype(np.uint8) * np.uint8(255)
+    except DatasetError:
+        raise
+    except Exception as e:  # noqa: BLE001 - decoders raise many types; all mean "unreadable"
+        raise DatasetError(f'{path}: cannot read image ({type(e).__name__}: {e})') from e
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    if pixels.dtype not in (np.uint8, np.uint16, np.float32) or pixels.shape[2] > 4:
+        raise DatasetError(f'{path}: cannot undistort {pixels.dtype} images with '
+                           f'{pixels.shape[2]} channels; use 8/16-bit PNG, JPEG or EXR')
+    if pixels.dtype == np.float32 and not np.isfinite(pixels).all():
+        raise DatasetError(f'{path}: has NaN or infinite pixels: fix or remove this image')
+    return pixels
+
+
+def _write_pixels(path: str, pixels: np.ndarray) -> None:
+    """Write what :func:`_read_pixels` read: PNG (8 or 16 bit) or EXR (float32)."""
+    if path.lower().endswith('.exr'):
+        import OpenEXR
+        names = ('R', 'G', 'B', 'A')[:pixels.shape[2]]
+        channels = {name: np.ascontiguousarray(pixels[..., i]) for i, name in enumerate(names)}
+        with OpenEXR.File({'compression': OpenEXR.ZIP_COMPRESSION,
+                           'type': OpenEXR.scanlineimage}, channels) as f:
+            f.write(path)
+    elif pixels.dtype == np.uint16:
+        import mitsuba as mi  # Pillow cannot write 16-bit colour PNGs
+        mi.Bitmap(pixels if pixels.shape[2] > 1 else pixels[..., 0]).write(path)
+    else:
+        import imageio.v3 as iio
+        iio.imwrite(path, pixels if pixels.shape[2] > 1 else pixels[..., 0], extension='.png')
+
+
+def _progress(total: int, enabled: bool):
+    from tqdm import tqdm
+    return tqdm(total=total, desc='undistort', unit='image', disable=not enabled or total < 2,
+                leave=False)

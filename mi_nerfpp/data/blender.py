@@ -8,7 +8,16 @@ overridden per frame where a frame has its own keys:
   (radians, full field of view); fy defaults to fx;
 - principal point: ``cx`` / ``cy``, default the image centre;
 - ``w`` / ``h``: the image size, checked against the image when given;
-- distortion (``k1 k2 k3 k4 p1 p2``) is ignored with a warning.
+- lens distortion, as nerfstudio and instant-ngp write it: ``camera_model`` ``OPENCV`` (or
+  none, or another perspective model: ``k1 k2 p1 p2`` and optionally ``k3``, OpenCV's
+  ``(1 + k1 r^2 + k2 r^4 + k3 r^6)`` radial and ``p1 p2`` tangential terms) or
+  ``OPENCV_FISHEYE`` (or instant-ngp's ``"is_fisheye": true``: ``k1 k2 k3 k4`` of OpenCV's
+  fisheye model). Frames with distortion are undistorted to pinhole cameras once, with
+  COLMAP (pycolmap), into ``<json stem>_undistorted/`` next to the JSON file, which is read
+  from then on while it is newer than the JSON and the images (see
+  :mod:`mi_nerfpp.data.undistort`); an info line says so. Projections that are no lens
+  distortion of a perspective or fisheye camera (``EQUIRECTANGULAR``, ``FISHEYE624``,
+  instant-ngp's ``latlong`` / ``equirectangular`` / ``ftheta_p0``) are refused.
 
 Splits come from ``transforms_{train,val,test}.json`` when ``transforms_train.json`` exists
 (the Blender layout); otherwise a single ``transforms.json`` is split by holding out every
@@ -18,6 +27,7 @@ skipped with a warning.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -27,8 +37,11 @@ import warnings
 import numpy as np
 
 from .cameras import opengl_to_opencv
+from .colmap import ColmapCamera
 from .dataset import Dataset, Frame, make_dataset, make_splits
 from .errors import DatasetError
+from .images import image_size
+from .undistort import CACHE_INDEX, View, undistort_views
 
 SPLIT_FILES = {'train': 'transforms_train.json', 'validation': 'transforms_val.json',
                'test': 'transforms_test.json'}
@@ -36,8 +49,14 @@ SINGLE_FILE = 'transforms.json'
 DISTORTION_KEYS = ('k1', 'k2', 'k3', 'k4', 'p1', 'p2')
 NUMERIC_KEYS = ('fl_x', 'fl_y', 'cx', 'cy', 'w', 'h', 'camera_angle_x', 'camera_angle_y',
                 *DISTORTION_KEYS)
-# nerfstudio camera models that are pinhole up to lens distortion.
+# nerfstudio camera models that are pinhole up to lens distortion (OpenCV's k1 k2 k3 p1 p2).
 PINHOLE_MODELS = ('PINHOLE', 'SIMPLE_PINHOLE', 'OPENCV', 'SIMPLE_RADIAL', 'RADIAL')
+# ... and the fisheye one (OpenCV's fisheye model, k1 k2 k3 k4).
+FISHEYE_MODEL = 'OPENCV_FISHEYE'
+# instant-ngp's keys of projections that are no lens distortion.
+OTHER_PROJECTION_KEYS = ('latlong', 'equirectangular', 'ftheta_p0')
+# The cache of undistorted images of JSON file ``F.json``: ``F`` + this, next to it.
+UNDISTORTED_SUFFIX = '_undistorted'
 
 
 def is_transforms(path) -> bool:
@@ -79,7 +98,7 @@ def read_transforms(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
                   if os.path.isfile(os.path.join(folder, file)) else []
                   for name, file in SPLIT_FILES.items()}
     elif os.path.isfile(single_file):
-        everything = sorted(_read_frames(single_file), key=lambda frame: frame.image_path)
+        everything = _read_frames(single_file, sort=True)
         held_out = set(range(0, len(everything), llff_hold)) if llff_hold > 0 else set()
         frames = {'train': [f for i, f in enumerate(everything) if i not in held_out],
                   'validation': [],
@@ -92,8 +111,9 @@ def read_transforms(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
                         downscale=downscale)
 
 
-def _read_frames(json_path: str) -> list[Frame]:
-    """Frames of one transforms JSON file whose images exist."""
+def _read_frames(json_path: str, sort: bool = False) -> list[Frame]:
+    """Frames of one transforms JSON file whose images exist (sorted by image path if
+    ``sort``), those with lens distortion undistorted."""
     try:
         with open(json_path) as f:
             meta = json.load(f)
@@ -103,7 +123,7 @@ def _read_frames(json_path: str) -> list[Frame]:
         raise DatasetError(f'{json_path}: expected an object with a "frames" list')
     shared = _camera_params(meta, json_path)
     folder = os.path.dirname(json_path)
-    frames, missing, distorted = [], [], False
+    frames, missing = [], []    # frames: (Frame, its lens or None)
     for i, entry in enumerate(meta['frames']):
         source = f'{json_path} (frame {i})'
         if not isinstance(entry, dict) or 'file_path' not in entry \
@@ -114,35 +134,120 @@ def _read_frames(json_path: str) -> list[Frame]:
             missing.append(str(entry['file_path']))
             continue
         params = {**shared, **_camera_params(entry, source)}
-        distorted |= any(params.get(k, 0.0) != 0.0 for k in DISTORTION_KEYS)
         size = (int(params['w']), int(params['h'])) if 'w' in params and 'h' in params else None
-        frames.append(Frame(
+        frames.append((Frame(
             image_path=image_path,
             c2w=opengl_to_opencv(_pose_matrix(entry['transform_matrix'], source)),
             intrinsics=functools.partial(_intrinsics, params, source),
             source=source,
             name=os.path.splitext(os.path.basename(image_path))[0],
-            size=size))
+            size=size), _lens(params, source)))
     if missing:
         warnings.warn(f'{json_path}: skipped {len(missing)} of {len(meta["frames"])} frames '
                       f'whose image is missing (first: {missing[0]!r})', stacklevel=3)
-    if distorted:
-        warnings.warn(f'{json_path}: lens distortion ({", ".join(DISTORTION_KEYS)}) is ignored; '
-                      f'undistort the images first (e.g. COLMAP image_undistorter) for accurate '
-                      f'results', stacklevel=3)
-    return frames
+    if sort:
+        frames.sort(key=lambda pair: pair[0].image_path)
+    if any(lens is not None for _, lens in frames):
+        return _undistorted(json_path, frames)
+    return [frame for frame, _ in frames]
+
+
+def _lens(params: dict, source: str) -> tuple[str, list[float]] | None:
+    """The COLMAP camera model and distortion parameters of a frame's lens, or None for a
+    pinhole (see the module docstring)."""
+    k1, k2, k3, k4, p1, p2 = (params.get(key, 0.0) for key in DISTORTION_KEYS)
+    if not np.all(np.isfinite([k1, k2, k3, k4, p1, p2])):
+        raise DatasetError(f'{source}: distortion coefficients must be finite, got '
+                           f'{dict(zip(DISTORTION_KEYS, (k1, k2, k3, k4, p1, p2)))}')
+    if params.get('camera_model') == FISHEYE_MODEL or params.get('is_fisheye', False):
+        if p1 != 0.0 or p2 != 0.0:
+            raise DatasetError(f'{source}: "p1"/"p2" (tangential distortion) are given for a '
+                               f'fisheye camera ({FISHEYE_MODEL} or "is_fisheye"), whose '
+                               f'OpenCV model has none: remove them or fix the camera model')
+        return 'OPENCV_FISHEYE', [k1, k2, k3, k4]     # a fisheye even when all are 0
+    if k4 != 0.0:
+        raise DatasetError(f'{source}: "k4" = {k4:g} is given for a perspective camera: '
+                           f'OpenCV\'s (and COLMAP\'s) perspective models have radial terms '
+                           f'k1 k2 k3 only; for a fisheye set "camera_model": "{FISHEYE_MODEL}" '
+                           f'(or "is_fisheye": true)')
+    if k1 == k2 == k3 == p1 == p2 == 0.0:
+        return None
+    if k3 != 0.0:
+        return 'FULL_OPENCV', [k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]
+    return 'OPENCV', [k1, k2, p1, p2]
+
+
+def _undistorted(json_path: str, frames: list[tuple[Frame, tuple | None]]) -> list[Frame]:
+    """The frames, those with a lens (COLMAP model and distortion, see :func:`_lens`) replaced
+    by their undistorted images and pinhole cameras (see
+    :func:`mi_nerfpp.data.undistort.undistort_views`)."""
+    folder = os.path.dirname(os.path.abspath(json_path))
+    out = os.path.join(folder, os.path.splitext(os.path.basename(json_path))[0]
+                       + UNDISTORTED_SUFFIX)
+    distorted = [(frame, lens) for frame, lens in frames if lens is not None]
+    views = []
+    for frame, (model, distortion) in distorted:
+        width, height = image_size(frame.image_path)
+        if frame.size is not None and tuple(frame.size) != (width, height):
+            raise DatasetError(
+                f'{frame.image_path}: image is {width}x{height} but {frame.source} declares '
+                f'{frame.size[0]}x{frame.size[1]}: fix the metadata or resize the image')
+        K = frame.intrinsics(width, height)
+        camera = ColmapCamera(0, model, width, height,
+                              np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *distortion]))
+        views.append(View(frame.image_path, _cache_name(frame.image_path, folder), camera))
+    pinholes = iter(undistort_views(views, out, sources=[json_path], what=json_path))
+    index = os.path.join(out, CACHE_INDEX)
+    result = []
+    for frame, lens in frames:
+        if lens is not None:
+            pinhole = next(pinholes)
+            frame = dataclasses.replace(
+                frame, image_path=pinhole.image_path,
+                intrinsics=lambda width, height, K=pinhole.K: K,
+                size=(pinhole.width, pinhole.height),
+                intrinsics_source=f'{index} (undistorted from {frame.source})')
+        result.append(frame)
+    return result
+
+
+def _cache_name(image_path: str, folder: str) -> str:
+    """Where an image goes in the undistortion cache: its path relative to the JSON file
+    (``..`` spelled ``__parent__``), as PNG (EXR stays EXR)."""
+    relative = os.path.relpath(os.path.abspath(image_path), folder)
+    parts = ['__parent__' if part == os.pardir else part
+             for part in relative.split(os.sep) if part not in ('', os.curdir)]
+    stem, ext = os.path.splitext(os.path.join(*parts))
+    return stem + ('.exr' if ext.lower() == '.exr' else '.png')
 
 
 def _camera_params(entry: dict, source: str) -> dict:
-    """The intrinsics keys of a JSON object, numbers as floats; checks ``camera_model``."""
+    """The intrinsics keys of a JSON object, numbers as floats, with ``camera_model`` and
+    ``is_fisheye`` when given; refuses projections other than perspective and fisheye."""
     model = entry.get('camera_model')
-    if model is not None and model not in PINHOLE_MODELS:
-        raise DatasetError(f'{source}: camera_model {model!r} is not supported (only pinhole '
-                           f'models {PINHOLE_MODELS}); undistort the images to a pinhole camera')
+    if model is not None and model not in (*PINHOLE_MODELS, FISHEYE_MODEL):
+        raise DatasetError(f'{source}: "camera_model" {model!r} is not supported: mi-nerfpp '
+                           f'reads perspective ({", ".join(PINHOLE_MODELS)}) and fisheye '
+                           f'({FISHEYE_MODEL}) cameras; convert the images to perspective views '
+                           f'first')
+    for key in OTHER_PROJECTION_KEYS:
+        if key in entry:
+            raise DatasetError(f'{source}: "{key}" (an instant-ngp projection that is no lens '
+                               f'distortion) is not supported: mi-nerfpp reads perspective and '
+                               f'OpenCV fisheye cameras; convert the images to perspective '
+                               f'views first')
     try:
-        return {k: float(entry[k]) for k in NUMERIC_KEYS if k in entry}
+        params = {k: float(entry[k]) for k in NUMERIC_KEYS if k in entry}
     except (TypeError, ValueError) as e:
         raise DatasetError(f'{source}: intrinsics must be numbers ({e})') from e
+    if model is not None:
+        params['camera_model'] = model
+    if 'is_fisheye' in entry:
+        if not isinstance(entry['is_fisheye'], bool):
+            raise DatasetError(f'{source}: "is_fisheye" must be true or false, got '
+                               f'{entry["is_fisheye"]!r}')
+        params['is_fisheye'] = entry['is_fisheye']
+    return params
 
 
 def _find_image(folder: str, file_path: str) -> str | None:

@@ -384,14 +384,18 @@ def test_instant_ngp_single_file(tmp_path):
         extra = {'fl_x': 9.0} if i == 5 else {}
         frames.append(blender_frame(f'images/{i:02d}.png', cam.c2w, **extra))
     frames.reverse()    # frame order in the file must not matter
+    # Distortion keys that are all zero (as nerfstudio writes them for pinholes) change
+    # nothing; distortion itself is tested in tests/data/test_undistort.py.
     meta = {'fl_x': 7.0, 'fl_y': 7.5, 'cx': 4.2, 'cy': 2.9, 'w': W, 'h': H,
-            'k1': 0.01, 'k2': 0.0, 'p1': 0.0, 'p2': 0.0, 'frames': frames}
+            'k1': 0.0, 'k2': 0.0, 'p1': 0.0, 'p2': 0.0, 'frames': frames}
     (tmp_path / 'transforms.json').write_text(json.dumps(meta))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter('always')
         ds = load_dataset(tmp_path)
     messages = ' | '.join(str(w.message) for w in caught)
-    assert 'distortion' in messages and 'skipped 1 of 10' in messages
+    assert 'distortion' not in messages and 'skipped 1 of 10' in messages
+    assert not os.path.exists(tmp_path / 'transforms_undistorted')
+    assert ds.train.image_paths[0] == str(tmp_path / 'images' / '01.png')
     # 9 images left, sorted by path; every 8th (0 and 8) is held out as test.
     assert [c.name for c in ds.test.cameras] == ['00', '09']
     assert [c.name for c in ds.train.cameras] == ['01', '02', '04', '05', '06', '07', '08']

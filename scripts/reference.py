@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Write docs/reference.md from the code: every command's ``--help`` and the integrator's
-XML parameters.
+"""Write docs/reference.md from the code: every command's ``--help``, the integrator's
+XML parameters and the package's modules.
 
     python scripts/reference.py            # (re)write docs/reference.md
     python scripts/reference.py --check    # exit 1 if docs/reference.md is not up to date
@@ -14,12 +14,14 @@ The page has two parts, both generated, nothing hand-written:
 * the parameters of ``<integrator type="nerfpp">``, parsed from the ``.. pluginparameters::``
   list in the integrator class's docstring (Mitsuba's own format). The class is found through
   Mitsuba's plugin registry (``type="nerfpp"``), wherever it lives in the package.
+* the package's modules, each with the first paragraph of its docstring (read with ``ast``).
 
 ``tests/test_docs.py`` regenerates the page and fails when the committed file differs.
 """
 from __future__ import annotations
 
 import argparse
+import ast
 import contextlib
 import os
 import re
@@ -157,6 +159,40 @@ def parameter_table(rows: list[list[str]]) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
+# Modules: the first paragraph of each module's docstring
+# ---------------------------------------------------------------------------------------------
+
+def module_summaries(package: Path = ROOT / 'mi_nerfpp') -> list[tuple[str, str]]:
+    """(dotted module name, first paragraph of its docstring) for every module of the package
+    and its subpackages (folders with an ``__init__.py``), read with ``ast`` (nothing is
+    imported); each package before its modules."""
+    def order(path):
+        parts = path.relative_to(package.parent).with_suffix('').parts
+        return tuple((0, '') if part == '__init__' else (1, part) for part in parts)
+
+    out = []
+    for path in sorted(package.rglob('*.py'), key=order):
+        if any(part.startswith(('_', '.')) and part != '__init__.py'
+               for part in path.relative_to(package).parts):
+            continue                                   # private modules, __main__
+        if any(not (folder / '__init__.py').is_file()
+               for folder in path.parents if folder.is_relative_to(package)):
+            continue                                   # scripts in data folders (scenes/)
+        doc = ast.get_docstring(ast.parse(path.read_text(encoding='utf-8'))) or ''
+        first = ' '.join(doc.strip().split('\n\n')[0].split())
+        parts = path.relative_to(package.parent).with_suffix('').parts
+        name = '.'.join(parts[:-1] if parts[-1] == '__init__' else parts)
+        out.append((name, first))
+    return out
+
+
+def module_table(summaries) -> str:
+    out = ['| module | what it is |', '|---|---|']
+    out += [f'| `{name}` | {rst_to_markdown(text) or "–"} |' for name, text in summaries]
+    return '\n'.join(out)
+
+
+# ---------------------------------------------------------------------------------------------
 # The page
 # ---------------------------------------------------------------------------------------------
 
@@ -178,7 +214,8 @@ def render_page() -> str:
         f'`{PROG} optimize [options]`.',
         '',
         '**Commands:** ' + ', '.join(f'[{t}](#{_anchor(t)})' for t in titles) + '. '
-        '**Integrator:** [parameters](#integrator-parameters).',
+        '**Integrator:** [parameters](#integrator-parameters). '
+        '**Package:** [modules](#modules).',
         '',
     ]
     for title, (_, text) in zip(titles, helps):
@@ -187,7 +224,12 @@ def render_page() -> str:
             'Set as `<integer name="fg_samples" value="32"/>` (`<string>`, `<float>`, '
             '`<boolean>` after the type) inside `<integrator type="nerfpp">`. How they act '
             'together: [rendering](rendering.md).', '',
-            parameter_table(rows), '']
+            parameter_table(rows), '',
+            '## Modules', '',
+            'The package `mi_nerfpp`, module by module: the first paragraph of each module\'s '
+            'docstring (private modules left out). How they fit together: '
+            '[design](design.md).', '',
+            module_table(module_summaries()), '']
     return '\n'.join(out)
 
 

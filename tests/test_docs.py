@@ -167,6 +167,36 @@ def test_the_reference_documents_exactly_the_integrators_parameters(reference_pa
         assert f'| `{name}` |' in reference_page
 
 
+# Options of other programs that the guides show (oiiotool, ray start, SLURM) and of benchmark
+# scripts; every other --option named in README.md and the guide pages must be one that a
+# command of the package accepts.
+FOREIGN_OPTIONS = {
+    'docs/compositing.md': {'--ch', '--over'},
+    'docs/videos-and-ray.md': {'--head', '--port', '--address', '--node-ip-address', '--num-cpus',
+                               '--block', '--nodes', '--ntasks-per-node', '--cpus-per-task',
+                               '--exclusive', '--run'},
+}
+
+
+def test_options_named_in_the_guides_exist():
+    from mi_nerfpp.cli import build_parser
+    accepted = {option for _, sub in reference._subcommands(build_parser())
+                for action in sub._actions for option in action.option_strings}
+    generated = {DOCS / 'reference.md', DOCS / 'benchmarks.md'}
+    # paper-section-3.md documents the experiment scripts' own options
+    pages = [README] + [p for p in sorted(DOCS.glob('*.md'))
+                        if p not in generated and p.name != 'paper-section-3.md']
+    unknown = {}
+    for page in pages:
+        name = page.relative_to(ROOT).as_posix()
+        named = set(re.findall(r'(?<![\w-])--[a-z][a-z0-9-]*', page.read_text(encoding='utf-8')))
+        stale = sorted(named - accepted - FOREIGN_OPTIONS.get(name, set()))
+        if stale:
+            unknown[name] = stale
+    assert not unknown, (f'options no command accepts (renamed or removed?): {unknown}; the '
+                         'current ones are in docs/reference.md (python scripts/reference.py)')
+
+
 def test_plugin_parameter_parsing():
     doc = '''
     Intro.

@@ -128,7 +128,7 @@ from .data.nerfpp import write_nerfpp
 from .exr import write_exr
 from .files import atomic_write_path
 from .frame import MITSUBA_NEAR_CLIP, Normalization
-from .preview import srgb_eotf, to_srgb8
+from .color import srgb_eotf, to_srgb8
 
 TRAJECTORIES = ('orbit', 'truck', 'hemisphere', 'arc')
 CAPTURE_FILE = 'capture.json'

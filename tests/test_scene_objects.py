@@ -90,7 +90,7 @@ def object_scene(fg, bg, shapes, width=16, height=12, origin=(0.0, 0.1, 0.9), ta
 
 
 def channels(scene, **kwargs):
-    from mi_nerfpp.exr import LAYERS
+    from mi_nerfpp.layers import LAYERS
     img = np.array(mi.render(scene, **kwargs))
     return {name: img[..., i] for i, name in enumerate(LAYERS)}
 
@@ -324,7 +324,7 @@ def test_gradients_through_a_mirror_match_finite_differences():
     dr.enable_grad(params[key])
     params.update()
     img = mi.render(scene, params, seed=1)
-    from mi_nerfpp.exr import LAYERS
+    from mi_nerfpp.layers import LAYERS
     assert np.array(img)[..., LAYERS.index('obj.A')].max() == 1.0     # the mirror is in view
     dr.backward(loss(img))
     grad = np.array(dr.grad(params[key])).ravel()

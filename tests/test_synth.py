@@ -83,7 +83,7 @@ def test_ground_truth_layers(garden):
     masks = np.stack(masks)
     assert masks.min() == 0 and masks.max() == 1      # foreground objects and distant scenery
     # The PNG is the sRGB encoding of the linear layers.
-    from mi_nerfpp.preview import to_srgb8
+    from mi_nerfpp.color import to_srgb8
     import imageio.v3 as iio
     png = iio.imread(out / 'train' / 'rgb' / '000000.png')
     layers = read_exr(out / 'train' / 'gt' / '000000.exr')

@@ -416,15 +416,13 @@ def test_chunked_render_with_shapes_matches_single_pass():
 
 
 def test_example_scene_renders_objects_into_a_checkpoint(tmp_path):
-    """mi_nerfpp/scenes/insert_objects.xml with any checkpoint: the objects are in view and
-    the layers add up to the beauty."""
-    import os
-
-    import mi_nerfpp
+    """scenes/insert_objects.xml with any checkpoint: the objects are in view and the layers
+    add up to the beauty."""
     from mi_nerfpp.checkpoint import save_checkpoint
+    from mi_nerfpp.synth import scene_file
     from tests.helpers import tiny_model
     save_checkpoint(tmp_path / 'model.npz', tiny_model())
-    xml = os.path.join(os.path.dirname(mi_nerfpp.__file__), 'scenes', 'insert_objects.xml')
+    xml = scene_file('insert_objects.xml')
     scene = mi.load_file(xml, checkpoint=str(tmp_path / 'model.npz'), width='32', height='18',
                          spp='1', samples='4', fine_samples='4')
     assert scene.integrator().shadow_catchers == ('lawn',)

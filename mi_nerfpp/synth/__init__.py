@@ -21,6 +21,7 @@ from .capture import (
     default_capture,
     render_ground_truth,
     scene_file,
+    scenes_dir,
     synthesize,
 )
 from .degrade import APPEARANCE_FILE, POSES_FILE, perturb_poses, vary_exposure
@@ -60,5 +61,6 @@ __all__ = [
     'ORBIT_ELEVATION', 'ORBIT_RADIUS_JITTER', 'ORBIT_TARGET_JITTER', 'POSES_FILE',
     'TRAJECTORIES', 'TRUCK_FILES', 'arc_cameras', 'cache_dir', 'default_capture',
     'hemisphere_cameras', 'intrinsics_from_fov', 'look_at', 'make_cameras', 'orbit_cameras',
-    'parse_res', 'perturb_poses', 'render_ground_truth', 'scene_file', 'split_counts', 'synthesize', 'truck_alignment', 'truck_cameras', 'vary_exposure',
+    'parse_res', 'perturb_poses', 'render_ground_truth', 'scene_file', 'scenes_dir',
+    'split_counts', 'synthesize', 'truck_alignment', 'truck_cameras', 'vary_exposure',
 ]

@@ -64,7 +64,6 @@ import json
 import os
 import shutil
 import time
-from importlib import resources
 
 import numpy as np
 
@@ -91,9 +90,21 @@ DEFAULT_RES = (128, 96)
 DEFAULT_SPP = 64
 
 
+def scenes_dir() -> str:
+    """The folder of the scenes that come with mi-nerfpp (the ground-truth scenes, the objects
+    example, render templates): ``mi_nerfpp/scenes/`` in an installed wheel (package data,
+    mapped from the repository's ``scenes/`` by pyproject.toml), else the top-level ``scenes/``
+    of the source tree the package is imported from (a checkout or an editable install)."""
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    packaged = os.path.join(package, 'scenes')
+    if os.path.isfile(os.path.join(packaged, DEFAULT_SCENE)):
+        return packaged
+    return os.path.join(os.path.dirname(package), 'scenes')
+
+
 def scene_file(name: str) -> str:
-    """Path of a ground-truth scene shipped with the package (``mi_nerfpp/scenes/NAME``)."""
-    return str(resources.files('mi_nerfpp') / 'scenes' / name)
+    """Path of a scene that comes with mi-nerfpp (``scenes/NAME``, :func:`scenes_dir`)."""
+    return os.path.join(scenes_dir(), name)
 
 
 def cache_dir() -> str:

@@ -9,10 +9,10 @@ Every function returns ``{'train': [...], 'validation': [...], 'test': [...]}`` 
     to 0.3 of the spacing), elevation 5-35 degrees (a low-discrepancy sequence plus jitter),
     distance ``radius`` +-10 %, looking at the origin jittered by ~0.08 world units, up = +Y, no
     roll. Horizontal field of view ``fov`` degrees, square pixels, principal point at the image
-    centre. In the ground-truth scenes (``mi_nerfpp/scenes/gt_*.xml``) every object between 1 and 5
-    units from the origin stays below y = 0 (the cameras' lowest height is ~0.1), so cameras of
-    every trajectory with ``radius`` 3-4 are outside every object (checked at the default
-    radius: every camera is >= 0.5 units from the nearest surface).
+    centre. In the ground-truth scenes (``scenes/gt_*.xml``) every object between 1 and 5 units
+    from the origin stays below y = 0 (the cameras' lowest height is ~0.1), so cameras of every
+    trajectory with ``radius`` 3-4 are outside every object (checked at the default radius:
+    every camera is >= 0.5 units from the nearest surface).
 ``truck``
     The real camera poses of the Tanks and Temples "Truck" capture as released with NeRF++
     (package data in ``mi_nerfpp/trajectories/``, BSD-2): train from its 226 train cameras,

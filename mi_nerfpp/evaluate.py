@@ -17,7 +17,7 @@ from .exr import write_exr
 from .files import atomic_write_path
 from .frame import SCENE_NEAR_CLIP
 from .metrics import SOFT_ALPHA, SOFT_ALPHA_WARNING, psnr, soft_alpha_fraction, ssim
-from .preview import write_png
+from .preview import write_linear_png
 from .render import Sampling
 from .scene_xml import write_render_xml
 from .views import ViewRenderer, encoded_rgb, rgb
@@ -49,7 +49,7 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
         gt = split.images[i]
         base = os.path.join(out_dir, f'{name}_{i:03d}')
         write_exr(base + '.exr', layers, attributes=attributes)
-        write_png(base + '.png', pred, model.color_space)
+        write_linear_png(base + '.png', rgb(layers))
         view = {'view': i, 'image': os.path.basename(split.image_paths[i]),
                 'psnr': float(psnr(np.clip(pred, 0, 1), gt)),
                 'ssim': float(ssim(np.clip(pred, 0, 1), gt))}
@@ -74,7 +74,7 @@ def _fitted_right_half(linear, gt, color_space):
     """NeRF-W scoring of one view: ``(psnr, ssim, gain, bias)`` of the right half after the
     affine colour transform fitted on the left half (in linear light)."""
     from .appearance import fit_affine, left_right
-    from .preview import srgb_eotf, srgb_oetf
+    from .color import srgb_eotf, srgb_oetf
     srgb = color_space == 'srgb'
     target = srgb_eotf(gt) if srgb else gt
     (pred_l, pred_r), (gt_l, _) = left_right(linear), left_right(target)

@@ -1,38 +1,20 @@
 """Multi-layer OpenEXR output for compositing.
 
 Renders are written as one single-part scanline EXR whose channel names follow
-the ``layer.channel`` convention that Nuke, Blender and Natron read as layers:
+the ``layer.channel`` convention that Nuke, Blender and Natron read as layers
+(the layers are defined in :mod:`mi_nerfpp.layers`, from which this table is made):
 
-============  ==========================  ============================================
-layer         channels                    content
-============  ==========================  ============================================
-(beauty)      ``R G B A``                 the full image; ``A`` is 1 where the
-                                          background volume is rendered, else ``fg.A``
-``fg``        ``fg.R fg.G fg.B fg.A``     premultiplied foreground radiance, opacity
-                                          (the one foreground alpha, in [0, 1])
-``bg``        ``bg.R bg.G bg.B``          background radiance as seen unoccluded
-``depth``     ``depth.Z``                 camera-space z (distance along the view
-                                          axis, world units, positive in front) where
-                                          the accumulated opacity reaches 0.5
-``distance``  ``distance.Y``              expected distance along the ray (world
-                                          units), blended over both volumes: not a
-                                          surface, not for Z-based tools
-``obj``       ``obj.R obj.G obj.B obj.A   radiance of the scene's shapes as it reaches
-              obj.Z``                     the camera (through the volumes in front),
-                                          coverage mask, camera-space z (0 off them)
-``shadow``    ``shadow.R shadow.G         change made by the shadow catchers
-              shadow.B``                  (negative in shadows)
-============  ==========================  ============================================
+{layer_table}
 
 Colour is scene-linear with Rec.709 primaries and D65 white (the ``chromaticities``
-attribute), so ``R G B = fg + (1 - fg.A)·bg + obj + shadow`` holds in linear light
-(``obj`` and ``shadow`` are 0 in a scene without shapes). Every channel list
+attribute, :mod:`mi_nerfpp.color`), so ``R G B = fg + (1 - fg.A)·bg + obj + shadow`` holds
+in linear light (``obj`` and ``shadow`` are 0 in a scene without shapes). Every channel list
 is written whatever the film's pixel format. Pixels are float32, or float16 with
-``half=True``; depth layers always stay float32 because half precision cannot hold
-scene-scale distances accurately. Header attributes: :func:`compositing_attributes`
-(colour space, depth convention, software) and, for renders of a camera, the standard
-``worldToCamera`` / ``worldToNDC`` matrices and the field of view and near plane
-(:func:`mi_nerfpp.views.camera_attributes`).
+``half=True``; the channels marked "always float32" stay float32 because half precision
+cannot hold scene-scale distances accurately. Header attributes:
+:func:`compositing_attributes` (colour space, depth convention, software) and, for renders
+of a camera, the standard ``worldToCamera`` / ``worldToNDC`` matrices and the field of view
+and near plane (:func:`mi_nerfpp.views.camera_attributes`).
 
 This module must not import drjit or mitsuba.
 """
@@ -44,30 +26,13 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import OpenEXR
 
+from .color import COLOR_SPACE, COLOR_SPACE_DESCRIPTION, REC709_CHROMATICITIES
 from .files import atomic_write_path
+from .layers import FULL_PRECISION_CHANNELS, rst_table
 
-# The one list of channel names: the film's beauty channels, then the nerfpp integrator's AOVs
-# (in the order ``NeRFPPIntegrator.aov_names`` reports and ``mi.render`` returns them).
-BEAUTY = ('R', 'G', 'B', 'A')
-AOVS = (
-    'fg.R', 'fg.G', 'fg.B', 'fg.A',
-    'bg.R', 'bg.G', 'bg.B',
-    'depth.Z',
-    'distance.Y',
-)
-# The inserted objects' layers (0 in a render without shapes).
-OBJECT_AOVS = (
-    'obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj.Z',
-    'shadow.R', 'shadow.G', 'shadow.B',
-)
-AOVS = AOVS + OBJECT_AOVS
-LAYERS = BEAUTY + AOVS
+if __doc__:        # (None under python -OO)
+    __doc__ = __doc__.replace('{layer_table}', rst_table())
 
-FULL_PRECISION_CHANNELS = frozenset({'depth.Z', 'distance.Y', 'obj.Z'})
-
-# Rec.709 / sRGB primaries and D65 white point: red xy, green xy, blue xy, white xy.
-REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
-COLOR_SPACE = 'lin_rec709'
 DEPTH_CONVENTION = ('depth.Z: camera-space z of the point where the accumulated opacity '
                     'reaches 0.5, i.e. distance along the view axis, world units, positive in '
                     'front of the camera (not 1/z); distance.Y: expected distance along the ray')
@@ -78,9 +43,10 @@ def compositing_attributes() -> dict:
     from . import __version__
     return {'chromaticities': REC709_CHROMATICITIES,
             'oiio:ColorSpace': COLOR_SPACE,
-            'colorSpace': 'scene-linear Rec.709 (sRGB primaries, D65)',
+            'colorSpace': COLOR_SPACE_DESCRIPTION,
             'depthConvention': DEPTH_CONVENTION,
             'software': f'mi-nerfpp {__version__}'}
+
 
 HALF_MAX = float(np.finfo(np.float16).max)
 

@@ -9,7 +9,8 @@ import mitsuba as mi
 from mitsuba.ad.integrators.common import ADIntegrator
 
 from .checkpoint import load_checkpoint
-from .exr import AOVS
+from .color import srgb_to_linear
+from .layers import AOVS, aov_list, layer_channels, rst_table
 from .model import FIELD_KINDS, NeRFPPModel
 from .objects import combine, path_rng, split_scene, trace_paths
 from .render import Sampling, render_rays, surface_distance
@@ -175,21 +176,11 @@ class NeRFPPIntegrator(ADIntegrator):
 
     Radiance is scene-linear (Rec.709 primaries), also for models fitted to
     sRGB photos (:meth:`~mi_nerfpp.model.NeRFPPModel.radiance_fields`).
-    AOVs (after ``R, G, B, A``, see :mod:`mi_nerfpp.exr`): ``fg.R fg.G fg.B``
-    premultiplied foreground radiance, ``fg.A`` foreground opacity ``1 - λ`` in
-    [0, 1], ``bg.R bg.G bg.B`` background radiance as seen unoccluded (0 behind
-    opaque foreground unless ``occluded_background``), ``depth.Z`` camera-space
-    z (distance along the view axis, world units) of the point where the
-    accumulated opacity of the composite reaches 0.5 (a scene surface is opaque), ``distance.Y`` the
-    expected distance along the ray (blended over both volumes; background at
-    infinity capped at 1000 unit-sphere radii, see :mod:`mi_nerfpp.render`);
-    then the objects' layers: ``obj.R obj.G obj.B`` the radiance the scene's
-    surfaces add (seen through the volumes in front of them), ``obj.A`` the
-    fraction of the pixel's samples whose camera ray meets a surface, ``obj.Z``
-    its camera-space z (0 where none), ``shadow.R shadow.G shadow.B`` the change
-    that the shadow catchers make (negative in shadows). ``fg`` and ``bg`` then
-    hold the volumes in front of the surface. ``beauty = fg + (1 - fg.A)·bg +
-    obj + shadow``; without shapes ``obj`` and ``shadow`` are 0.
+    The AOVs follow the film's ``R G B [A]`` in this order (the layers of
+    :mod:`mi_nerfpp.layers`; :func:`mi_nerfpp.views.render_layers` reads a
+    render by name, and sets the beauty ``A``):
+
+    {layer_table}
     """
 
     def __init__(self, props):
@@ -264,6 +255,7 @@ class NeRFPPIntegrator(ADIntegrator):
         return mi.Color3f(*map(float, gain)), mi.Color3f(*map(float, bias))
 
     def aov_names(self):
+        """The AOV channels, in :data:`mi_nerfpp.layers.AOVS` order."""
         return list(AOVS)
 
     def to_string(self):
@@ -296,8 +288,9 @@ class NeRFPPIntegrator(ADIntegrator):
         return super().prepare(sensor, seed, spp, list(aovs))
 
     def render_layers(self, o, d, seed, primal=False, far=None):
-        """Beauty and volume AOVs of world-space rays: ``(L: Color3f, aovs: list[Float])``,
-        the volumes ending at ``far`` (world units per ray, ``inf``: no end; None: all)."""
+        """Beauty and volume AOVs of world-space rays: ``(L: Color3f, aovs: {channel: Float})``
+        (the ``fg``, ``bg``, ``depth`` and ``distance`` channels), the volumes ending at
+        ``far`` (world units per ray, ``inf``: no end; None: all)."""
         L, aovs, _ = self._volume(o, d, seed, primal, far)
         return L, aovs
 
@@ -321,8 +314,8 @@ class NeRFPPIntegrator(ADIntegrator):
             # A checkpoint from before linear compositing: decode its layers to linear light
             # (the foreground unpremultiplied first); fg over bg is then exact only where
             # alpha is 0 or 1.
-            L, bg = dr.srgb_to_linear(L), dr.srgb_to_linear(bg)
-            fg_rgb = alpha * dr.srgb_to_linear(fg_rgb / dr.maximum(alpha, 1e-6))
+            L, bg = srgb_to_linear(L), srgb_to_linear(bg)
+            fg_rgb = alpha * srgb_to_linear(fg_rgb / dr.maximum(alpha, 1e-6))
         if self.appearance_image >= 0 and transform:
             # c' = g·c + b on the beauty; fg' = g·fg + α·b and bg' = g·bg + b keep
             # beauty = fg' + (1 - α)·bg'.
@@ -334,8 +327,9 @@ class NeRFPPIntegrator(ADIntegrator):
         else:
             center, axis = self._view
             depth = dr.dot(o - center, axis) + surface * dr.dot(dr.normalize(d), axis)
-        aovs = [fg_rgb.x, fg_rgb.y, fg_rgb.z, alpha, bg.x, bg.y, bg.z,
-                depth, norm.to_world_distance(res.fine.depth)]
+        aovs = layer_channels(fg=(fg_rgb.x, fg_rgb.y, fg_rgb.z, alpha), bg=(bg.x, bg.y, bg.z),
+                              depth=(depth,),
+                              distance=(norm.to_world_distance(res.fine.depth),))
         return L, aovs, res.fine.opacity
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
@@ -355,8 +349,8 @@ class NeRFPPIntegrator(ADIntegrator):
             else:
                 L, aovs = self._chunked(lambda o, d, seed: self.render_layers(
                     o, d, seed, primal=True), [o, d, seed], n)
-            aovs = aovs + [dr.zeros(mi.Float, n)] * (len(AOVS) - len(aovs))
-            return L, mi.Bool(True), aovs, None
+            # The objects' layers are 0.
+            return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
         # One seed per camera sample: its index hashed with the sampler (which carries the
         # render's seed), so no two samples share a path even where the sampler repeats.
         path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n),
@@ -366,18 +360,19 @@ class NeRFPPIntegrator(ADIntegrator):
         else:
             L, aovs = self._chunked(lambda o, d, seed, path_seed: self._render_scene(
                 parts, o, d, seed, path_seed, primal=True), [o, d, seed, path_seed], n)
-        return L, mi.Bool(True), aovs, None
+        return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
 
     def _chunked(self, render, args, n, progress=True):
         """Primal rendering of ``n`` rays, ``chunk_rays`` at a time (bounded memory):
         ``render(*args)`` on each chunk of the per-ray ``args`` (None stays None) returns
-        ``(L, aovs)``; AOVs it does not return stay 0. ``progress``: show a bar (with
-        ``show_progress``) - not for the chunks of path segments inside a chunk."""
+        ``(L, values)``, ``values`` a dict of per-ray Floats (AOV channels); returns the same
+        for all ``n`` rays. ``progress``: show a bar (with ``show_progress``) - not for the
+        chunks of path segments inside a chunk."""
         if n <= self.chunk_rays:
             return render(*args)
         dr.eval(*[a for a in args if a is not None])
         chunk = self.chunk_rays
-        out = [dr.zeros(mi.Float, n) for _ in range(3 + len(AOVS))]
+        L_out, out = [dr.zeros(mi.Float, n) for _ in range(3)], None
         chunks = range(0, n, chunk)
         if self.show_progress and progress:
             from tqdm import tqdm
@@ -387,11 +382,15 @@ class NeRFPPIntegrator(ADIntegrator):
             i = dr.arange(mi.UInt32, chunk) + dr.opaque(mi.UInt32, start)
             valid = i < n
             j = dr.minimum(i, n - 1)
-            L, aovs = render(*[None if a is None else dr.gather(type(a), a, j) for a in args])
-            for buf, value in zip(out, [L.x, L.y, L.z] + aovs):
+            L, values = render(*[None if a is None else dr.gather(type(a), a, j)
+                                 for a in args])
+            if out is None:
+                out = {name: dr.zeros(mi.Float, n) for name in values}
+            for buf, value in zip(L_out + list(out.values()), [L.x, L.y, L.z]
+                                  + [values[name] for name in out]):
                 dr.scatter(buf, value, i, valid)
-            dr.eval(out)
-        return mi.Color3f(*out[:3]), out[3:]
+            dr.eval(L_out, out)
+        return mi.Color3f(*L_out), out
 
     def _volume_batch(self, o, d, far, primal):
         """Radiance and transmittance of the volumes along rays that end at ``far`` (the
@@ -399,12 +398,12 @@ class NeRFPPIntegrator(ADIntegrator):
         def render(o, d, far):
             L, _, opacity = self._volume(o, d, None, primal, far, transform=False,
                                          camera=False)
-            return L, [1.0 - opacity]
+            return L, {'T': 1.0 - opacity}
         if primal:
-            L, (T, *_) = self._chunked(render, [o, d, far], dr.width(o), progress=False)
+            L, values = self._chunked(render, [o, d, far], dr.width(o), progress=False)
         else:
-            L, (T,) = render(o, d, far)
-        return L, T
+            L, values = render(o, d, far)
+        return L, values['T']
 
     def _render_scene(self, parts, o, d, seed, path_seed, primal, catchers=True,
                       transform=True, camera=True):
@@ -421,7 +420,7 @@ class NeRFPPIntegrator(ADIntegrator):
                                 self.rr_depth)
             far0 = dr.gather(mi.Float, paths.far, paths.segment(0))
             hit = ~dr.isinf(far0)
-        L0, layers, opacity0 = self._volume(o, d, seed, primal, far0, transform, camera)
+        L0, volumes, opacity0 = self._volume(o, d, seed, primal, far0, transform, camera)
         surfaces = dr.zeros(mi.Color3f, n)
         if parts.objects is not None:
             # Every segment's volumes: the camera segment's from above, the others here.
@@ -451,11 +450,13 @@ class NeRFPPIntegrator(ADIntegrator):
             center, axis = self._view
             z_hit = dr.dot(o - center, axis) + t_hit * dr.dot(dr.normalize(d), axis)
         # The surface is the depth where the volumes in front of it stay below half opacity.
-        depth = dr.select(hit & (opacity0 < 0.5), z_hit, layers[7])
-        distance = layers[8] + dr.select(hit, (1.0 - opacity0) * t_hit, 0.0)
+        depth = dr.select(hit & (opacity0 < 0.5), z_hit, volumes['depth.Z'])
+        distance = volumes['distance.Y'] + dr.select(hit, (1.0 - opacity0) * t_hit, 0.0)
         mask = dr.select(hit, 1.0, 0.0)
-        aovs = layers[:7] + [depth, distance, surfaces.x, surfaces.y, surfaces.z, mask,
-                             dr.select(hit, z_hit, 0.0), shadow.x, shadow.y, shadow.z]
+        aovs = dict(volumes, **layer_channels(
+            depth=(depth,), distance=(distance,),
+            obj=(surfaces.x, surfaces.y, surfaces.z, mask, dr.select(hit, z_hit, 0.0)),
+            shadow=(shadow.x, shadow.y, shadow.z)))
         return L0 + surfaces + shadow, aovs
 
     def _shadowed_by_volumes(self, paths, primal):
@@ -528,6 +529,11 @@ class NeRFPPIntegrator(ADIntegrator):
         rays = dr.gather(mi.UInt32, caught, near)
         dr.scatter(shadow, (ratio - 1.0) * dr.gather(mi.Color3f, L0, rays), rays)
         return shadow
+
+
+if NeRFPPIntegrator.__doc__:     # (None under python -OO)
+    NeRFPPIntegrator.__doc__ = NeRFPPIntegrator.__doc__.replace(
+        '{layer_table}', rst_table('    ').lstrip())
 
 
 def camera_axis(sensor):

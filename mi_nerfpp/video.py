@@ -123,7 +123,7 @@ def render_frames(renderer, cameras: dict, frames_dir, exr=False, on_frame=None)
     ``renderer`` (a :class:`~mi_nerfpp.views.ViewRenderer`), writing each atomically: the EXR
     with all layers first (with ``exr``), then the PNG. Returns the indices rendered."""
     from .exr import write_exr
-    from .preview import write_png
+    from .preview import write_linear_png
     from .views import rgb
     done = []
     for index in sorted(cameras):
@@ -132,7 +132,7 @@ def render_frames(renderer, cameras: dict, frames_dir, exr=False, on_frame=None)
             layers, attributes = renderer.render(cameras[index], with_attributes=True)
             if exr:
                 write_exr(files[1], layers, attributes=attributes)
-            write_png(files[0], np.clip(rgb(layers), 0, 1), 'linear')
+            write_linear_png(files[0], rgb(layers))
             done.append(index)
         if on_frame is not None:
             on_frame(index)

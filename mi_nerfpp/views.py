@@ -9,32 +9,36 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
+from .color import encode
 from .data import Camera, mitsuba_sensor_dict
-from .exr import AOVS, BEAUTY, compositing_attributes, write_exr
+from .exr import compositing_attributes, write_exr
 from .frame import VIEW_NEAR_CLIP
 from .integrator import NeRFPPIntegrator
-from .preview import write_png
+from .layers import BEAUTY, LAYERS
+from .preview import write_linear_png
 from .render import Sampling
 
 
 def render_layers(image, integrator):
-    """``mi.render``'s output (H, W, C) as the layer dict of :data:`~mi_nerfpp.exr.LAYERS`,
-    whatever the film's pixel format: ``A`` is 1 where the background volume is rendered
-    (it is opaque), else the foreground alpha over the scene's shapes' coverage,
+    """``mi.render``'s output (H, W, C) as the layer dict of :data:`~mi_nerfpp.layers.LAYERS`
+    (channel name -> H x W), whatever the film's pixel format: the film's ``R G B [A]``, then
+    the channels that ``integrator.aov_names()`` names. ``A`` is 1 where the background volume
+    is rendered (it is opaque), else the foreground alpha over the scene's shapes' coverage,
     ``fg.A + (1 - fg.A)·obj.A``."""
     image = np.asarray(image, dtype=np.float32)
-    base = image.shape[2] - len(AOVS)
+    aovs = list(integrator.aov_names())
+    base = image.shape[2] - len(aovs)
     if base not in (3, 4):
         raise ValueError(f"the film gives {base} colour channel(s): set its pixel_format to "
                          f"'rgb' or 'rgba'")
     layers = {name: image[..., i] for i, name in enumerate(BEAUTY[:3])}
-    layers.update({name: image[..., base + i] for i, name in enumerate(AOVS)})
+    layers.update({name: image[..., base + i] for i, name in enumerate(aovs)})
     background = getattr(integrator, 'background', True)
     if background:
         layers['A'] = np.ones_like(layers['R'])
     else:
         layers['A'] = layers['fg.A'] + (1.0 - layers['fg.A']) * layers['obj.A']
-    return {name: layers[name] for name in BEAUTY + AOVS}
+    return {name: layers[name] for name in LAYERS}
 
 
 def camera_attributes(sensor) -> dict:
@@ -95,7 +99,7 @@ def render_to_files(scene, out, spp=0, preview=None, seed=0, progress=True):
     channels = render_layers(mi.render(scene, spp=spp, seed=seed), integrator)
     write_exr(out, channels, attributes=exr_attributes(sensor))
     if preview:
-        write_png(preview, rgb(channels), 'linear')
+        write_linear_png(preview, rgb(channels))
     return channels
 
 
@@ -106,12 +110,9 @@ def rgb(layers):
 
 def encoded_rgb(layers, color_space):
     """The beauty in the encoding of a model's training images (``'srgb'``: clipped to [0, 1]
-    and sRGB-encoded, as the photos are; ``'linear'``: as rendered), to compare with them."""
-    from .preview import srgb_oetf
-    image = rgb(layers)
-    if color_space == 'srgb':
-        return srgb_oetf(np.clip(image, 0.0, 1.0)).astype(np.float32)
-    return image
+    and sRGB-encoded, as the photos are; ``'linear'``: as rendered), to compare with them
+    (:func:`mi_nerfpp.color.encode`)."""
+    return encode(rgb(layers), color_space)
 
 
 class ViewRenderer:

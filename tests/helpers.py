@@ -95,7 +95,7 @@ def make_capture(root, views=24, width=32, height=24, spp=8):
     """
     import numpy as np
     from mi_nerfpp.data import mitsuba_sensor_dict, write_nerfpp
-    from mi_nerfpp.preview import to_srgb8
+    from mi_nerfpp.color import to_srgb8
     scene = mi.load_dict({
         'type': 'scene', 'integrator': {'type': 'path', 'max_depth': 3},
         'sky': {'type': 'constant', 'radiance': {'type': 'rgb', 'value': [0.6, 0.7, 0.9]}},

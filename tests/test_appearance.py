@@ -12,8 +12,8 @@ from mi_nerfpp import appearance as app
 from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.evaluate import evaluate_split
-from mi_nerfpp.exr import LAYERS
-from mi_nerfpp.preview import srgb_eotf
+from mi_nerfpp.layers import LAYERS
+from mi_nerfpp.color import srgb_eotf
 from mi_nerfpp.synth import APPEARANCE_FILE, vary_exposure
 from mi_nerfpp.train import TrainConfig, Trainer
 from tests.helpers import per_image_parameters_resume_exactly, scene_dict, tiny_model

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from mi_nerfpp import exr
+from mi_nerfpp.color import REC709_CHROMATICITIES
 from mi_nerfpp.data import Camera, mitsuba_sensor_dict
+from mi_nerfpp.layers import LAYERS
 from mi_nerfpp.model import NeRFPPModel
 from mi_nerfpp.render import HIDDEN_WEIGHT
 from mi_nerfpp.views import camera_attributes, render_to_files
@@ -41,7 +43,7 @@ def render(scene, tmp_path, **kwargs):
 def test_header_declares_scene_linear_rec709_and_depth_convention(tmp_path, tiny_scene):
     render(tiny_scene, tmp_path)
     header = exr.read_header(tmp_path / 'r.exr')
-    np.testing.assert_allclose(header['chromaticities'], exr.REC709_CHROMATICITIES, atol=1e-6)
+    np.testing.assert_allclose(header['chromaticities'], REC709_CHROMATICITIES, atol=1e-6)
     assert header['oiio:ColorSpace'] == 'lin_rec709'
     assert 'camera-space z' in header['depthConvention']
     assert header['software'].startswith('mi-nerfpp ')
@@ -56,8 +58,8 @@ def test_channels_do_not_depend_on_the_film_pixel_format(tmp_path, pixel_format)
     scene = mi.load_dict(desc)
     scene.integrator().set_model(tiny_model())
     render(scene, tmp_path)
-    assert set(exr.read_exr(tmp_path / 'r.exr')) == set(exr.LAYERS)
-    assert 'alpha.Y' not in exr.LAYERS
+    assert set(exr.read_exr(tmp_path / 'r.exr')) == set(LAYERS)
+    assert 'alpha.Y' not in LAYERS
 
 
 def test_foreground_only_render_carries_the_foreground_alpha(tmp_path):
@@ -189,7 +191,7 @@ def test_checkpoint_from_before_linear_compositing_renders_as_trained(tmp_path):
     import json
 
     from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
-    from mi_nerfpp.preview import srgb_oetf
+    from mi_nerfpp.color import srgb_oetf
     path = tmp_path / 'old.npz'
     save_checkpoint(path, tiny_model())
     with np.load(path) as z:

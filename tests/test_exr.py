@@ -8,7 +8,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from mi_nerfpp import exr, preview
+from mi_nerfpp import color, exr, preview
+from mi_nerfpp.layers import FULL_PRECISION_CHANNELS, LAYERS
 
 H, W = 5, 7
 
@@ -16,7 +17,7 @@ H, W = 5, 7
 def layer_channels(seed=0):
     rng = np.random.default_rng(seed)
     channels = {name: rng.uniform(0.0, 2.0, (H, W)).astype(np.float32)
-                for name in exr.LAYERS}
+                for name in LAYERS}
     channels['depth.Z'] = rng.uniform(0.5, 3000.0, (H, W)).astype(np.float32)
     channels['distance.Y'] = rng.uniform(0.5, 3000.0, (H, W)).astype(np.float32)
     return channels
@@ -25,7 +26,7 @@ def layer_channels(seed=0):
 # --- EXR ---------------------------------------------------------------------
 
 def test_layers_layout(tmp_path):
-    assert exr.LAYERS == ('R', 'G', 'B', 'A', 'fg.R', 'fg.G', 'fg.B', 'fg.A',
+    assert LAYERS == ('R', 'G', 'B', 'A', 'fg.R', 'fg.G', 'fg.B', 'fg.A',
                           'bg.R', 'bg.G', 'bg.B', 'depth.Z', 'distance.Y',
                           'obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj.Z',
                           'shadow.R', 'shadow.G', 'shadow.B')
@@ -39,7 +40,7 @@ def test_layers_layout(tmp_path):
     scene.integrator().set_model(tiny_model())
     render_to_files(scene, tmp_path / 'r.exr', progress=False)
     with OpenEXR.File(str(tmp_path / 'r.exr'), header_only=True) as f:
-        assert {channel.name for channel in f.header()['channels']} == set(exr.LAYERS)
+        assert {channel.name for channel in f.header()['channels']} == set(LAYERS)
     c = exr.read_exr(tmp_path / 'r.exr')
     for ch in 'RGB':
         np.testing.assert_allclose(c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'],
@@ -53,8 +54,8 @@ def test_round_trip_float32_is_exact(tmp_path):
     path = tmp_path / 'render.exr'
     exr.write_exr(path, channels)
     back = exr.read_exr(path)
-    assert set(back) == set(exr.LAYERS)
-    for name in exr.LAYERS:
+    assert set(back) == set(LAYERS)
+    for name in LAYERS:
         assert back[name].dtype == np.float32
         assert back[name].shape == (H, W)
         np.testing.assert_array_equal(back[name], channels[name], err_msg=name)
@@ -65,9 +66,9 @@ def test_round_trip_half_within_half_precision(tmp_path):
     path = tmp_path / 'render.exr'
     exr.write_exr(path, channels, half=True)
     back = exr.read_exr(path)
-    for name in exr.LAYERS:
+    for name in LAYERS:
         assert back[name].dtype == np.float32
-        if name in exr.FULL_PRECISION_CHANNELS:
+        if name in FULL_PRECISION_CHANNELS:
             np.testing.assert_array_equal(back[name], channels[name])
         else:
             np.testing.assert_allclose(back[name], channels[name], rtol=2 ** -11, err_msg=name)
@@ -92,7 +93,7 @@ def test_channel_names_seen_by_openexr(tmp_path):
         assert len(f.parts) == 1
         assert f.header()['type'] == OpenEXR.scanlineimage
         assert f.header()['compression'] == OpenEXR.ZIP_COMPRESSION
-    assert names == set(exr.LAYERS)
+    assert names == set(LAYERS)
 
 
 def test_compression_option(tmp_path):
@@ -166,7 +167,7 @@ def test_written_files_get_umask_permissions(tmp_path):
     umask = os.umask(0o022)
     try:
         exr.write_exr(tmp_path / 'render.exr', layer_channels())
-        preview.write_png(tmp_path / 'preview.png', np.zeros((2, 2, 3)))
+        preview.write_linear_png(tmp_path / 'preview.png', np.zeros((2, 2, 3)))
     finally:
         os.umask(umask)
     for name in ('render.exr', 'preview.png'):
@@ -222,59 +223,18 @@ def test_split_channels():
 
 # --- PNG previews -------------------------------------------------------------
 
-def solid(value):
-    return np.full((2, 2, 3), value, dtype=np.float32)
-
-
-@pytest.mark.parametrize('linear, expected', [(0.0, 0), (1.0, 255), (0.5, 188),
-                                              (0.0031308, 10), (0.18, 118)])
-def test_srgb_oetf_known_values(linear, expected):
-    assert np.all(preview.to_srgb8(solid(linear)) == expected)
-
-
-def test_srgb_oetf_continuous_at_cutoff():
-    cutoff = preview.SRGB_LINEAR_CUTOFF
-    below = preview.srgb_oetf(np.array(cutoff))
-    above = preview.srgb_oetf(np.array(np.nextafter(cutoff, 1.0)))
-    assert below == pytest.approx(12.92 * cutoff)
-    assert above == pytest.approx(below, abs=1e-6)
-
-
-def test_srgb_oetf_monotonic():
-    x = np.linspace(0.0, 1.0, 10001)
-    assert np.all(np.diff(preview.srgb_oetf(x)) > 0)
-
-
-def test_to_srgb8_clips_and_handles_nan():
-    rgb = np.array([[[-1.0, 2.0, np.nan], [np.inf, -np.inf, 0.25]]])
-    assert preview.to_srgb8(rgb, 'srgb').tolist() == [[[0, 255, 0], [255, 0, 64]]]
-    assert preview.to_srgb8(rgb)[0, 0].tolist() == [0, 255, 0]
-
-
-def test_to_srgb8_srgb_is_identity_encoding():
-    assert np.all(preview.to_srgb8(solid(0.5), 'srgb') == 128)
-    assert preview.to_srgb8(solid(0.5)).dtype == np.uint8
-
-
-def test_to_srgb8_validation():
-    with pytest.raises(ValueError, match='color space'):
-        preview.to_srgb8(solid(0.5), 'acescg')
-    with pytest.raises(ValueError, match='H x W x 3'):
-        preview.to_srgb8(np.zeros((2, 2, 4)))
-
-
-def test_write_png_round_trip(tmp_path):
+def test_write_linear_png_round_trip(tmp_path):
     rgb = np.random.default_rng(2).uniform(size=(H, W, 3))
     path = tmp_path / 'out' / 'preview.png'
-    preview.write_png(path, rgb)
-    np.testing.assert_array_equal(iio.imread(path), preview.to_srgb8(rgb))
+    preview.write_linear_png(path, rgb)
+    np.testing.assert_array_equal(iio.imread(path), color.to_srgb8(rgb))
     assert os.listdir(path.parent) == ['preview.png']
 
 
-def test_write_png_uint8_written_as_is(tmp_path):
+def test_write_linear_png_uint8_written_as_is(tmp_path):
     pixels = np.arange(H * W * 3, dtype=np.uint8).reshape(H, W, 3)
     path = tmp_path / 'depth.png'
-    preview.write_png(path, pixels)
+    preview.write_linear_png(path, pixels)
     np.testing.assert_array_equal(iio.imread(path), pixels)
 
 

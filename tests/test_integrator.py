@@ -4,7 +4,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.exr import LAYERS as CHANNELS
+from mi_nerfpp.layers import LAYERS as CHANNELS
 from mi_nerfpp.frame import Normalization
 from mi_nerfpp.integrator import NeRFPPIntegrator
 from tests.helpers import scene_dict, tiny_model

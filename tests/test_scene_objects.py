@@ -90,7 +90,7 @@ def object_scene(fg, bg, shapes, width=16, height=12, origin=(0.0, 0.1, 0.9), ta
 
 
 def channels(scene, **kwargs):
-    from mi_nerfpp.exr import LAYERS
+    from mi_nerfpp.layers import LAYERS
     img = np.array(mi.render(scene, **kwargs))
     return {name: img[..., i] for i, name in enumerate(LAYERS)}
 
@@ -324,7 +324,7 @@ def test_gradients_through_a_mirror_match_finite_differences():
     dr.enable_grad(params[key])
     params.update()
     img = mi.render(scene, params, seed=1)
-    from mi_nerfpp.exr import LAYERS
+    from mi_nerfpp.layers import LAYERS
     assert np.array(img)[..., LAYERS.index('obj.A')].max() == 1.0     # the mirror is in view
     dr.backward(loss(img))
     grad = np.array(dr.grad(params[key])).ravel()
@@ -416,15 +416,13 @@ def test_chunked_render_with_shapes_matches_single_pass():
 
 
 def test_example_scene_renders_objects_into_a_checkpoint(tmp_path):
-    """mi_nerfpp/scenes/insert_objects.xml with any checkpoint: the objects are in view and
-    the layers add up to the beauty."""
-    import os
-
-    import mi_nerfpp
+    """scenes/insert_objects.xml with any checkpoint: the objects are in view and the layers
+    add up to the beauty."""
     from mi_nerfpp.checkpoint import save_checkpoint
+    from mi_nerfpp.synth import scene_file
     from tests.helpers import tiny_model
     save_checkpoint(tmp_path / 'model.npz', tiny_model())
-    xml = os.path.join(os.path.dirname(mi_nerfpp.__file__), 'scenes', 'insert_objects.xml')
+    xml = scene_file('insert_objects.xml')
     scene = mi.load_file(xml, checkpoint=str(tmp_path / 'model.npz'), width='32', height='18',
                          spp='1', samples='4', fine_samples='4')
     assert scene.integrator().shadow_catchers == ('lawn',)

@@ -174,9 +174,9 @@ def test_sfm_errors_say_what_to_do(tmp_path):
     with pytest.raises(SfmError, match='found 0 photos'):
         run_sfm(folder, tmp_path / 'out', progress=False)
     rng = np.random.default_rng(0)
-    from mi_nerfpp.data import write_png
+    from mi_nerfpp.data import write_encoded_png
     for i in range(3):   # unrelated noise: nothing matches
-        write_png(folder / f'{i}.png', rng.uniform(0, 1, size=(60, 80, 3)))
+        write_encoded_png(folder / f'{i}.png', rng.uniform(0, 1, size=(60, 80, 3)))
     with pytest.raises(SfmError, match='could not reconstruct.*more overlap'):
         run_sfm(folder, tmp_path / 'out', progress=False)
     os.makedirs(tmp_path / 'taken')

@@ -83,7 +83,7 @@ def test_ground_truth_layers(garden):
     masks = np.stack(masks)
     assert masks.min() == 0 and masks.max() == 1      # foreground objects and distant scenery
     # The PNG is the sRGB encoding of the linear layers.
-    from mi_nerfpp.preview import to_srgb8
+    from mi_nerfpp.color import to_srgb8
     import imageio.v3 as iio
     png = iio.imread(out / 'train' / 'rgb' / '000000.png')
     layers = read_exr(out / 'train' / 'gt' / '000000.exr')
@@ -326,13 +326,15 @@ def test_trajectory_data_ships_with_licence():
     assert 'BSD' in (folder / 'LICENSE-nerfplusplus-BSD-2').read_text()
 
 
-def test_scenes_ship_as_package_data_and_the_cache_is_per_user(monkeypatch, tmp_path):
-    from importlib import resources
-    folder = resources.files('mi_nerfpp') / 'scenes'
+def test_scenes_are_a_top_level_folder_and_the_cache_is_per_user(monkeypatch, tmp_path):
+    # The scenes a user opens are in the repository's scenes/, found from the checkout (an
+    # installed wheel carries them as package data: tests/test_wheel.py).
+    folder = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'scenes')
     for name in ('gt_garden.xml', 'gt_plaza.xml', 'gt_bounded.xml', 'render_random.xml',
-                 'envmaps/forest_slope_1k.hdr', 'textures/paving.png'):
-        assert (folder / name).is_file(), name
-    assert synth.scene_file(synth.DEFAULT_SCENE) == str(folder / 'gt_garden.xml')
+                 'insert_objects.xml', 'envmaps/forest_slope_1k.hdr', 'textures/paving.png'):
+        assert os.path.isfile(os.path.join(folder, name)), name
+    assert synth.scenes_dir() == folder
+    assert synth.scene_file(synth.DEFAULT_SCENE) == os.path.join(folder, 'gt_garden.xml')
     monkeypatch.delenv('MI_NERFPP_CACHE', raising=False)
     monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'xdg'))
     assert synth.cache_dir() == str(tmp_path / 'xdg' / 'mi-nerfpp')

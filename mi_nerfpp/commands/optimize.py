@@ -130,7 +130,7 @@ def train(trainer, inp: Inputs):
     from tqdm import tqdm
 
     from ..evaluate import evaluate_split
-    from ..preview import write_png
+    from ..preview import write_linear_png
     from ..views import ViewRenderer, rgb
 
     cfg, out, eval_at = inp.cfg, inp.out, list(inp.eval_at)
@@ -160,8 +160,8 @@ def train(trainer, inp: Inputs):
 
     def on_preview(tr):
         if previews is not None:
-            write_png(os.path.join(out, 'preview', f'iter_{tr.iteration:06d}.png'),
-                      rgb(previews.render(held_out.cameras[0])), 'linear')
+            write_linear_png(os.path.join(out, 'preview', f'iter_{tr.iteration:06d}.png'),
+                             rgb(previews.render(held_out.cameras[0])))
 
     try:
         return trainer.run(on_step=on_step, on_preview=on_preview), progress_log

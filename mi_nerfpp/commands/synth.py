@@ -24,7 +24,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
         description='Render posed views of a Mitsuba scene XML into the NeRF++ dataset layout, '
                     'with ground-truth depth and foreground masks (DATA/{split}/gt/*.exr) and '
                     'DATA/capture.json. An identical earlier capture in DATA is reused.')
-    p.add_argument('scene', help='Mitsuba scene XML (e.g. mi_nerfpp/scenes/gt_garden.xml)')
+    p.add_argument('scene', help='Mitsuba scene XML (e.g. scenes/gt_garden.xml)')
     p.add_argument('--out', required=True, metavar='DATA', help='output folder')
     p.add_argument('--views', type=int, default=DEFAULT_VIEWS,
                    help=f'number of views over all splits (default {DEFAULT_VIEWS}; 80/10/10 '

@@ -26,7 +26,7 @@ from .colmap import read_colmap
 from .dataset import Dataset, Split, auto_downscale
 from .errors import DatasetError
 from .formats import detect_format, load_dataset
-from .images import downscale_image, image_size, read_image, write_png
+from .images import downscale_image, image_size, read_image, write_encoded_png
 from .llff import llff_to_opencv, read_llff
 from .nerfpp import read_nerfpp, write_nerfpp
 
@@ -37,5 +37,5 @@ __all__ = [
     'llff_to_opencv', 'load_dataset', 'mitsuba_sensor_dict', 'mitsuba_to_opencv',
     'opencv_to_mitsuba', 'opencv_to_opengl', 'opengl_to_opencv',
     'pixel_rays', 'project', 'read_image', 'read_llff', 'read_nerfpp', 'read_transforms',
-    'write_nerfpp', 'write_png',
+    'write_encoded_png', 'write_nerfpp',
 ]

@@ -20,6 +20,7 @@ import os
 import imageio.v3 as iio
 import numpy as np
 
+from ..color import quantize8
 from .errors import DatasetError
 
 _PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
@@ -61,24 +62,27 @@ def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
     return np.ascontiguousarray(color, dtype=np.float32)
 
 
-def write_png(path, img) -> None:
-    """Write a float image as an 8-bit PNG.
+def write_encoded_png(path, img) -> None:
+    """Write a float image whose values are already in the file's encoding as an 8-bit PNG
+    (a dataset image: sRGB-encoded photo values stay as they are).
 
     Args:
         path: output file.
         img: float array (H, W), (H, W, 1), (H, W, 3) or (H, W, 4) with values in [0, 1]
-            (clipped, then rounded to 8 bits). Values are written as given: convert linear
-            renderings to sRGB before calling this.
+            (clipped, then rounded to 8 bits, :func:`~mi_nerfpp.color.quantize8`). No colour
+            conversion: a scene-linear render is written by
+            :func:`mi_nerfpp.preview.write_linear_png`, which encodes it.
     """
     img = np.asarray(img)
     if not np.issubdtype(img.dtype, np.floating):
-        raise TypeError(f'write_png expects a float image in [0, 1], got dtype {img.dtype}')
+        raise TypeError(f'write_encoded_png expects a float image in [0, 1], got dtype '
+                        f'{img.dtype}')
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[..., 0]
     if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (3, 4))):
-        raise ValueError(f'write_png expects (H, W[, 1|3|4]) pixels, got shape {img.shape}')
-    iio.imwrite(os.fspath(path), np.round(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8),
-                extension='.png')
+        raise ValueError(f'write_encoded_png expects (H, W[, 1|3|4]) pixels, got shape '
+                         f'{img.shape}')
+    iio.imwrite(os.fspath(path), quantize8(img), extension='.png')
 
 
 def downscale_image(img: np.ndarray, factor: int) -> np.ndarray:

@@ -19,7 +19,7 @@ import numpy as np
 from .cameras import Camera
 from .dataset import SPLITS, Dataset, Frame, make_dataset, make_splits
 from .errors import DatasetError
-from .images import write_png
+from .images import write_encoded_png
 
 IMAGE_EXTENSIONS = ('.png', '.jpg', '.jpeg', '.exr')
 SUBFOLDERS = ('rgb', 'pose', 'intrinsics')
@@ -57,7 +57,8 @@ def write_nerfpp(root, splits: dict[str, tuple[list[Camera], list[np.ndarray]]])
     """Write cameras and images in the NeRF++ layout.
 
     Files are named ``000000.png``/``000000.txt``, ... per split. Images are written as 8-bit
-    PNG by :func:`write_png` (floats in [0, 1], already in the colour encoding wanted on disk).
+    PNG by :func:`write_encoded_png` (floats in [0, 1], already in the colour encoding wanted
+    on disk).
 
     Args:
         root: output folder (created if needed).
@@ -87,7 +88,7 @@ def write_nerfpp(root, splits: dict[str, tuple[list[Camera], list[np.ndarray]]])
             os.makedirs(folder, exist_ok=True)
         for i, (cam, img) in enumerate(zip(cameras, images)):
             stem = f'{i:06d}'
-            write_png(os.path.join(folders[0], stem + '.png'), img)
+            write_encoded_png(os.path.join(folders[0], stem + '.png'), img)
             write_camera(os.path.join(root, name), stem, cam)
 
 

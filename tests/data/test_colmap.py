@@ -13,7 +13,7 @@ import pytest
 from mi_nerfpp.data import Camera, DatasetError, detect_format, load_dataset
 from mi_nerfpp.data.cameras import mitsuba_sensor_dict, pixel_rays, project
 from mi_nerfpp.data.colmap import read_model
-from mi_nerfpp.data.images import write_png
+from mi_nerfpp.data.images import write_encoded_png
 from tests.helpers import orbit_camera
 
 W, H = 48, 36
@@ -56,7 +56,7 @@ def write_colmap(root, cams, model='SIMPLE_PINHOLE', extra=(), fmt='bin', images
     if images:
         os.makedirs(os.path.join(root, 'images'))
         for cam in cams:
-            write_png(os.path.join(root, 'images', cam.name + '.png'),
+            write_encoded_png(os.path.join(root, 'images', cam.name + '.png'),
                       rng.uniform(0, 1, size=(H, W, 3)))
     return rec
 
@@ -199,7 +199,7 @@ def test_errors_name_the_file_and_the_fix(tmp_path):
     # Images resized to another aspect ratio than the model's camera.
     other = tmp_path / 'other'
     write_colmap(other, cams)
-    write_png(other / 'images' / 'img_01.png', np.zeros((H, W + 10, 3)))
+    write_encoded_png(other / 'images' / 'img_01.png', np.zeros((H, W + 10, 3)))
     with pytest.raises(DatasetError, match=r'img_01\.png: image is 58x36 but its COLMAP camera '
                                            r'1 is 48x36'):
         load_dataset(other)

@@ -12,7 +12,7 @@ import pytest
 
 from mi_nerfpp.data import DatasetError, detect_format, load_dataset, write_nerfpp
 from mi_nerfpp.data.cameras import Camera, opencv_to_opengl, opengl_to_opencv, project
-from mi_nerfpp.data.images import downscale_image, read_image, write_png
+from mi_nerfpp.data.images import downscale_image, read_image, write_encoded_png
 from mi_nerfpp.data.llff import llff_to_opencv
 
 W, H = 8, 6
@@ -95,7 +95,7 @@ def assert_same_camera(loaded, expected, atol=1e-12):
 
 def test_png_8bit_round_trip(tmp_path):
     img = random_images(1, seed=1)[0]
-    write_png(tmp_path / 'a.png', img)
+    write_encoded_png(tmp_path / 'a.png', img)
     back = read_image(tmp_path / 'a.png')
     assert back.dtype == np.float32 and back.shape == (H, W, 3)
     np.testing.assert_allclose(back, quantized(img), atol=1e-6)
@@ -163,9 +163,9 @@ def test_unreadable_image_names_the_file(tmp_path):
         read_image(tmp_path / 'missing.png')
 
 
-def test_write_png_rejects_integer_images(tmp_path):
+def test_write_encoded_png_rejects_integer_images(tmp_path):
     with pytest.raises(TypeError, match='float'):
-        write_png(tmp_path / 'a.png', np.zeros((2, 2, 3), dtype=np.uint8))
+        write_encoded_png(tmp_path / 'a.png', np.zeros((2, 2, 3), dtype=np.uint8))
 
 
 def test_downscale_image_averages_blocks():
@@ -197,7 +197,7 @@ def test_nerfpp_pose_is_opencv_camera_to_world(tmp_path):
     """A hand-written pose: camera at z = -0.5 looking along world -z, image down = world -y."""
     for sub in ('rgb', 'pose', 'intrinsics'):
         os.makedirs(tmp_path / 'train' / sub)
-    write_png(tmp_path / 'train' / 'rgb' / 'a.png', np.zeros((H, W, 3)))
+    write_encoded_png(tmp_path / 'train' / 'rgb' / 'a.png', np.zeros((H, W, 3)))
     (tmp_path / 'train' / 'pose' / 'a.txt').write_text(
         '1 0 0 0\n0 -1 0 0\n0 0 -1 -0.5\n0 0 0 1\n')
     (tmp_path / 'train' / 'intrinsics' / 'a.txt').write_text(
@@ -273,7 +273,7 @@ def _break(root, case):
         os.rename(train / 'pose' / '000001.txt', train / 'pose' / 'zzz.txt')
         return train / 'pose' / 'zzz.txt'
     if case == 'different_sizes':
-        write_png(train / 'rgb' / '000002.png', np.zeros((H + 2, W, 3)))
+        write_encoded_png(train / 'rgb' / '000002.png', np.zeros((H + 2, W, 3)))
         return train / 'rgb' / '000002.png'
     if case == 'unreadable_image':
         (train / 'rgb' / '000001.png').write_bytes(b'\x89PNG truncated')
@@ -338,7 +338,7 @@ def test_blender_split_layout(tmp_path):
     rgba[..., 0] = 1.0
     rgba[:, : W // 2, 3] = 1.0          # left half opaque red, right half transparent
     for name in ('train/r_0', 'train/r_1', 'test/r_0'):
-        write_png(tmp_path / f'{name}.png', rgba)
+        write_encoded_png(tmp_path / f'{name}.png', rgba)
     for split, frames in (('train', [blender_frame('./train/r_0', cams[0].c2w),
                                      blender_frame('./train/r_1', cams[1].c2w)]),
                           ('test', [blender_frame('./test/r_0', cams[2].c2w)])):
@@ -359,7 +359,7 @@ def test_blender_split_layout(tmp_path):
 
 def test_blender_opengl_pose_semantics(tmp_path):
     """OpenGL identity rotation at z = 0.5: looks along world -z, image up = world +y."""
-    write_png(tmp_path / 'a.png', np.zeros((H, W, 3)))
+    write_encoded_png(tmp_path / 'a.png', np.zeros((H, W, 3)))
     gl = np.eye(4)
     gl[2, 3] = 0.5
     frames = [{'file_path': 'a.png', 'transform_matrix': gl.tolist()}]
@@ -380,7 +380,7 @@ def test_instant_ngp_single_file(tmp_path):
     frames = []
     for i, cam in enumerate(cams):
         if i != 3:      # frame 3's image is missing
-            write_png(tmp_path / 'images' / f'{i:02d}.png', np.full((H, W, 3), i / 10))
+            write_encoded_png(tmp_path / 'images' / f'{i:02d}.png', np.full((H, W, 3), i / 10))
         extra = {'fl_x': 9.0} if i == 5 else {}
         frames.append(blender_frame(f'images/{i:02d}.png', cam.c2w, **extra))
     frames.reverse()    # frame order in the file must not matter
@@ -420,7 +420,7 @@ def test_transforms_bad_input(tmp_path):
             load_dataset(tmp_path)
     assert str(tmp_path / 'transforms.json') in str(info.value)
 
-    write_png(tmp_path / 'a.png', np.zeros((H, W, 3)))
+    write_encoded_png(tmp_path / 'a.png', np.zeros((H, W, 3)))
     frames = [blender_frame('a.png', np.eye(4))]
     (tmp_path / 'transforms.json').write_text(
         json.dumps({'fl_x': 7, 'w': W + 1, 'h': H, 'frames': frames}))
@@ -453,7 +453,7 @@ def write_llff(root, rows, image_size=(W, H)):
     os.makedirs(root / 'images')
     np.save(root / 'poses_bounds.npy', np.stack(rows))
     for i in range(len(rows)):
-        write_png(root / 'images' / f'IMG_{i:04d}.png',
+        write_encoded_png(root / 'images' / f'IMG_{i:04d}.png',
                   np.full((image_size[1], image_size[0], 3), 0.5))
 
 

@@ -1,6 +1,6 @@
 """Generate the bitmap textures of the ground-truth scenes (run from anywhere; deterministic).
 
-    python mi_nerfpp/scenes/textures/make_textures.py
+    python scenes/textures/make_textures.py
 
 paving.png (256 x 256, sRGB): 4 x 4 stone slabs in a running-bond layout (alternate rows offset by
 half a slab), each slab with its own tint, fine grain noise, and dark mortar joints. The plaza

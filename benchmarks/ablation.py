@@ -35,7 +35,7 @@ from mi_nerfpp.views import ViewRenderer, encoded_rgb
 def _picture(folder, i, layers, gt, space):
     """One PNG row per test view: what a person looks at to see where the error is."""
     import imageio.v3 as iio
-    from mi_nerfpp.preview import to_srgb8
+    from mi_nerfpp.color import to_srgb8
     pred = np.clip(encoded_rgb(layers, space), 0, 1)
     enc = 'srgb' if space == 'srgb' else 'linear'
     fg = np.stack([layers[f'fg.{c}'] for c in 'RGB'], axis=-1)

@@ -33,7 +33,7 @@ def picture(data, runs, path, view=0):
 
     from mi_nerfpp.data import load_dataset
     from mi_nerfpp.exr import read_exr
-    from mi_nerfpp.preview import to_srgb8
+    from mi_nerfpp.color import to_srgb8
     test = load_dataset(data).test
     gt = (np.clip(test.images[view], 0, 1) * 255).astype(np.uint8)
     nerf = read_exr(os.path.join(runs['nerf'], 'test', f'test_{view:03d}.exr'))

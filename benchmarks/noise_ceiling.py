@@ -20,7 +20,7 @@ import mitsuba as mi
 from mi_nerfpp.data import load_dataset, mitsuba_sensor_dict
 from mi_nerfpp.frame import MITSUBA_NEAR_CLIP
 from mi_nerfpp.metrics import psnr
-from mi_nerfpp.preview import to_srgb8
+from mi_nerfpp.color import to_srgb8
 from mi_nerfpp.synth import default_capture
 
 

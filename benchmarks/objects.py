@@ -1,5 +1,5 @@
 """Render time of the objects example (issue 13): the view of
-``mi_nerfpp/scenes/insert_objects.xml`` without objects, with the objects, and with the objects
+``scenes/insert_objects.xml`` without objects, with the objects, and with the objects
 and the shadow catcher, each rendered once cold (kernel compilation) and ``--repeat`` times warm;
 prints the median warm seconds per frame of each and the ratio to the view without objects.
 

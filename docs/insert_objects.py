@@ -1,5 +1,5 @@
 """The README's picture of objects inside the reconstruction: the view of
-mi_nerfpp/scenes/insert_objects.xml rendered three times (the reconstruction alone, with the
+scenes/insert_objects.xml rendered three times (the reconstruction alone, with the
 objects, with the objects and the shadow catcher), side by side in one PNG.
 
     .venv/bin/python docs/insert_objects.py runs/default/model.npz docs/results/insert_objects.png \
@@ -14,10 +14,10 @@ import numpy as np
 import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
 import mitsuba as mi
 
-from mi_nerfpp.preview import to_srgb8
+from mi_nerfpp.color import to_srgb8
+from mi_nerfpp.synth import scene_file
 
-SCENE = os.path.join(os.path.dirname(os.path.abspath(mi_nerfpp.__file__)), 'scenes',
-                     'insert_objects.xml')
+SCENE = scene_file('insert_objects.xml')
 
 
 def variant(xml, objects, catchers):

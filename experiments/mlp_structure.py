@@ -2,7 +2,7 @@
 
     python experiments/mlp_structure.py [--mlp-iterations 2000] [--grid-iterations 2000]
 
-The capture (DTU-like): ``mi_nerfpp/scenes/gt_bounded.xml`` (a still life on black) from a front arc of
+The capture (DTU-like): ``scenes/gt_bounded.xml`` (a still life on black) from a front arc of
 cameras (``synth --trajectory arc``: distance 3.5, 128x96 pixels, 30 degree field of view,
 64 spp). 46 views: 36 train cameras spread over azimuth -50..50 degrees and elevation
 10..40 degrees; **interpolation** test views: 5 random views inside that range (the capture's

@@ -2,7 +2,7 @@
 
     python experiments/shape_radiance.py [--iterations 3000] [--learned-iterations 2000]
 
-The capture: ``mi_nerfpp/scenes/gt_bounded.xml`` (a still life on black, inside world radius 1) from 62
+The capture: ``scenes/gt_bounded.xml`` (a still life on black, inside world radius 1) from 62
 cameras placed at random on the upper hemisphere (``synth --trajectory hemisphere``: distance
 3.5, 128x128 pixels, 25 degree field of view, 64 spp): 50 train, 6 validation (unused), 6 test.
 Every camera ray meets the sphere below (it subtends 16.6 degrees, half the view 12.5).

@@ -129,11 +129,12 @@ def load_checkpoint(path, seed=0):
 
 def _sampling(config):
     """The samples per ray a checkpoint's model renders with: stored with the model, or in a
-    file written before that, those it was trained with (its training config)."""
+    file written before that, those it was trained with (its training config); None (the
+    model's default) for a file that says neither."""
     if 'sampling' in config:
         return Sampling(**config['sampling'])
     trained = config.get('meta', {}).get('config')
     if trained:
         from .config import TrainConfig
         return TrainConfig.from_stored(trained).render_sampling
-    return Sampling()
+    return None

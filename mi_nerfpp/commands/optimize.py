@@ -39,9 +39,10 @@ def run(args):
 
     observer = ConsoleObserver()
     options, data = values(args, TrainConfig), args.data
-    if data is None:
-        data, options = runs.default_job(options, progress=True)
     config = TrainConfig.from_options(**options)    # checks every option (ValueError: the flag)
+    if data is None:        # after the check: the default capture may take minutes to render
+        data, options = runs.default_job(options, progress=True)
+        config = TrainConfig.from_options(**options)
     # Errors (TrainingError and the others) end the command at its boundary (mi_nerfpp.cli).
     result = runs.optimize(data, config, args.out, resume=args.resume, overwrite=args.overwrite,
                            observer=observer)

@@ -14,7 +14,8 @@ separation against the synthetic ground truth (``mi_nerfpp.metrics.separation``:
 |alpha - alpha_gt|, foreground opacity where the true mask is 0, fraction of soft alpha) and
 the fraction of occupied cells. A fixed step count makes settings comparable however busy the
 machine is; time-based quality is ``benchmarks/quality.py``. Without DATA, the embedded
-default capture is used.
+default capture is used. Results: ``benchmarks/results/<--name>.json`` (default
+``ablation``; name each setting to keep several).
 """
 import argparse
 import glob
@@ -23,12 +24,14 @@ import os
 import numpy as np
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp.data import direction_coverage, load_dataset
+from mi_nerfpp import bench, run
+from mi_nerfpp.config import TrainConfig
+from mi_nerfpp.console import ConsoleObserver
+from mi_nerfpp.data import direction_coverage
 from mi_nerfpp.exr import read_exr
 from mi_nerfpp.metrics import SEEN_BY, masked_psnr, psnr, separation
 from mi_nerfpp.options import add_options, values
 from mi_nerfpp.synth import default_capture
-from mi_nerfpp.train import TrainConfig, Trainer
 from mi_nerfpp.views import ViewRenderer, encoded_rgb
 
 
@@ -51,24 +54,25 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('data', nargs='?')
     ap.add_argument('--out', default='/tmp/mi_nerfpp_ablation')
+    ap.add_argument('--name', default='ablation',
+                    help='name of the results file (benchmarks/results/NAME.json)')
     ap.add_argument('--pictures', metavar='DIR',
                     help='also write, per test view, ground truth | render | foreground over black | '
                          'background | 4x absolute error as one PNG row')
     add_options(ap, TrainConfig)
     a = ap.parse_args()
     data = a.data or default_capture()
-    options = dict(values(a, TrainConfig), checkpoint_every=0, preview_every=0, minutes=None)
+    options = dict(values(a, TrainConfig), checkpoint_every=0, preview_every=0, minutes=None,
+                   eval_at=())
     options['iterations'] = options['iterations'] or 1500
-    cfg = TrainConfig(**options)
-    dataset = load_dataset(data, downscale=cfg.downscale or 1, background=cfg.background)
-    trainer = Trainer(dataset, a.out, cfg)
-    from tqdm import tqdm
-    with tqdm(total=cfg.iterations, desc='train', unit='it', leave=False) as bar:
-        while not trainer.done():
-            trainer.step()
-            bar.update()
+    options['downscale'] = options['downscale'] or 1
+    cfg = TrainConfig.from_options(**options)
+    observer = ConsoleObserver('train')
+    inputs = run.prepare(data, cfg, a.out, overwrite=True, observer=observer)
+    trainer = run.start(inputs, observer=observer)
+    run.train(trainer, observer)
 
-    renderer = ViewRenderer(trainer.model, cfg.sampling, cfg.model == 'nerfpp')
+    renderer = ViewRenderer(trainer.model)
     space = trainer.model.color_space
 
     def score(split, i):
@@ -104,7 +108,7 @@ def main():
              if train_fg else '')
     mean = {k: np.nanmean([s[k] for s in sep]) for k in sep[0]} if sep else {}
     occupied = {k: round(g.fraction(), 3) for k, g in trainer.model.occupancy.items()}
-    print(f'{cfg.iterations} steps: held-out PSNR {np.mean(test):.2f} dB '
+    print(f'{cfg.schedule.iterations} steps: held-out PSNR {np.mean(test):.2f} dB '
           f'(views {", ".join(f"{p:.1f}" for p in test)}); seen by >= {SEEN_BY} training views '
           f'{np.nanmean(seen):.2f} dB (worst {np.nanmin(seen):.1f}); '
           + (f'sky {np.nanmean(sky):.2f} dB; ' if sky else '')
@@ -112,6 +116,19 @@ def main():
           f'{np.mean(train):.2f} dB{split}; |alpha - alpha_gt| {mean.get("alpha_error", np.nan):.3f}, '
           f'leak {mean.get("leak", np.nan):.3f}, soft alpha {100 * mean.get("soft_fraction", np.nan):.0f}%; '
           f'occupied cells {occupied or "-"}')
+    setting = bench.changed_options(cfg, ignore=('checkpoint_every', 'preview_every', 'iterations',
+                                                 'minutes', 'eval_at', 'downscale'))
+    bench.write_results(a.name, f'Quality after {cfg.schedule.iterations} steps: {setting}', [
+        bench.table('Held-out quality at a fixed number of steps',
+                    ['setting', 'steps', 'held-out PSNR (dB)', f'seen by >= {SEEN_BY} views (dB)',
+                     'sky PSNR (dB)', 'training views PSNR (dB)', '|alpha - alpha_gt|', 'leak',
+                     'soft alpha (%)', 'occupied fg', 'occupied bg'],
+                    [[setting, cfg.schedule.iterations, np.mean(test), np.nanmean(seen),
+                      np.nanmean(sky) if sky else '-', np.mean(train),
+                      mean.get('alpha_error', '-'), mean.get('leak', '-'),
+                      100 * mean['soft_fraction'] if 'soft_fraction' in mean else '-',
+                      occupied.get('fg', '-'), occupied.get('bg', '-')]])],
+        raw={'test_views_psnr': test, 'seen_psnr': seen, 'config': cfg.to_dict()})
 
 
 if __name__ == '__main__':

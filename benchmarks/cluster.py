@@ -15,7 +15,8 @@ is a whole command with warm kernels: loading the run and the checkpoint, starti
 workers, rendering, writing, assembling the MP4. Prints frames per minute, the scaling
 efficiency of 2 workers against 1 (fpm(2 x 1) / (2 fpm(1 x 1))) and the overhead per frame of
 Ray against the single process with the same CPUs ((t(ray 1 x N) - t(single)) / frames).
-Run it on an otherwise idle machine with at least two cores.
+Run it on an otherwise idle machine with at least two cores. Results:
+``benchmarks/results/cluster.json``.
 """
 import argparse
 import os
@@ -23,6 +24,7 @@ import tempfile
 import time
 
 import mi_nerfpp  # noqa: F401
+from mi_nerfpp import bench
 from mi_nerfpp.cli import main as cli
 
 
@@ -66,6 +68,14 @@ def main():
     print(f'scaling efficiency, 2 workers against 1: {100 * efficiency:.0f} %')
     print(f'overhead of Ray per frame against the single process ({cpus} CPUs each): '
           f'{1000 * overhead:+.0f} ms')
+    bench.write_results('cluster', 'Video frames in one process and on a local Ray cluster', [
+        bench.table(f'{a.frames} frames at {a.res} (PNG + multi-layer EXR each)',
+                    ['configuration', 'seconds', 'frames/min'],
+                    [[label, seconds[label], fpm[label]] for label in seconds]),
+        bench.table('Scaling', ['2 workers against 1: efficiency (%)',
+                                f'Ray overhead per frame, {cpus} CPUs (ms)'],
+                    [[100 * efficiency, 1000 * overhead]])],
+        notes=f'Run {a.run}; each timing is a whole video command with warm kernels.')
 
 
 if __name__ == '__main__':

@@ -1,16 +1,17 @@
 """NeRF versus NeRF++ on the same capture with the same wall-time budget (paper §5).
 
     python benchmarks/compare.py [DATA] [--minutes 10] [--out runs/compare]
+                                 [any other optimize training option]
 
 Trains ``--model nerf`` (one bounded volume, cameras scaled into radius 1/8, both volumes'
 samples in the one volume) and ``--model nerfpp`` for the same number of minutes of training
 steps, evaluating the held-out views every ``--every`` minutes. Prints a table (PSNR, SSIM,
 iterations, wall time, samples/s) and writes ``OUT/psnr_vs_time.png`` and ``OUT/side_by_side.png``
 (ground truth / NeRF / NeRF++ / NeRF++ foreground over black / NeRF++ background, as in the
-paper's Figures 5-6). Without DATA the embedded default capture is used.
+paper's Figures 5-6). Without DATA the embedded default capture is used. Results (the table
+and both pictures): ``benchmarks/results/compare.json``.
 """
 import argparse
-import json
 import os
 import sys
 
@@ -18,14 +19,19 @@ import numpy as np
 
 
 def train(data, out, model, minutes, every, extra):
-    from mi_nerfpp.cli import main
-    ticks = [str(m) for m in np.arange(every, minutes, every)]
-    args = ['optimize', data, '--out', out, '--model', model, '--minutes', str(minutes),
-            '--preview-every', '0', '--eval-at', *ticks] + extra
-    if main(args) != 0:
-        sys.exit(f'training {model} failed')
-    with open(os.path.join(out, 'metrics.json')) as f:
-        return json.load(f)
+    """Train ``model`` for ``minutes`` into ``out`` (held-out views every ``every`` minutes);
+    its metrics."""
+    from mi_nerfpp import bench, run
+    from mi_nerfpp.config import TrainConfig
+    from mi_nerfpp.console import ConsoleObserver
+    options = dict(bench.training_options(extra), model=model, minutes=minutes, iterations=None,
+                   preview_every=0,
+                   eval_at=tuple(float(m) for m in np.arange(every, minutes, every)))
+    result = run.optimize(data, TrainConfig.from_options(**options), out,
+                          observer=ConsoleObserver(model))
+    if not result.finished:
+        sys.exit(f'training {model} was interrupted')
+    return result.metrics
 
 
 def picture(data, runs, path, view=0):
@@ -85,6 +91,21 @@ def main():
     picture(data, runs, os.path.join(a.out, 'side_by_side.png'), a.view)
     print(f'plot: {a.out}/psnr_vs_time.png, picture: {a.out}/side_by_side.png '
           f'(GT / NeRF / NeRF++ / NeRF++ fg / NeRF++ bg)')
+    from mi_nerfpp import bench
+    bench.write_results('compare', 'NeRF versus NeRF++ at the same wall-time budget', [
+        bench.table(f'{a.minutes:g} min of training each',
+                    ['model', 'PSNR (dB)', 'SSIM', 'iterations', 'training time (s)',
+                     'M samples/s'],
+                    [['NeRF' if m == 'nerf' else 'NeRF++', r['test']['psnr'], r['test']['ssim'],
+                      r['iterations'], r['train_seconds'], r['train_samples_per_second'] / 1e6]
+                     for m, r in metrics.items()],
+                    note=f'{len(metrics["nerfpp"]["test"]["views"])} held-out views.'),
+        bench.table('Held-out PSNR (dB) during training', ['minutes', 'NeRF', 'NeRF++'],
+                    [[p['minutes'], p['psnr'], q['psnr']] for p, q in
+                     zip(metrics['nerf']['progress'], metrics['nerfpp']['progress'])])],
+        figures=[os.path.join(a.out, 'psnr_vs_time.png'), os.path.join(a.out, 'side_by_side.png')],
+        notes='Side by side: ground truth / NeRF / NeRF++ / NeRF++ foreground over black / '
+              'NeRF++ background (paper Figures 5-6).')
 
 
 if __name__ == '__main__':

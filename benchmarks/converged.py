@@ -18,6 +18,8 @@ in the 8-bit sRGB encoding of the capture:
 * ``far`` and ``near``: where the background is, over the pixels outside the true mask whose
   ray hits a surface (not the sky): the share whose rendered ``depth.Z`` is more than
   ``FAR``x the true depth (content painted at infinity) and the share within ``NEAR`` of it.
+
+Results: ``benchmarks/results/converged.json``.
 """
 import argparse
 import glob
@@ -29,12 +31,12 @@ import numpy as np
 
 import mi_nerfpp  # noqa: F401
 import mitsuba as mi
-from mi_nerfpp.commands import open_run_or_exit
+from mi_nerfpp import bench
+from mi_nerfpp.bench import ray_distance_to_z, render_encoded
 from mi_nerfpp.exr import read_exr
 from mi_nerfpp.metrics import equivalent_blur, masked_psnr, psnr
+from mi_nerfpp.run import open_run
 from mi_nerfpp.views import ViewRenderer, encoded_rgb
-from noise_ceiling import render_encoded
-from quality import ray_distance_to_z
 
 FAR = 4.0      # a depth more than this many times the truth counts as 'at infinity'
 NEAR = 0.25    # relative depth error that counts as 'right'
@@ -62,7 +64,7 @@ def main():
     ap.add_argument('--spp', type=int, default=1024)
     ap.add_argument('--train-every', type=int, default=8)
     a = ap.parse_args()
-    model, _, cfg, dataset = open_run_or_exit(a.run)
+    model, _, _, dataset = open_run(a.run)
     data = dataset.root
     try:
         with open(os.path.join(data, 'capture.json')) as f:
@@ -71,11 +73,11 @@ def main():
         raise SystemExit(f'{data}: no capture.json; this benchmark needs a capture written by '
                          f'`python -m mi_nerfpp synth`') from None
     scene = mi.load_file(capture['scene_path'])
-    renderer = ViewRenderer(model, cfg.sampling, cfg.model == 'nerfpp')
+    renderer = ViewRenderer(model)       # with the model's render settings
     cache = os.path.join(data, 'converged')
     print(f'{"view":>10} {"capture":>8} {"model":>6} {"fg":>6} {"bg":>6} {"blur px":>7} '
           f'{"far":>5} {"near":>5}')
-    rows = {}
+    rows, table_rows, means = {}, [], []
     for split, step in (('train', a.train_every), ('test', 1)):
         views = getattr(dataset, split)
         gts = sorted(glob.glob(os.path.join(data, split, 'gt', '*.exr')))
@@ -95,6 +97,7 @@ def main():
             z = layers['depth.Z'][surface]
             row += [np.mean(z > FAR * true_z), np.mean(np.abs(z - true_z) < NEAR * true_z)]
             rows.setdefault(split, []).append(row)
+            table_rows.append([split, i] + row)
             print(f'{split:>5} {i:4d} {row[0]:8.2f} {row[1]:6.2f} {row[2]:6.2f} {row[3]:6.2f} '
                   f'{row[4]:7.2f} {100 * row[5]:4.0f}% {100 * row[6]:4.0f}%', flush=True)
     for split, values in rows.items():
@@ -104,6 +107,16 @@ def main():
               f'{np.median([v[4] for v in values]):.2f} px (median); background depth: '
               f'{100 * m[5]:.0f} % of its surface pixels beyond {FAR:g}x the truth, '
               f'{100 * m[6]:.0f} % within {100 * NEAR:.0f} %')
+        means.append([split] + list(m[:4]) + [np.median([v[4] for v in values])]
+                     + [100 * m[5], 100 * m[6]])
+    columns = ['capture PSNR (dB)', 'model PSNR (dB)', 'foreground (dB)', 'background (dB)',
+               'blur (px)', f'far: beyond {FAR:g}x (%)', f'near: within {100 * NEAR:.0f} % (%)']
+    bench.write_results('converged', 'Distance of a trained model from the converged truth', [
+        bench.table('Mean per split (blur: median)', ['split'] + columns, means),
+        bench.table('Per view', ['split', 'view'] + columns,
+                    [r[:7] + [100 * r[7], 100 * r[8]] for r in table_rows])],
+        notes=f'Run {a.run}; converged images rendered at {a.spp} spp; PSNR in the 8-bit sRGB '
+              f'encoding of the capture.')
 
 
 if __name__ == '__main__':

@@ -17,17 +17,18 @@ held-out PSNR is scored in:
 * ``both``: the two together, the ceiling of a model that is exact where it was shown the
   scene and paints the best single colour elsewhere.
 
-The last column answers whether a target on every test view (issue 9: none below 24 dB) is
-reachable on a capture at all.
+The last column answers whether a target on every test view (none below 24 dB, say) is
+reachable on a capture at all. Results: ``benchmarks/results/coverage.json``.
 """
 import argparse
 
 import numpy as np
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp.commands import open_run_or_exit
+from mi_nerfpp import bench
 from mi_nerfpp.data.cameras import direction_coverage
 from mi_nerfpp.metrics import SEEN_BY, masked_psnr, psnr
+from mi_nerfpp.run import open_run
 from mi_nerfpp.views import ViewRenderer, encoded_rgb
 
 
@@ -46,8 +47,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('run', help='run folder written by optimize')
     a = ap.parse_args()
-    model, _, cfg, dataset = open_run_or_exit(a.run)
-    renderer = ViewRenderer(model, cfg.sampling, cfg.model == 'nerfpp')
+    model, _, _, dataset = open_run(a.run)
+    renderer = ViewRenderer(model)       # with the model's render settings
     test = dataset.test
     if not len(test):
         raise SystemExit(f'{dataset.root}: no test views to score')
@@ -72,6 +73,16 @@ def main():
           f'{m[3]:.2f}); worst view: model {r[:, 1].min():.2f} dB, seen pixels exact '
           f'{r[:, 4].min():.2f}, unseen at their best colour {r[:, 5].min():.2f}, both '
           f'{r[:, 6].min():.2f}')
+    columns = ['unseen (%)', 'model (dB)', 'seen (dB)', 'unseen (dB)', 'seen exact (dB)',
+               'best fill (dB)', 'both (dB)']
+    bench.write_results('coverage', 'Held-out error in the pixels no training view saw', [
+        bench.table('Worst view of each ceiling', ['model (dB)', 'seen pixels exact (dB)',
+                                                   'unseen at their best colour (dB)', 'both (dB)'],
+                    [[r[:, 1].min(), r[:, 4].min(), r[:, 5].min(), r[:, 6].min()]]),
+        bench.table('Per test view', ['view'] + columns,
+                    [[i, 100 * row[0]] + list(row[1:]) for i, row in enumerate(rows)])],
+        notes=f'Run {a.run}; a pixel is seen when at least {SEEN_BY} training views saw its '
+              f'direction.')
 
 if __name__ == '__main__':
     main()

@@ -7,7 +7,8 @@ than a second render of the same view does. For every test view this renders the
 scene again at the capture's spp with another sampler seed and prints the PSNR between the two
 (8-bit sRGB, as the capture's PNGs). Two independent renders differ by twice the noise of one,
 so each capture image lies about 3 dB further from the converged image than that figure.
-Without DATA, the embedded default capture is used.
+Without DATA, the embedded default capture is used. Results:
+``benchmarks/results/noise_ceiling.json``.
 """
 import argparse
 import json
@@ -17,20 +18,11 @@ import numpy as np
 
 import mi_nerfpp  # noqa: F401
 import mitsuba as mi
-from mi_nerfpp.data import load_dataset, mitsuba_sensor_dict
-from mi_nerfpp.frame import MITSUBA_NEAR_CLIP
+from mi_nerfpp import bench
+from mi_nerfpp.bench import render_encoded
+from mi_nerfpp.data import load_dataset
 from mi_nerfpp.metrics import psnr
-from mi_nerfpp.color import to_srgb8
 from mi_nerfpp.synth import default_capture
-
-
-def render_encoded(scene, world_camera, spp, seed):
-    """The ground-truth scene seen by ``world_camera`` at ``spp``, in the capture's 8-bit sRGB
-    encoding (as floats in [0, 1]), with the sensor ``synth`` renders through."""
-    desc = mitsuba_sensor_dict(world_camera, spp=spp, pixel_format='rgb')
-    desc['near_clip'] = MITSUBA_NEAR_CLIP
-    image = np.array(mi.render(scene, sensor=mi.load_dict(desc), spp=spp, seed=seed))
-    return to_srgb8(image[..., :3]).astype(np.float64) / 255.0
 
 
 def main():
@@ -51,6 +43,13 @@ def main():
         print(f'test view {i}: {scores[-1]:.2f} dB between two {spp}-spp renders')
     print(f'mean {np.mean(scores):.2f} dB: each capture image is ~{np.mean(scores) + 3:.1f} dB '
           f'from the converged render')
+    bench.write_results('noise_ceiling', 'Noise ceiling of the capture', [
+        bench.table(f'PSNR between two {spp}-spp renders of each test view',
+                    ['test view', 'PSNR (dB)'],
+                    [[i, p] for i, p in enumerate(scores)] + [['mean', np.mean(scores)]],
+                    note='Each capture image lies about 3 dB further from the converged render '
+                         'than these figures.')],
+        notes=f'Capture {data}.')
 
 
 if __name__ == '__main__':

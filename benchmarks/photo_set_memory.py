@@ -7,10 +7,11 @@ Writes (once) a synthetic posed photo set of that size in the NeRF++ layout, as 
 smooth random texture on orbiting cameras (every 8th a test view), then runs ``optimize`` on
 it in a child process for a few iterations with the default (automatic) downscale and prints
 the child's peak RSS. Options after ``--`` go to ``optimize`` (e.g. ``--downscale 1``).
+Results: ``benchmarks/results/photo_set_memory.json``.
 """
 import argparse
 import os
-import resource
+import shlex
 import subprocess
 import sys
 import time
@@ -57,9 +58,17 @@ def main():
            '--preview-every', '0', '--checkpoint-every', '0', '--eval-at'] + extra
     t = time.perf_counter()
     subprocess.run(cmd, check=True)
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    from mi_nerfpp import bench
+    peak, seconds = bench.peak_rss_mib(children=True), time.perf_counter() - t
     print(f'{args.views} photos of {width}x{height}: optimize peak RSS {peak:.0f} MiB, '
-          f'{time.perf_counter() - t:.0f} s ({" ".join(cmd[3:])})')
+          f'{seconds:.0f} s ({" ".join(cmd[3:])})')
+    bench.write_results('photo_set_memory', 'Peak memory of optimize on a large photo set', [
+        bench.table('optimize in a child process',
+                    ['photos', 'size', 'optimize options', 'peak RSS (MiB)', 'wall time (s)'],
+                    [[args.views, f'{width}x{height}', shlex.join(extra) or 'defaults', peak,
+                      seconds]],
+                    note=f'{args.iterations} iterations, automatic downscale unless an option '
+                         f'sets it.')])
 
 
 if __name__ == '__main__':

@@ -17,28 +17,22 @@ ground truth (``DATA/test/gt/*.exr`` from ``synth``):
   mask is 1;
 
 then the training throughput (rays/s, samples/s) and the child's peak RSS. Without DATA,
-the embedded default capture is used. Options after ``--`` go to ``optimize``.
+the embedded default capture is used. Options after ``--`` go to ``optimize``. Results:
+``benchmarks/results/<--name>.json`` (default ``quality``).
 """
 import argparse
 import glob
 import json
 import os
-import resource
+import shlex
 import subprocess
 import sys
 
 import numpy as np
 
 
-def ray_distance_to_z(distance, camera):
-    """Distances along the pixel-centre rays of a pinhole camera -> camera-space z."""
-    h, w = distance.shape
-    v, u = np.mgrid[0:h, 0:w] + 0.5
-    x, y, _ = np.linalg.inv(camera.K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
-    return distance / np.sqrt(x * x + y * y + 1.0).reshape(h, w)
-
-
 def score(data, test_dir):
+    from mi_nerfpp.bench import ray_distance_to_z
     from mi_nerfpp.data import direction_coverage, load_dataset
     from mi_nerfpp.exr import read_exr
     from mi_nerfpp.metrics import SEEN_BY, masked_psnr, psnr, separation, ssim
@@ -77,9 +71,12 @@ def main():
     ap.add_argument('--minutes', type=float, default=10.0)
     ap.add_argument('--eval-at', type=float, nargs='*', default=[2.0, 5.0])
     ap.add_argument('--out', default='runs/quality')
+    ap.add_argument('--name', default='quality',
+                    help='name of the results file (benchmarks/results/NAME.json)')
     a = ap.parse_args(argv)
 
     import mi_nerfpp  # noqa: F401
+    from mi_nerfpp import bench
     from mi_nerfpp.synth import default_capture
     data = a.data or default_capture()
     eval_at = [m for m in a.eval_at if m < a.minutes]
@@ -87,7 +84,7 @@ def main():
            str(a.minutes), '--preview-every', '0', '--eval-at', *map(str, eval_at)] + extra
     print('$', ' '.join(cmd), flush=True)
     subprocess.run(cmd, check=True)
-    rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    rss = bench.peak_rss_mib(children=True)
     with open(os.path.join(a.out, 'metrics.json')) as f:
         metrics = json.load(f)
 
@@ -97,17 +94,33 @@ def main():
     points = [(p['minutes'], p['iteration'], os.path.join(a.out, f'test_at_{p["minutes"]:g}min'))
               for p in metrics.get('progress', [])]
     points.append((a.minutes, metrics['iterations'], os.path.join(a.out, 'test')))
+    rows, views = [], {}
     for minutes, iterations, test_dir in points:
         s = score(data, test_dir)
+        rows.append([minutes, iterations, s['psnr'], s['worst_psnr'], s['psnr_seen'],
+                     s['worst_seen'], s['ssim'], s['alpha_error'], s['leak'],
+                     100 * s['soft_fraction'], s['depth_error']])
+        views[f'{minutes:g}'] = s['views']
         print(f'{minutes:7g} {iterations:6d} {s["psnr"]:6.2f} {s["worst_psnr"]:6.2f} '
               f'{s["psnr_seen"]:6.2f} {s["worst_seen"]:6.2f} '
               f'{s["ssim"]:6.3f} {s["alpha_error"]:8.3f} {s["leak"]:6.3f} '
               f'{100 * s["soft_fraction"]:5.1f}% {s["depth_error"]:6.3f}  {s["views"]}')
     cfg = metrics['config']
-    rays = metrics['iterations'] * cfg['batch_rays'] / metrics['train_seconds']
+    rays = metrics['iterations'] * cfg['schedule']['batch_rays'] / metrics['train_seconds']
     print(f'\ntraining: {rays:,.0f} rays/s, {metrics["train_samples_per_second"] / 1e6:.2f} M samples/s '
           f'(field evaluations), {metrics["iterations"]} iterations in {metrics["train_seconds"]:.0f} s')
     print(f'peak RSS of optimize: {rss:.0f} MiB')
+    setting = shlex.join(extra) or 'default options'
+    bench.write_results(a.name, f'Reconstruction quality against time ({setting})', [
+        bench.table('Held-out quality at each evaluation',
+                    ['minutes', 'iterations', 'PSNR (dB)', 'worst view (dB)', 'seen PSNR (dB)',
+                     'worst seen (dB)', 'SSIM', '|alpha - alpha_gt|', 'leak', 'soft alpha (%)',
+                     'depth error'], rows),
+        bench.table('Training', ['rays/s', 'M samples/s', 'iterations', 'training time (s)',
+                                 'peak RSS of optimize (MiB)'],
+                    [[rays, metrics['train_samples_per_second'] / 1e6, metrics['iterations'],
+                      metrics['train_seconds'], rss]])],
+        raw={'per_view_psnr': views, 'config': cfg})
 
 
 if __name__ == '__main__':

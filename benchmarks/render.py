@@ -11,16 +11,18 @@ sample counts, its occupancy grids), with the film resized to ``--width x --heig
 
 Prints seconds per frame, rays/s, samples/s (field evaluations: (coarse + fine) per
 volume per ray) and the process's peak RSS. The first (cold) run compiles kernels
-and is reported separately.
+and is reported separately. Results: ``benchmarks/results/render.json`` (``render_run.json``
+with ``--run``).
 """
 import argparse
-import resource
 import statistics
 import time
 
 import mi_nerfpp  # noqa: F401
 import drjit as dr
 import mitsuba as mi
+from mi_nerfpp import bench
+from mi_nerfpp.render import Sampling
 
 
 def main():
@@ -29,9 +31,9 @@ def main():
     ap.add_argument('--height', type=int, default=720)
     ap.add_argument('--runs', type=int, default=3, help='warm runs (after one cold run)')
     ap.add_argument('--field', default='grid', choices=['grid', 'nerf', 'vanilla'])
-    ap.add_argument('--fg-samples', type=int, default=64)
-    ap.add_argument('--bg-samples', type=int, default=64)
-    ap.add_argument('--fine-samples', type=int, default=128)
+    ap.add_argument('--fg-samples', type=int, default=Sampling().fg_samples)
+    ap.add_argument('--bg-samples', type=int, default=Sampling().bg_samples)
+    ap.add_argument('--fine-samples', type=int, default=Sampling().fine_samples)
     ap.add_argument('--chunk-rays', type=int, default=1 << 15)
     ap.add_argument('--spp', type=int, default=1, help='rays per pixel (a frame = 1)')
     ap.add_argument('--run', help='a run folder: render its render.xml (trained model)')
@@ -47,7 +49,7 @@ def main():
         scene = random_scene(a)
     rays = a.width * a.height * a.spp
     samples = rays * (a.fg_samples + a.bg_samples + 2 * a.fine_samples)
-    bench(scene, a, rays, samples)
+    measure(scene, a, rays, samples)
 
 
 def run_scene(run, width, height, spp):
@@ -79,7 +81,7 @@ def random_scene(a):
                             'rfilter': {'type': 'box'}, 'pixel_format': 'rgba'}}})
 
 
-def bench(scene, a, rays, samples):
+def measure(scene, a, rays, samples):
     def run():
         t0 = time.perf_counter()
         img = mi.render(scene, seed=0)
@@ -90,7 +92,7 @@ def bench(scene, a, rays, samples):
     cold = run()
     times = [run() for _ in range(a.runs)]
     t = statistics.median(times)
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rss = bench.peak_rss_mib()
     n_params = scene.integrator().model.n_parameters()
     print(f'frame {a.width}x{a.height} at {a.spp} spp, field={a.field} ({n_params / 1e6:.2f} M parameters), '
           f'samples per ray: fg {a.fg_samples}+{a.fine_samples}, bg {a.bg_samples}+{a.fine_samples}'
@@ -99,6 +101,17 @@ def bench(scene, a, rays, samples):
     print(f'warm runs: {", ".join(f"{x:.2f}" for x in times)} s -> median {t:.2f} s per frame')
     print(f'rays/s: {rays / t / 1e6:.3f} M   samples/s: {samples / t / 1e6:.2f} M')
     print(f'peak RSS: {rss:.0f} MiB')
+    what = f'trained model of {a.run}' if a.run else f'random {a.field} fields'
+    bench.write_results('render_run' if a.run else 'render', 'Render throughput', [
+        bench.table(f'{a.width}x{a.height} at {a.spp} spp, {what}',
+                    ['samples per ray (fg, bg, fine)', 'cold (s)', 'median warm (s)',
+                     'M rays/s', 'M samples/s', 'peak RSS (MiB)'],
+                    [[f'{a.fg_samples} {a.bg_samples} {a.fine_samples}', cold, t,
+                      rays / t / 1e6, samples / t / 1e6, rss]],
+                    note=f'Median of {a.runs} warm runs after one cold run (kernel compilation); '
+                         f'samples/s counts the full budget'
+                         + (', before skipping empty space.' if a.run else '.'))],
+        notes=f'{n_params / 1e6:.2f} M parameters.')
 
 
 if __name__ == '__main__':

@@ -64,42 +64,37 @@ def score(preds, images, masks=None):
 
 
 def train(dataset, out, cfg):
-    """Train a NeRF++ model with a progress bar; returns the Trainer.
+    """Train a NeRF++ model (:mod:`mi_nerfpp.run`) with a progress bar; returns the Trainer.
 
     A finished run of the same configuration in ``out`` is reused (its checkpoint is loaded,
     nothing is trained), so a script re-run only re-evaluates; ``trainer.elapsed`` is the
     training time either way. An unfinished or different run there is trained afresh.
     """
-    from tqdm import tqdm
-
+    from mi_nerfpp import run
     from mi_nerfpp.checkpoint import load_checkpoint
-    from mi_nerfpp.train import Trainer
+    from mi_nerfpp.console import ConsoleObserver
     path = os.path.join(out, 'model.npz')
     reuse = False
     if os.path.exists(path):
         _, meta, _ = load_checkpoint(path)
-        reuse = (meta.get('config') == json.loads(json.dumps(dataclasses.asdict(cfg)))
-                 and meta.get('iteration') == cfg.iterations)
-    trainer = Trainer(dataset, out, cfg, resume=reuse)
+        reuse = (meta.get('config') == cfg.to_dict()
+                 and meta.get('iteration') == cfg.schedule.iterations)
+    inputs = run.RunInputs(dataset.root, dataset, cfg, out)
     if reuse:
-        print(f'{out}: reusing the finished run ({cfg.iterations} iterations)')
-        return trainer
-    bar = tqdm(total=cfg.iterations, desc=os.path.basename(out), unit='it', dynamic_ncols=True)
-
-    def on_step(tr, loss, psnr):
-        bar.update(1)
-        if tr.iteration % 50 == 0:
-            bar.set_postfix(psnr=f'{psnr:.2f}')
-    trainer.run(on_step=on_step)
-    bar.close()
+        print(f'{out}: reusing the finished run ({cfg.schedule.iterations} iterations)')
+        return run.start(inputs, resume=True)
+    observer = ConsoleObserver(desc=os.path.basename(out))
+    trainer = run.start(inputs, observer=observer)
+    run.train(trainer, observer)
     return trainer
 
 
-def render_views(model, split, sampling, background=True):
-    """RGB renders of every view of a split through the ``nerfpp`` integrator, in the encoding
-    of the model's training images (comparable with them)."""
+def render_views(model, split):
+    """RGB renders of every view of a split through the ``nerfpp`` integrator (with the
+    model's render settings: the sample counts it was trained with), in the encoding of the
+    model's training images (comparable with them)."""
     from mi_nerfpp.views import ViewRenderer, encoded_rgb
-    renderer = ViewRenderer(model, sampling, background)
+    renderer = ViewRenderer(model)
     return [encoded_rgb(renderer.render(cam), model.color_space) for cam in split.cameras]
 
 

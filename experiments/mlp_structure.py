@@ -28,10 +28,8 @@ mask; the paper masks the background out) on both test splits, plus 5 training v
 training on a 2-core CPU at the defaults, plus evaluation.
 """
 import os
-import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import common  # noqa: E402
+import common   # experiments/common.py, next to this script (on sys.path when it runs)
 
 RUNS = [
     # name, family, TrainConfig options
@@ -61,7 +59,7 @@ def main():
 
     from mi_nerfpp.data import load_dataset
     from mi_nerfpp.metrics import psnr
-    from mi_nerfpp.train import TrainConfig
+    from mi_nerfpp.config import TrainConfig
 
     data = common.capture(a.data_cache, 'arc', views=a.views, res=a.res, fov=30.0, spp=a.spp,
                           trajectory='arc', seed=0)
@@ -78,11 +76,11 @@ def main():
         if a.only and family != a.only:
             continue
         iterations = a.mlp_iterations if family == 'mlp' else a.grid_iterations
-        cfg = TrainConfig(iterations=iterations, preview_every=0, checkpoint_every=0,
-                          lr_mlp=a.lr_mlp, **options)
+        cfg = TrainConfig.from_options(iterations=iterations, preview_every=0,
+                                       checkpoint_every=0, lr_mlp=a.lr_mlp, **options)
         slug = name.split(' (')[0].replace(',', '').replace('^', '').replace(' ', '_')
         trainer = common.train(ds, os.path.join(a.out, slug), cfg)
-        preds = {s: common.render_views(trainer.model, splits[s], cfg.sampling) for s in splits}
+        preds = {s: common.render_views(trainer.model, splits[s]) for s in splits}
         r = {s: common.score(preds[s], splits[s].images, masks[s]) for s in splits}
         r.update(family=family, iterations=iterations, seconds=round(trainer.elapsed, 1),
                  parameters=trainer.model.n_parameters(), options=options)

@@ -22,10 +22,8 @@ PSNR over the object's pixels only (the ground-truth mask of the capture). Write
 ``--out``. Training takes about 6 minutes on a 2-core CPU at the defaults, plus evaluation.
 """
 import os
-import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import common  # noqa: E402
+import common   # experiments/common.py, next to this script (on sys.path when it runs)
 
 
 def main():
@@ -47,7 +45,8 @@ def main():
     from mi_nerfpp.data import load_dataset
     from mi_nerfpp.fields import make_field
     from mi_nerfpp.model import default_field_config
-    from mi_nerfpp.train import RayBank, TrainConfig
+    from mi_nerfpp.config import TrainConfig
+    from mi_nerfpp.train import RayBank
 
     data = common.capture(a.data_cache, 'hemisphere', views=a.views, res=a.res, fov=25.0, spp=a.spp,
                           trajectory='hemisphere', seed=0)
@@ -83,9 +82,10 @@ def main():
               f"test {results[label]['test']['psnr']:.2f} dB ({t.seconds:.0f} s)")
 
     label = 'learned opacity (NeRF++, grid)'
-    cfg = TrainConfig(iterations=a.learned_iterations, preview_every=0, checkpoint_every=0)
+    cfg = TrainConfig.from_options(iterations=a.learned_iterations, preview_every=0,
+                                   checkpoint_every=0)
     trainer = common.train(ds, os.path.join(a.out, 'learned'), cfg)
-    preds = {s: common.render_views(trainer.model, splits[s], cfg.sampling) for s in splits}
+    preds = {s: common.render_views(trainer.model, splits[s]) for s in splits}
     results[label] = {s: common.score(preds[s], splits[s].images, masks[s]) for s in splits}
     results[label].update(seconds=round(trainer.elapsed, 1), iterations=a.learned_iterations)
     images[label] = preds

@@ -10,10 +10,15 @@ Keys:
   :mod:`~mi_nerfpp.appearance`; missing or 0: none),
   "pose_images": n (per-image camera corrections, ``param/poses`` of shape (n, 6),
   :mod:`~mi_nerfpp.poses`; missing or 0: none),
+  "sampling": {"fg_samples": n, "bg_samples": n, "fine_samples": n, "near": t} (the samples
+  per ray the model is rendered with, :class:`~mi_nerfpp.model.RenderSettings`; missing in
+  files written before it: those of the training config in ``meta``, else
+  :class:`~mi_nerfpp.render.Sampling`'s defaults),
   "meta": {...}}``. ``normalization`` is the scene normalization
   ``x_model = (x_world - center)·scale`` (:class:`~mi_nerfpp.frame.Normalization`; version 1
   files stored ``center`` and ``scale`` at the top level and are still read);
-  ``meta`` holds free-form information (iteration, dataset, training config, …);
+  ``meta`` holds free-form information (iteration, dataset, the training config as
+  :meth:`~mi_nerfpp.config.TrainConfig.to_dict` - flat in older files -, …);
 * ``param/<name>`` — float32 arrays of the learnable parameters, named as in
   ``NeRFPPModel.parameters()`` (``fg.grid0``, ``bg.color.layers.0.weights``, …);
 * ``occupancy/<volume>`` — the occupancy grid of a volume (``fg``/``bg``) when the model
@@ -37,6 +42,7 @@ from .files import atomic_write_path
 from .frame import Normalization
 from .model import NeRFPPModel
 from .occupancy import OccupancyGrid
+from .render import Sampling
 
 FORMAT = 'mi-nerfpp-checkpoint'
 VERSION = 2
@@ -96,7 +102,8 @@ def load_checkpoint(path, seed=0):
                             # written before issue 11: sRGB models composited encoded colour
                             composite=config.get('composite', 'srgb'),
                             appearance_images=int(config.get('appearance_images', 0)),
-                            pose_images=int(config.get('pose_images', 0)))
+                            pose_images=int(config.get('pose_images', 0)),
+                            sampling=_sampling(config))
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None
 
@@ -118,3 +125,16 @@ def load_checkpoint(path, seed=0):
     model.set_parameters(values)
     state = {k[len('state/'):]: v for k, v in z.items() if k.startswith('state/')}
     return model, config.get('meta', {}), state
+
+
+def _sampling(config):
+    """The samples per ray a checkpoint's model renders with: stored with the model, or in a
+    file written before that, those it was trained with (its training config); None (the
+    model's default) for a file that says neither."""
+    if 'sampling' in config:
+        return Sampling(**config['sampling'])
+    trained = config.get('meta', {}).get('config')
+    if trained:
+        from .config import TrainConfig
+        return TrainConfig.from_stored(trained).render_sampling
+    return None

@@ -84,21 +84,19 @@ class FrameWorker:
         """Build the renderer of the checkpoint: from its path where this process sees it,
         else from ``checkpoint_data`` (``[ObjectRef]`` of the file's bytes)."""
         from .checkpoint import load_checkpoint
-        from .train import run_config
         from .views import ViewRenderer
         if self.renderer is not None:
             return self.renderer
         if os.path.isfile(self.checkpoint) or checkpoint_data is None:
-            model, meta, _ = load_checkpoint(self.checkpoint)
+            model, _, _ = load_checkpoint(self.checkpoint)
         else:                                    # not on shared storage: the copy Ray sent
             import ray
             with tempfile.TemporaryDirectory() as tmp:
                 local = os.path.join(tmp, 'model.npz')
                 with open(local, 'wb') as f:
                     f.write(ray.get(checkpoint_data[0]))
-                model, meta, _ = load_checkpoint(local)
-        cfg = run_config(meta)
-        self.renderer = ViewRenderer(model, cfg.sampling, cfg.model == 'nerfpp')
+                model, _, _ = load_checkpoint(local)
+        self.renderer = ViewRenderer(model)         # with the model's render settings
         return self.renderer
 
     def pid(self):

@@ -6,7 +6,6 @@ EXRs and PNG previews.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
@@ -23,14 +22,17 @@ from .scene_xml import write_render_xml
 from .views import ViewRenderer, encoded_rgb, rgb
 
 
-def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', background=True,
-                   progress=None, fit_appearance=False):
+def evaluate_split(model, split, out_dir, sampling: Sampling | None = None, name='test',
+                   background: bool | None = None, progress=None, fit_appearance=False):
     """Render every view of ``split``, write ``{name}_NNN.exr``/``.png`` and return the metrics.
 
-    Returns a dict with per-view PSNR/SSIM, their means and the render time; with a
-    ``background`` also per view and on average ``soft_alpha``, the fraction of pixels whose
-    foreground opacity is neither in nor out of the matte (:func:`soft_alpha_fraction`). Renders are
-    neutral (no appearance transform). ``fit_appearance``: held-out photos have their own
+    Views are rendered with the model's render settings (the sample counts it was trained
+    with, its background); ``sampling`` and ``background`` override them. Returns a dict with
+    per-view PSNR/SSIM, their means and the render time; when the background is rendered
+    also per view and on average ``soft_alpha``, the fraction of pixels whose foreground
+    opacity is neither in nor out of the matte (:func:`soft_alpha_fraction`). Renders are
+    neutral (no appearance transform). ``progress``: a wrapper of the views' iterable
+    (``tqdm``-like: ``progress(iterable, desc=..., unit=..., leave=...)``) for a progress bar. ``fit_appearance``: held-out photos have their own
     exposure, so they are scored as NeRF-W does - a per-channel gain and bias is fitted (linear
     least squares in linear light, :func:`~mi_nerfpp.appearance.fit_affine`) on the left half
     of each view and the right half is scored; that score is then ``psnr`` and the neutral
@@ -38,6 +40,7 @@ def evaluate_split(model, split, out_dir, sampling: Sampling, name='test', backg
     """
     os.makedirs(out_dir, exist_ok=True)
     renderer = ViewRenderer(model, sampling, background)
+    background = renderer.scene.integrator().background
     views = []
     t0 = time.perf_counter()
     indices = range(len(split))
@@ -109,24 +112,22 @@ def matte_warning(test_metrics):
             f'background) and compare "soft_alpha" in metrics.json.')
 
 
-def finish_run(out, model, held_out, cfg, checkpoint_path, metrics):
+def finish_run(out, model, held_out, cfg, checkpoint_path, metrics, progress=None):
     """Evaluate the held-out views; write metrics.json (with ``metrics``) and render.xml.
 
-    ``cfg`` is the run's :class:`~mi_nerfpp.train.TrainConfig`. Returns the metrics written.
+    ``cfg`` is the run's :class:`~mi_nerfpp.config.TrainConfig`; the views are rendered with
+    the model's render settings, and render.xml leaves them to the checkpoint. ``progress``:
+    as in :func:`evaluate_split`. Returns the metrics written.
     """
-    from tqdm import tqdm
-
-    metrics = dict(metrics, config=dataclasses.asdict(cfg))
-    background = cfg.model == 'nerfpp'
+    metrics = dict(metrics, config=cfg.to_dict())
     if len(held_out):
         metrics['test'] = evaluate_split(model, held_out, os.path.join(out, 'test'),
-                                         cfg.sampling, background=background, progress=tqdm,
-                                         fit_appearance=getattr(cfg, 'appearance', False))
+                                         progress=progress,
+                                         fit_appearance=cfg.model.appearance)
         norm = model.normalization
         write_render_xml(os.path.join(out, 'render.xml'), checkpoint_path,
-                         norm.to_world_camera(held_out.cameras[0]), cfg.sampling,
-                         near_clip=norm.to_world_distance(SCENE_NEAR_CLIP),
-                         background=background)
+                         norm.to_world_camera(held_out.cameras[0]),
+                         near_clip=norm.to_world_distance(SCENE_NEAR_CLIP))
     write_json(os.path.join(out, 'metrics.json'), metrics)
     return metrics
 

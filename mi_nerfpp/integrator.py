@@ -108,21 +108,28 @@ class NeRFPPIntegrator(ADIntegrator):
        - Seed of the random fields when there is no checkpoint. (Default: 0)
      * - fg_samples
        - |int|
-       - Coarse samples per ray in the foreground volume. (Default: 64)
+       - Coarse samples per ray in the foreground volume. (Default: the
+         model's, :class:`~mi_nerfpp.model.RenderSettings`: a checkpoint renders
+         with the counts it was trained with, older checkpoints with those of
+         their training config; random fields with 64)
      * - bg_samples
        - |int|
-       - Coarse samples per ray in the background volume. (Default: 64)
+       - Coarse samples per ray in the background volume. (Default: the
+         model's, as ``fg_samples``; random fields: 64)
      * - fine_samples
        - |int|
        - Fine samples per ray and volume, drawn from the coarse weights by
-         inverse CDF; 0 disables hierarchical sampling. (Default: 128)
+         inverse CDF; 0 disables hierarchical sampling. (Default: the model's,
+         as ``fg_samples``; random fields: 128)
      * - near
        - |float|
        - Foreground samples of camera rays start at this ray distance (normalized
-         units); rays that leave a surface start at it. (Default: 0)
+         units); rays that leave a surface start at it. (Default: the model's, 0)
      * - background
        - |bool|
-       - Render the background volume (``false``: foreground over black). (Default: true)
+       - Render the background volume (``false``: foreground over black).
+         (Default: whether the model has one, i.e. ``false`` for models trained
+         with ``--model nerf``)
      * - stratified
        - |bool|
        - Jitter sample positions within their strata (using the sampler); off
@@ -172,7 +179,11 @@ class NeRFPPIntegrator(ADIntegrator):
          objects); off: shadow rays see shapes only, and are cheaper. (Default: true)
 
     Unknown parameters, values of the wrong type and out-of-range values are
-    refused with a message naming the parameter.
+    refused with a message naming the parameter. The model carries how it is
+    rendered (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`: its sample
+    counts, ``near``, whether it has a background, where it composites); the
+    parameters above that say "the model's" override those settings one by one,
+    also for a model handed over with :meth:`set_model`.
 
     Radiance is scene-linear (Rec.709 primaries), also for models fitted to
     sRGB photos (:meth:`~mi_nerfpp.model.NeRFPPModel.radiance_fields`).
@@ -185,17 +196,15 @@ class NeRFPPIntegrator(ADIntegrator):
 
     def __init__(self, props):
         super().__init__(props)
-        default = Sampling()      # the XML defaults live in render.Sampling
         read = _ParameterReader(props)
         self.checkpoint = read('checkpoint', str, '')
-        self.sampling = Sampling(
-            fg_samples=read('fg_samples', int, default.fg_samples, minimum=1),
-            bg_samples=read('bg_samples', int, default.bg_samples, minimum=1),
-            fine_samples=read('fine_samples', int, default.fine_samples, minimum=0),
-            near=read('near', float, default.near, minimum=0.0))
-        # Path segments that leave a surface sample the volumes from their origin on.
-        self._from_surfaces = dataclasses.replace(self.sampling, near=0.0)
-        self.background = read('background', bool, True)
+        # Overrides of the model's render settings (None: the model's, see ``sampling``).
+        self._sampling = {
+            'fg_samples': read('fg_samples', int, None, minimum=1),
+            'bg_samples': read('bg_samples', int, None, minimum=1),
+            'fine_samples': read('fine_samples', int, None, minimum=0),
+            'near': read('near', float, None, minimum=0.0)}
+        self._background = read('background', bool, None)
         self.stratified = read('stratified', bool, False)
         self.occluded_background = read('occluded_background', bool, False)
         self.chunk_rays = read('chunk_rays', int, 1 << 15, minimum=1)
@@ -235,6 +244,21 @@ class NeRFPPIntegrator(ADIntegrator):
             self._model = NeRFPPModel.create(field=self.random_field, seed=self.random_seed)
         return self._model
 
+    @property
+    def sampling(self) -> Sampling:
+        """Samples per ray: the model's (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`)
+        with the ones the XML gives in their place."""
+        given = {k: v for k, v in self._sampling.items() if v is not None}
+        return dataclasses.replace(self.model.render_settings.sampling, **given)
+
+    @property
+    def background(self) -> bool:
+        """Whether the background volume is rendered: the XML's ``background``, else whether
+        the model has one."""
+        if self._background is not None:
+            return self._background
+        return self.model.render_settings.background
+
     def set_model(self, model, meta=None):
         """Render ``model`` (a :class:`~mi_nerfpp.model.NeRFPPModel`) from now on."""
         self._check_appearance(model)
@@ -259,8 +283,10 @@ class NeRFPPIntegrator(ADIntegrator):
         return list(AOVS)
 
     def to_string(self):
-        return (f'NeRFPPIntegrator[checkpoint="{self.checkpoint}", {self.sampling}, '
-                f'background={self.background}]')
+        given = {k: v for k, v in dict(self._sampling, background=self._background).items()
+                 if v is not None}
+        settings = ', '.join(f'{k}={v}' for k, v in given.items()) or "the model's settings"
+        return f'NeRFPPIntegrator[checkpoint="{self.checkpoint}", {settings}]'
 
     def traverse(self, cb):
         for k, v in self.model.parameters().items():
@@ -301,9 +327,11 @@ class NeRFPPIntegrator(ADIntegrator):
         model = self.model
         norm = model.normalization
         fg_field, bg_field = model.radiance_fields()
+        sampling = self.sampling
+        if not camera:      # path segments that leave a surface: from their origin on
+            sampling = dataclasses.replace(sampling, near=0.0)
         res = render_rays(*norm.to_model_rays(o, d), fg_field,
-                          bg_field if self.background else None,
-                          self.sampling if camera else self._from_surfaces, seed,
+                          bg_field if self.background else None, sampling, seed,
                           occupancy=model.occupancy,
                           skip_occluded=primal and not self.occluded_background,
                           far=None if far is None else norm.to_model_distance(far))

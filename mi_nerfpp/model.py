@@ -6,10 +6,14 @@ rays into it and back.
 """
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+
 import drjit as dr
 
 from .fields import make_field
 from .frame import Normalization
+from .render import Sampling
 
 FIELD_KINDS = ('grid', 'nerf', 'vanilla')
 
@@ -18,6 +22,22 @@ def default_field_config(kind, domain):
     if kind not in FIELD_KINDS:
         raise ValueError(f"unknown field kind '{kind}' (expected one of {', '.join(FIELD_KINDS)})")
     return {'kind': kind, 'domain': domain}
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How a model is rendered unless a renderer is told otherwise: as it was trained.
+
+    ``sampling``: samples per ray (coarse foreground, coarse background, fine per volume) and
+    where camera rays start (``near``), those of training (a checkpoint stores them);
+    ``background``: whether the background volume is rendered (the model has one);
+    ``composite``: where samples are composited (see :class:`NeRFPPModel`). The ``nerfpp``
+    integrator and :class:`~mi_nerfpp.views.ViewRenderer` render with these; the
+    integrator's XML parameters override them one by one.
+    """
+    sampling: Sampling
+    background: bool
+    composite: str
 
 
 class LinearRadiance:
@@ -52,11 +72,18 @@ class NeRFPPModel:
     which summed encoded colours). An ``'srgb'`` model keeps rendering as it was trained (its
     fields are not decoded, :meth:`radiance_fields`); the integrator then decodes its layers
     to linear light, where the compositing identity holds only approximately at soft edges.
+
+    ``sampling`` (:class:`~mi_nerfpp.render.Sampling`): the samples per ray it is rendered
+    with (training sets those it trains with; default: :class:`~mi_nerfpp.render.Sampling`'s,
+    for models with no training behind them); with the background and the composite it makes
+    the model's :attr:`render_settings`.
     """
 
     def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb',
-                 occupancy=None, composite='linear', appearance_images=0, pose_images=0):
+                 occupancy=None, composite='linear', appearance_images=0, pose_images=0,
+                 sampling=None):
         self.fg, self.bg = fg, bg
+        self.sampling = Sampling() if sampling is None else sampling
         # Per-training-image colour transforms (:mod:`.appearance`); None: off.
         self.appearance = None
         if appearance_images:
@@ -92,6 +119,12 @@ class NeRFPPModel:
         return LinearRadiance(self.fg), None if self.bg is None else LinearRadiance(self.bg)
 
     @property
+    def render_settings(self) -> RenderSettings:
+        """How this model is rendered unless a renderer is told otherwise."""
+        return RenderSettings(self.sampling, background=self.bg is not None,
+                              composite=self.composite)
+
+    @property
     def loss_encoding(self):
         """The map from :func:`~mi_nerfpp.render.render_rays`' composite of
         :meth:`radiance_fields` to the encoding of the training images."""
@@ -105,6 +138,7 @@ class NeRFPPModel:
                 'normalization': self.normalization.to_config(), 'color_space': self.color_space,
                 'composite': self.composite, 'appearance_images': self.appearance_images,
                 'pose_images': self.pose_images,
+                'sampling': dataclasses.asdict(self.sampling),
                 'occupancy': {k: g.config for k, g in self.occupancy.items()}}
 
     @property

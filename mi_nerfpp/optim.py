@@ -67,3 +67,4 @@ def charbonnier(a, b, eps: float = CHARBONNIER_EPS, weight: float = CHARBONNIER_
 
 
 COLOR_LOSSES = {'charbonnier': charbonnier, 'mse': mse}
+COLOR_LOSS_NAMES = {'charbonnier': 'Charbonnier', 'mse': 'squared error'}   # for labels

@@ -7,11 +7,18 @@ option to a command is adding one field::
 
     distortion: float = option(0.0, 'weight of the distortion loss (0: off)')
 
+A config made of groups (a dataclass whose fields are declared with :func:`group`, each
+holding an options dataclass) gives one titled section of ``--help`` per group; the options
+stay flat on the command line, each named after its field, so every option's name (its
+*option name*, the flag without dashes, e.g. ``batch_rays`` for ``--batch-rays``) is unique
+across the groups. :func:`values` returns them by option name.
+
 Metadata keys besides ``help``: ``choices``, ``metavar``, ``type`` (a parser of one string),
-``nargs``, ``flag`` (instead of ``--field-name``), ``exclusive`` (options with the same name
-form a mutually exclusive group), ``joint`` (fields with the same joint flag are set together
-by one option taking one value per field, e.g. ``--samples FG BG FINE``). Tuple defaults take
-``nargs='+'`` values of their elements' type; ``None`` defaults need a ``type``.
+``nargs``, ``flag`` (instead of ``--field-name``; the option name follows it), ``exclusive``
+(options with the same name form a mutually exclusive group), ``joint`` (fields with the same
+joint flag are set together by one option taking one value per field, e.g. ``--samples FG BG
+FINE``). Tuple defaults take ``nargs='+'`` values of their elements' type; ``None`` defaults
+need a ``type``.
 """
 from __future__ import annotations
 
@@ -26,27 +33,66 @@ def option(default, help, **cli):
     return dataclasses.field(default=default, metadata=dict(cli, help=help))
 
 
+def group(cls, title, description=''):
+    """A field of a config that holds the options dataclass ``cls`` (its defaults), shown as
+    one section ``title`` of ``--help``."""
+    return dataclasses.field(default_factory=cls,
+                             metadata={'group': title, 'description': description})
+
+
+def groups(cls):
+    """``[(field name, options dataclass, metadata)]`` of a config of groups (empty for a
+    plain options dataclass)."""
+    return [(f.name, f.default_factory, f.metadata) for f in dataclasses.fields(cls)
+            if 'group' in f.metadata]
+
+
+def options_of(cls):
+    """``[(group field name or None, field)]``: every option of ``cls``, in order."""
+    parts = groups(cls)
+    if not parts:
+        return [(None, f) for f in dataclasses.fields(cls) if 'help' in f.metadata]
+    return [(name, f) for name, sub, _ in parts for _, f in options_of(sub)]
+
+
 def _flag(f):
     return f.metadata.get('flag', '--' + f.name.replace('_', '-'))
 
 
+def option_name(f) -> str:
+    """The name of field ``f``'s option: its flag without the dashes (``batch_rays``)."""
+    return _flag(f)[2:].replace('-', '_')
+
+
 def _describe(default):
     if isinstance(default, tuple):
-        return ' '.join(str(v) for v in default)
+        return ' '.join(str(v) for v in default) or 'none'
     return default
 
 
 def add_options(parser, cls):
-    """Add an option for every field of dataclass ``cls`` that has a help text."""
-    groups, joints = {}, {}
-    for f in dataclasses.fields(cls):
+    """Add an option for every field of dataclass ``cls`` that has a help text; a config of
+    :func:`group` fields gets one argument group (a section of ``--help``) per group."""
+    parts = groups(cls)
+    if not parts:
+        _add_fields(parser, parser, cls)
+        return
+    for _, sub, meta in parts:
+        section = parser.add_argument_group(meta['group'], meta['description'] or None)
+        _add_fields(parser, section, sub)
+
+
+def _add_fields(parser, section, cls):
+    exclusive = {}
+    fields = [f for f in dataclasses.fields(cls) if 'help' in f.metadata]
+    for f in fields:
         meta = f.metadata
-        if 'help' not in meta:
+        if 'joint' in meta:         # one option for its fields, where the first of them is
+            joint = [g for g in fields if g.metadata.get('joint') == meta['joint']]
+            if f is joint[0]:
+                _add_joint(section, meta['joint'], joint)
             continue
-        if 'joint' in meta:
-            joints.setdefault(meta['joint'], []).append(f)
-            continue
-        kwargs = {'dest': f.name, 'default': f.default}
+        kwargs = {'dest': option_name(f), 'default': f.default}
         default_text = f'(default: {_describe(f.default)})' if f.default is not None else ''
         kwargs['help'] = f"{meta['help']} {meta.get('default_help', default_text)}".strip()
         for key in ('choices', 'metavar', 'nargs', 'type'):
@@ -61,40 +107,46 @@ def add_options(parser, cls):
             if f.default is None:
                 raise TypeError(f'{cls.__name__}.{f.name}: a None default needs a type')
             kwargs['type'] = type(f.default)
-        target = parser
+        target = section
         if 'exclusive' in meta:
-            if meta['exclusive'] not in groups:
-                groups[meta['exclusive']] = parser.add_mutually_exclusive_group()
-            target = groups[meta['exclusive']]
+            if meta['exclusive'] not in exclusive:
+                exclusive[meta['exclusive']] = section.add_mutually_exclusive_group()
+            target = exclusive[meta['exclusive']]
         target.add_argument(_flag(f), **kwargs)
-    for flag, fs in joints.items():
-        parser.add_argument(
-            flag, dest='_joint' + flag.replace('-', '_'), nargs=len(fs),
-            type=type(fs[0].default), metavar=tuple(f.metadata['metavar'] for f in fs),
-            default=[f.default for f in fs],
-            help='; '.join(f"{f.metadata['metavar']}: {f.metadata['help']}" for f in fs)
-            + ' (default: ' + ' '.join(str(f.default) for f in fs) + ')')
+
+
+def _add_joint(section, flag, fs):
+    section.add_argument(
+        flag, dest=_joint_dest(flag), nargs=len(fs),
+        type=type(fs[0].default), metavar=tuple(f.metadata['metavar'] for f in fs),
+        default=[f.default for f in fs],
+        help='; '.join(f"{f.metadata['metavar']}: {f.metadata['help']}" for f in fs)
+        + ' (default: ' + ' '.join(str(f.default) for f in fs) + ')')
+
+
+def _joint_dest(flag):
+    return '_joint' + flag.replace('-', '_')
 
 
 def values(args, cls) -> dict:
-    """The values of ``cls``'s options in parsed ``args``, as keyword arguments of ``cls``."""
+    """The values of ``cls``'s options in parsed ``args``, by option name (for a plain options
+    dataclass these are its keyword arguments)."""
     out = {}
-    for f in dataclasses.fields(cls):
+    fields = [f for _, f in options_of(cls)]
+    for f in fields:
         meta = f.metadata
-        if 'help' not in meta:
-            continue
         if 'joint' in meta:
-            joint = getattr(args, '_joint' + meta['joint'].replace('-', '_'))
-            siblings = [g.name for g in dataclasses.fields(cls)
-                        if g.metadata.get('joint') == meta['joint']]
-            out[f.name] = joint[siblings.index(f.name)]
+            joint = getattr(args, _joint_dest(meta['joint']))
+            siblings = [g.name for g in fields if g.metadata.get('joint') == meta['joint']]
+            out[option_name(f)] = joint[siblings.index(f.name)]
             continue
-        value = getattr(args, f.name)
-        out[f.name] = tuple(value) if isinstance(value, list) else value
+        value = getattr(args, option_name(f))
+        out[option_name(f)] = tuple(value) if isinstance(value, list) else value
     return out
 
 
 def flag(cls, name: str) -> str:
-    """The command-line spelling of field ``name`` of ``cls`` (for messages)."""
-    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    """The command-line spelling of the option of ``cls`` whose field or option name is
+    ``name`` (for messages)."""
+    f = next(f for _, f in options_of(cls) if name in (f.name, option_name(f)))
     return f.metadata.get('joint') or _flag(f)

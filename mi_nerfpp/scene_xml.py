@@ -5,17 +5,14 @@ import os
 
 from .data import Camera, opencv_to_mitsuba
 from .files import atomic_write_path
-from .render import Sampling
 
 TEMPLATE = """<scene version="3.0.0">
     <!-- Written by mi-nerfpp: render with
          python -m mi_nerfpp render {name} -o render.exr --preview render.png -->
     <integrator type="nerfpp">
         <string name="checkpoint" value="{checkpoint}"/>
-        <integer name="fg_samples" value="{s.fg_samples}"/>
-        <integer name="bg_samples" value="{s.bg_samples}"/>
-        <integer name="fine_samples" value="{s.fine_samples}"/>
-        <boolean name="background" value="{background}"/>
+        <!-- Sample counts and background: the checkpoint's (those it was trained with).
+             Override them here, e.g. <integer name="fine_samples" value="32"/>. -->
     </integrator>
     <sensor type="perspective">
         <float name="fov" value="{fov:.9g}"/>
@@ -40,12 +37,12 @@ TEMPLATE = """<scene version="3.0.0">
 """
 
 
-def write_render_xml(path, checkpoint, camera: Camera, sampling: Sampling, near_clip,
-                     background=True):
+def write_render_xml(path, checkpoint, camera: Camera, near_clip):
     """Write a scene rendering ``checkpoint`` from ``camera`` (world frame, OpenCV pose).
 
     ``checkpoint`` is stored relative to the XML file's folder when it lies below it; the
-    integrator resolves relative paths against the scene file's folder.
+    integrator resolves relative paths against the scene file's folder. The integrator takes
+    the sample counts and the background from the checkpoint.
     """
     folder = os.path.dirname(os.path.abspath(path))
     ckpt = os.path.abspath(checkpoint)
@@ -53,8 +50,7 @@ def write_render_xml(path, checkpoint, camera: Camera, sampling: Sampling, near_
         ckpt = os.path.relpath(ckpt, folder)
     K = camera.K
     matrix = ' '.join(f'{v:.9g}' for v in opencv_to_mitsuba(camera.c2w).ravel())
-    text = TEMPLATE.format(name=os.path.basename(path), checkpoint=ckpt, s=sampling,
-                           background=str(bool(background)).lower(), fov=camera.fov_x,
+    text = TEMPLATE.format(name=os.path.basename(path), checkpoint=ckpt, fov=camera.fov_x,
                            ppx=0.5 - K[0, 2] / camera.width, ppy=0.5 - K[1, 2] / camera.height,
                            near=near_clip, matrix=matrix, w=camera.width, h=camera.height)
     with atomic_write_path(path) as tmp, open(tmp, 'w') as f:

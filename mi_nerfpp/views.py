@@ -116,16 +116,21 @@ def encoded_rgb(layers, color_space):
 
 
 class ViewRenderer:
-    """One scene with the ``nerfpp`` integrator holding ``model``; renders model-frame cameras."""
+    """One scene with the ``nerfpp`` integrator holding ``model``; renders model-frame cameras.
 
-    def __init__(self, model, sampling: Sampling, background=True):
+    The model is rendered with its own settings
+    (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`: the sample counts it was trained
+    with, its background); ``sampling`` and ``background`` override them."""
+
+    def __init__(self, model, sampling: Sampling | None = None, background: bool | None = None):
         self.model = model
-        self.scene = mi.load_dict({
-            'type': 'scene',
-            'integrator': {'type': 'nerfpp', 'fg_samples': sampling.fg_samples,
-                           'bg_samples': sampling.bg_samples,
-                           'fine_samples': sampling.fine_samples, 'near': sampling.near,
-                           'background': background}})
+        integrator = {'type': 'nerfpp'}
+        if sampling is not None:
+            integrator.update(fg_samples=sampling.fg_samples, bg_samples=sampling.bg_samples,
+                              fine_samples=sampling.fine_samples, near=sampling.near)
+        if background is not None:
+            integrator['background'] = background
+        self.scene = mi.load_dict({'type': 'scene', 'integrator': integrator})
         self.scene.integrator().set_model(model)
 
     def sensor(self, camera: Camera):
@@ -145,6 +150,7 @@ class ViewRenderer:
         return (layers, exr_attributes(sensor)) if with_attributes else layers
 
 
-def render_view(model, camera: Camera, sampling: Sampling, background=True):
+def render_view(model, camera: Camera, sampling: Sampling | None = None,
+                background: bool | None = None):
     """All layers of one view of ``model`` (a one-off :class:`ViewRenderer`)."""
     return ViewRenderer(model, sampling, background).render(camera)

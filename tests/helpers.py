@@ -197,8 +197,10 @@ def per_image_parameters_resume_exactly(dataset, tmp_path, exact, plain, name, f
     import pytest
 
     from mi_nerfpp.checkpoint import load_checkpoint
-    from mi_nerfpp.train import TrainConfig, Trainer
-    straight, resumed = straight_and_resumed(dataset, tmp_path, TrainConfig(iterations=10, **exact),
+    from mi_nerfpp.config import TrainConfig
+    from mi_nerfpp.train import Trainer
+    straight, resumed = straight_and_resumed(dataset, tmp_path,
+                                             TrainConfig.from_options(iterations=10, **exact),
                                              stop_at=5)
     model, _, state = load_checkpoint(tmp_path / 'a' / 'model.npz')
     saved = getattr(model, name).numpy()
@@ -206,5 +208,6 @@ def per_image_parameters_resume_exactly(dataset, tmp_path, exact, plain, name, f
     assert saved.shape[0] == len(dataset.train) and f'adam.m/{name}' in state
     np.testing.assert_array_equal(getattr(resumed.model, name).numpy(), saved)
     with pytest.raises(Exception, match=flag):
-        Trainer(dataset, str(tmp_path / 'b'), TrainConfig(iterations=12, **plain), resume=True)
+        Trainer(dataset, str(tmp_path / 'b'), TrainConfig.from_options(iterations=12, **plain),
+                resume=True)
     return saved

@@ -15,7 +15,8 @@ from mi_nerfpp.evaluate import evaluate_split
 from mi_nerfpp.layers import LAYERS
 from mi_nerfpp.color import srgb_eotf
 from mi_nerfpp.synth import APPEARANCE_FILE, vary_exposure
-from mi_nerfpp.train import TrainConfig, Trainer
+from mi_nerfpp.config import TrainConfig
+from mi_nerfpp.train import Trainer
 from tests.helpers import per_image_parameters_resume_exactly, scene_dict, tiny_model
 
 # Small and fast, the same for both runs; 300 steps at a fixed seed.
@@ -76,10 +77,9 @@ def runs(exposed, tmp_path_factory):
     out = {}
     for on in (False, True):
         tr = Trainer(dataset, str(tmp_path_factory.mktemp(f'app{on}')),
-                     TrainConfig(iterations=300, appearance=on, **FAST))
+                     TrainConfig.from_options(iterations=300, appearance=on, **FAST))
         tr.run()
-        out[on] = tr, evaluate_split(tr.model, tr.test, tr.out + '/test', tr.cfg.sampling,
-                                     fit_appearance=True)
+        out[on] = tr, evaluate_split(tr.model, tr.test, tr.out + '/test', fit_appearance=True)
     return out
 
 
@@ -153,9 +153,9 @@ def test_integrator_refuses_an_appearance_image_the_model_lacks(tmp_path):
 
 def test_bad_appearance_options_are_refused():
     with pytest.raises(ValueError, match='--lr-appearance must be a positive'):
-        TrainConfig(lr_appearance=0.0)
+        TrainConfig.from_options(lr_appearance=0.0)
     with pytest.raises(ValueError, match='--appearance-prior must be a finite number >= 0'):
-        TrainConfig(appearance_prior=-1.0)
+        TrainConfig.from_options(appearance_prior=-1.0)
 
 
 def test_optimize_with_appearance_scores_nerf_w_style_and_keeps_the_neutral_score(exposed,

@@ -131,3 +131,111 @@ def test_version_1_files_with_top_level_center_and_scale_are_still_read(tmp_path
     for k, v in m.parameters().items():
         np.testing.assert_array_equal(np.array(v), np.array(m2.parameters()[k]))
 
+
+
+# --------------------------------------------------------------------- render settings
+
+def test_checkpoint_carries_the_render_settings_and_the_integrator_reads_them(tmp_path):
+    import dataclasses
+
+    from mi_nerfpp.render import Sampling
+    m = tiny_model(seed=4)
+    m.sampling = Sampling(fg_samples=5, bg_samples=6, fine_samples=3, near=0.02)
+    path = tmp_path / 'm.npz'
+    save_checkpoint(path, m)
+    assert load_checkpoint(path)[0].render_settings == m.render_settings
+    assert m.render_settings.background and m.render_settings.composite == 'linear'
+    bare = scene_dict()
+    bare['integrator'] = {'type': 'nerfpp', 'checkpoint': str(path)}   # no sample counts
+    scene = mi.load_dict(bare)
+    assert scene.integrator().sampling == m.sampling and scene.integrator().background
+    # It renders what the same counts given in the XML render.
+    explicit = mi.load_dict(scene_dict(checkpoint=str(path), fg_samples=5, bg_samples=6,
+                                       fine_samples=3, near=0.02))
+    np.testing.assert_array_equal(np.array(mi.render(scene, seed=0)),
+                                  np.array(mi.render(explicit, seed=0)))
+    # XML parameters override the model's settings one by one, for a model set from Python too.
+    bare['integrator'].update(fine_samples=9, background=False)
+    integrator = mi.load_dict(bare).integrator()
+    assert integrator.sampling == dataclasses.replace(m.sampling, fine_samples=9)
+    assert integrator.background is False
+    integrator.set_model(tiny_model(background=False))
+    assert integrator.sampling == Sampling(fine_samples=9)      # the new model's, overridden
+    handed = mi.load_dict({'type': 'nerfpp'})
+    handed.set_model(tiny_model(background=False))
+    assert handed.background is False                           # a bounded model: no background
+
+
+def _as_before_render_settings(path, flat_config):
+    """Rewrite a checkpoint as written before the render settings and the config groups: no
+    ``sampling`` in the model config, the training config flat in ``meta``."""
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    config = json.loads(str(arrays['config']))
+    del config['sampling']
+    config['meta']['config'] = flat_config
+    arrays['config'] = np.array(json.dumps(config))
+    np.savez(path, **arrays)
+
+
+def test_old_checkpoints_render_with_the_sample_counts_of_their_training(tmp_path):
+    from mi_nerfpp.render import Sampling
+    path = tmp_path / 'm.npz'
+    save_checkpoint(path, tiny_model())
+    _as_before_render_settings(path, {'model': 'nerf', 'fg_samples': 12, 'bg_samples': 4,
+                                      'fine_samples': 6})
+    # The NeRF baseline rendered both volumes' budget in its one volume.
+    assert load_checkpoint(path)[0].sampling == Sampling(16, 4, 12)
+    save_checkpoint(path, tiny_model())
+    _as_before_render_settings(path, None)      # no training config: the render defaults
+    assert load_checkpoint(path)[0].sampling == Sampling()
+
+
+# The training config of a checkpoint written before the config groups (flat, as
+# ``dataclasses.asdict`` of the flat TrainConfig of c93a164 stored it), with TINY_RUN's values.
+FLAT_TINY_RUN = {
+    "iterations": 5, "minutes": None, "model": "nerfpp", "field": "grid", "bg_field": "grid",
+    "batch_rays": 256, "fg_samples": 8, "bg_samples": 8, "fine_samples": 8, "lr_grid": 0.1,
+    "lr_mlp": 0.005, "lazy_adam": False, "adam_beta2": 0.999, "lr_final": 0.1,
+    "color_loss": "charbonnier", "distortion": 0.01, "distortion_scope": "ray",
+    "opacity_entropy": 0.0, "entropy_start": 0.0, "sparsity": [0.01],
+    "sparsity_start": [0.15, 0.5], "near_gradient": 0.5, "tv": 0.0, "tv_cells": 16384,
+    "density_bias": 0.0, "occupancy": True, "occupancy_res": 64, "occupancy_threshold": 0.3,
+    "occupancy_every": 16, "grid_levels": [32, 128], "fg_warp": 0.0, "bg_grid_levels": None,
+    "bg_s_ratio": [0.5], "coarse_to_fine": [], "grid_channels": 4, "dir_octaves": 2,
+    "color_layers": 1, "color_width": 32, "seed": 0, "freeze": True, "checkpoint_every": 0,
+    "preview_every": 0, "downscale": 1, "background": [1.0, 1.0, 1.0], "composite": "linear",
+    "appearance": False, "lr_appearance": 0.02, "appearance_prior": 0.001,
+    "refine_poses": False, "lr_poses": 0.001, "poses_start": 0.25}
+
+
+def test_a_checkpoint_with_a_flat_training_config_loads_evaluates_and_resumes(
+        tiny_run, capture, tmp_path, capsys):
+    import shutil
+
+    from mi_nerfpp.cli import main
+    from mi_nerfpp.config import TrainConfig
+    from mi_nerfpp.render import Sampling
+    from mi_nerfpp.run import evaluate_run, open_run
+    from tests.helpers import TINY_RUN
+    run = tmp_path / 'old'
+    shutil.copytree(tiny_run, run)
+    trained = json.loads((run / 'metrics.json').read_text())
+    _as_before_render_settings(run / 'model.npz', FLAT_TINY_RUN)
+    model, meta, cfg, _ = open_run(str(run))
+    assert model.sampling == Sampling(8, 8, 8) and model.render_settings.background
+    assert cfg == TrainConfig.from_stored(trained['config'])       # the same run's config
+    assert cfg.schedule.iterations == 5 and cfg.schedule.batch_rays == 256
+    # Evaluated again: the same render settings, the same held-out scores.
+    again = evaluate_run(str(run))
+    assert again['test']['psnr'] == pytest.approx(trained['test']['psnr'], abs=1e-3)
+    assert again['config'] == trained['config']
+    # Resumed with other model options: refused, naming the flag; with the same: continued.
+    longer = ['7' if before == '--iterations' else a for before, a in zip([''] + TINY_RUN, TINY_RUN)]
+    assert main(['optimize', capture, '--out', str(run), '--resume', '--field', 'nerf']
+                + longer) == 1
+    assert "--field: the checkpoint has 'grid'" in capsys.readouterr().err
+    assert main(['optimize', capture, '--out', str(run), '--resume'] + longer) == 0
+    model, meta, _ = load_checkpoint(run / 'model.npz')
+    assert meta['iteration'] == 7 and meta['config']['schedule']['iterations'] == 7
+    assert model.sampling == Sampling(8, 8, 8)

@@ -10,7 +10,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_nerfpp import optim
-from mi_nerfpp.train import TrainConfig
+from mi_nerfpp.config import TrainConfig
 
 PRED = np.array([[0.2, 0.5, 0.9, 0.31], [0.0, 0.25, 0.7, 0.6], [1.0, 0.4, 0.1, 0.3]])
 GT = np.array([[0.25, 0.5, 0.3, 0.3], [0.1, 0.2, 0.7, 0.0], [0.9, 0.45, 0.15, 0.31]])
@@ -65,5 +65,5 @@ def test_charbonnier_weighs_large_errors_less_than_the_squared_error():
 
 def test_unknown_color_loss_is_rejected():
     with pytest.raises(ValueError, match="--color-loss must be 'charbonnier' or 'mse', got l1"):
-        TrainConfig(color_loss='l1')
-    assert TrainConfig().color_loss == 'charbonnier'
+        TrainConfig.from_options(color_loss='l1')
+    assert TrainConfig().losses.color_loss == 'charbonnier'

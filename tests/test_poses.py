@@ -13,7 +13,8 @@ from mi_nerfpp import poses
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.render import Sampling, render_rays
 from mi_nerfpp.synth import POSES_FILE, perturb_poses
-from mi_nerfpp.train import TrainConfig, Trainer
+from mi_nerfpp.config import TrainConfig
+from mi_nerfpp.train import Trainer
 from tests.helpers import per_image_parameters_resume_exactly
 
 FAST = dict(batch_rays=512, fg_samples=8, bg_samples=8, fine_samples=8, checkpoint_every=0,
@@ -144,9 +145,10 @@ def test_refinement_shrinks_the_rotation_error_of_perturbed_poses(perturbed, tmp
     # γ⁴(d): with two octaves (the default since) the rotation error measured 2.80 degrees,
     # against a limit of 2.79.
     trainer = Trainer(load_dataset(out), str(tmp_path),
-                      TrainConfig(iterations=300, refine_poses=True, lr_poses=3e-3,
-                                  poses_start=0.1, color_loss='mse', near_gradient=0.0,
-                                  dir_octaves=4, **FAST))
+                      TrainConfig.from_options(iterations=300, refine_poses=True,
+                                               lr_poses=3e-3, poses_start=0.1,
+                                               color_loss='mse', near_gradient=0.0,
+                                               dir_octaves=4, **FAST))
     trainer.run()
     rot, trans = poses.pose_errors(poses.world_poses(trainer.model, trainer.train.cameras),
                                    record['true'])
@@ -172,6 +174,6 @@ def test_checkpoint_round_trips_and_resumes_exactly_with_pose_refinement(perturb
 
 def test_bad_pose_options_are_refused():
     with pytest.raises(ValueError, match='--lr-poses must be a positive'):
-        TrainConfig(lr_poses=0.0)
+        TrainConfig.from_options(lr_poses=0.0)
     with pytest.raises(ValueError, match='--poses-start must be a finite number >= 0'):
-        TrainConfig(poses_start=-0.5)
+        TrainConfig.from_options(poses_start=-0.5)

@@ -90,7 +90,7 @@ def test_training_again_into_a_run_folder_keeps_the_run_unless_told(capsys, capt
     assert 'already holds a trained run' in one_clear_line(err) and '--overwrite' in err
     assert ((out / 'model.npz').read_bytes(), (out / 'metrics.json').read_bytes()) == before
     assert _train(capsys, capture, out, '--overwrite', '--seed', '3')[0] == 0
-    assert json.loads((out / 'metrics.json').read_text())['config']['seed'] == 3
+    assert json.loads((out / 'metrics.json').read_text())['config']['schedule']['seed'] == 3
 
 
 def test_resume_on_other_data_is_refused_naming_the_difference(capsys, capture, tmp_path):
@@ -123,11 +123,12 @@ def test_stray_temporary_checkpoints_are_removed(capsys, capture, tmp_path):
 
 def test_a_failed_save_says_so_and_keeps_the_previous_checkpoint(capture, tmp_path, monkeypatch):
     from mi_nerfpp import checkpoint
-    from mi_nerfpp.train import TrainConfig, Trainer, TrainingError
-    cfg = TrainConfig(iterations=4, batch_rays=32, fg_samples=4, bg_samples=4, fine_samples=4,
+    from mi_nerfpp.config import TrainConfig
+    from mi_nerfpp.train import Trainer, TrainingError
+    cfg = TrainConfig.from_options(iterations=4, batch_rays=32, fg_samples=4, bg_samples=4, fine_samples=4,
                       grid_levels=(4, 8), checkpoint_every=2, preview_every=0)
     trainer = Trainer(load_dataset(capture), str(tmp_path), cfg)
-    trainer.cfg.iterations = 2
+    trainer.cfg.schedule.iterations = 2
     assert trainer.run()
     good = (tmp_path / 'model.npz').read_bytes()
 
@@ -135,7 +136,7 @@ def test_a_failed_save_says_so_and_keeps_the_previous_checkpoint(capture, tmp_pa
         file.write(b'PK partial')
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
     monkeypatch.setattr(checkpoint.np, 'savez', disk_full)
-    trainer.cfg.iterations = 4
+    trainer.cfg.schedule.iterations = 4
     with pytest.raises(TrainingError) as e:
         trainer.run()
     message = str(e.value)
@@ -339,7 +340,7 @@ def test_resume_of_a_checkpoint_from_before_linear_compositing(capsys, capture, 
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
     config = json.loads(str(arrays['config']))
-    del config['composite'], config['meta']['config']['composite']
+    del config['composite'], config['meta']['config']['model']['composite']
     arrays['config'] = np.array(json.dumps(config))
     np.savez(path, **arrays)
     status, _, err = _train(capsys, capture, out, '--resume')

@@ -421,11 +421,14 @@ def test_example_scene_renders_objects_into_a_checkpoint(tmp_path):
     from mi_nerfpp.checkpoint import save_checkpoint
     from mi_nerfpp.synth import scene_file
     from tests.helpers import tiny_model
-    save_checkpoint(tmp_path / 'model.npz', tiny_model())
+    model = tiny_model()
+    model.sampling = Sampling(4, 4, 4)      # the scene renders with the checkpoint's counts
+    save_checkpoint(tmp_path / 'model.npz', model)
     xml = scene_file('insert_objects.xml')
     scene = mi.load_file(xml, checkpoint=str(tmp_path / 'model.npz'), width='32', height='18',
-                         spp='1', samples='4', fine_samples='4')
+                         spp='1')
     assert scene.integrator().shadow_catchers == ('lawn',)
+    assert scene.integrator().sampling == Sampling(4, 4, 4)
     c = channels(scene)
     assert c['obj.A'].max() == 1.0 and c['obj.A'].mean() > 0.03
     for name, v in c.items():

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mi_nerfpp.cli import main
-from mi_nerfpp.commands.optimize import photos_to_dataset
+from mi_nerfpp.run import photos_to_dataset
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.data.colmap import read_model
 from mi_nerfpp.frame import NERFPP_CAMERA_RADIUS, Normalization

@@ -12,8 +12,9 @@ import pytest
 from mi_nerfpp.checkpoint import load_checkpoint
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.evaluate import evaluate_split
+from mi_nerfpp.config import TrainConfig
 from mi_nerfpp.options import values
-from mi_nerfpp.train import TrainConfig, Trainer, TrainingError
+from mi_nerfpp.train import Trainer, TrainingError
 from tests.helpers import one_thread, straight_and_resumed
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -27,11 +28,10 @@ def dataset(capture):
 
 
 def test_training_raises_held_out_psnr_well_above_untrained(dataset, tmp_path):
-    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=200, **SMALL))
-    sampling = tr.cfg.sampling
-    before = evaluate_split(tr.model, tr.test, str(tmp_path / 'before'), sampling)['psnr']
+    tr = Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=200, **SMALL))
+    before = evaluate_split(tr.model, tr.test, str(tmp_path / 'before'))['psnr']
     assert tr.run()
-    after = evaluate_split(tr.model, tr.test, str(tmp_path / 'after'), sampling)['psnr']
+    after = evaluate_split(tr.model, tr.test, str(tmp_path / 'after'))['psnr']
     assert after > before + 6.0, (before, after)
     assert after > 18.0, after
     assert os.path.exists(tmp_path / 'after' / 'test_000.exr')
@@ -44,8 +44,8 @@ def _params(model):
 def test_resume_continues_where_the_run_stopped(dataset, tmp_path):
     # Same batches, same optimizer moments, same occupancy grid and priors: on one thread the
     # resumed run ends bit for bit where the straight run does (see tests.helpers.one_thread).
-    straight, resumed = straight_and_resumed(dataset, tmp_path, TrainConfig(iterations=12, **SMALL),
-                                             stop_at=6)
+    straight, resumed = straight_and_resumed(
+        dataset, tmp_path, TrainConfig.from_options(iterations=12, **SMALL), stop_at=6)
     a, b = _params(straight.model), _params(resumed.model)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
@@ -54,7 +54,7 @@ def test_resume_continues_where_the_run_stopped(dataset, tmp_path):
 
 
 def test_interrupt_saves_a_checkpoint(dataset, tmp_path):
-    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=50, **SMALL))
+    tr = Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=50, **SMALL))
 
     def stop_at_7(trainer, loss, psnr):
         if trainer.iteration == 7:
@@ -66,7 +66,8 @@ def test_interrupt_saves_a_checkpoint(dataset, tmp_path):
 
 
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(dataset, tmp_path):
-    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=20, **dict(SMALL, checkpoint_every=4)))
+    tr = Trainer(dataset, str(tmp_path),
+                 TrainConfig.from_options(iterations=20, **dict(SMALL, checkpoint_every=4)))
 
     def poison(trainer, loss, psnr):
         if trainer.iteration == 6:
@@ -81,31 +82,33 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(dataset, tmp_path):
 
 
 def test_nerf_baseline_has_one_volume_in_a_larger_sphere(dataset, tmp_path):
-    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=2, model='nerf', **SMALL))
+    tr = Trainer(dataset, str(tmp_path),
+                 TrainConfig.from_options(iterations=2, model='nerf', **SMALL))
     assert tr.model.bg is None
     radii = [np.linalg.norm(c.center) for c in tr.train.cameras]
     assert max(radii) == pytest.approx(1 / 8, rel=1e-6)
     assert tr.model.normalization.scale == pytest.approx(dataset.normalization.scale * 1.1 / 8)
-    assert tr.cfg.sampling.fg_samples == 32 and tr.cfg.sampling.fine_samples == 32
+    assert tr.model.sampling.fg_samples == 32 and tr.model.sampling.fine_samples == 32
     # --near-gradient is a length of NeRF++'s frame: shrunk with the baseline's cameras.
-    assert tr.near_gradient == pytest.approx(tr.cfg.near_gradient * 1.1 / 8)
+    assert tr.near_gradient == pytest.approx(tr.cfg.losses.near_gradient * 1.1 / 8)
     tr.run()
-    nerfpp = Trainer(dataset, str(tmp_path / 'nerfpp'), TrainConfig(iterations=1, **SMALL))
-    assert nerfpp.near_gradient == tr.cfg.near_gradient
+    nerfpp = Trainer(dataset, str(tmp_path / 'nerfpp'),
+                     TrainConfig.from_options(iterations=1, **SMALL))
+    assert nerfpp.near_gradient == tr.cfg.losses.near_gradient
 
 
 def test_resume_with_other_model_options_is_refused_naming_the_difference(dataset, tmp_path):
-    Trainer(dataset, str(tmp_path), TrainConfig(iterations=1, **SMALL)).run()
+    Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=1, **SMALL)).run()
     for change, flag in ((dict(field='nerf'), '--field'), (dict(bg_field='vanilla'), '--bg-field'),
                          (dict(grid_levels=(32, 64)), '--grid-levels'),
                          (dict(model='nerf'), '--model')):
         with pytest.raises(TrainingError, match=f"cannot be resumed.*{flag}: the checkpoint "
                                                  f"has"):
-            Trainer(dataset, str(tmp_path), TrainConfig(iterations=2, **SMALL, **change),
-                    resume=True)
+            Trainer(dataset, str(tmp_path),
+                    TrainConfig.from_options(iterations=2, **SMALL, **change), resume=True)
     # Options that do not shape the model may change.
-    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=2, **dict(SMALL, lr_mlp=1e-3)),
-                 resume=True)
+    tr = Trainer(dataset, str(tmp_path),
+                 TrainConfig.from_options(iterations=2, **dict(SMALL, lr_mlp=1e-3)), resume=True)
     assert tr.iteration == 1
 
 
@@ -114,29 +117,52 @@ def test_optimize_options_come_from_train_config():
     import dataclasses
 
     from mi_nerfpp.cli import build_parser
+    from mi_nerfpp.options import groups, options_of
     args = build_parser().parse_args(['optimize'])
-    cfg = TrainConfig(**values(args, TrainConfig))
+    cfg = TrainConfig.from_options(**values(args, TrainConfig))
     assert dataclasses.asdict(cfg) == dataclasses.asdict(TrainConfig())
     args = build_parser().parse_args(['optimize', '--samples', '8', '9', '10', '--grid-levels',
                                       '16', '--background', '0,0.5,1', '--lr-final', '0.5'])
-    cfg = TrainConfig(**values(args, TrainConfig))
-    assert (cfg.fg_samples, cfg.bg_samples, cfg.fine_samples) == (8, 9, 10)
-    assert cfg.grid_levels == (16,) and cfg.background == (0.0, 0.5, 1.0)
-    assert cfg.lr_final == 0.5
-    helps = {a.dest: a.help for a in build_parser()._subparsers._group_actions[0]
-             .choices['optimize']._actions if isinstance(a, argparse.Action)}
-    for f in dataclasses.fields(TrainConfig):
+    cfg = TrainConfig.from_options(**values(args, TrainConfig))
+    s = cfg.sampling
+    assert (s.fg_samples, s.bg_samples, s.fine_samples) == (8, 9, 10)
+    assert cfg.model.grid_levels == (16,) and cfg.data.background == (0.0, 0.5, 1.0)
+    assert cfg.optimizer.lr_final == 0.5
+    optimize = build_parser()._subparsers._group_actions[0].choices['optimize']
+    helps = {a.dest: a.help for a in optimize._actions if isinstance(a, argparse.Action)}
+    for _, f in options_of(TrainConfig):
         assert f.metadata.get('help'), f.name            # every option documents itself
-    assert f'(default: {TrainConfig.batch_rays})' in helps['batch_rays']
+    assert f'(default: {TrainConfig().schedule.batch_rays})' in helps['batch_rays']
+    # --help shows one section per group of the config, each with its options.
+    sections = {g.title: [a.dest for a in g._group_actions] for g in optimize._action_groups}
+    for name, sub, meta in groups(TrainConfig):
+        assert sections[meta['group']], name
+    assert 'batch_rays' in sections['schedule'] and 'lr_mlp' in sections['optimizer']
+    assert '_joint__samples' in sections['sampling'] and 'model' in sections['model']
     args = build_parser().parse_args(['optimize', '--no-occupancy'])   # booleans switch both ways
-    assert TrainConfig(**values(args, TrainConfig)).occupancy is False
+    assert TrainConfig.from_options(**values(args, TrainConfig)).sampling.occupancy is False
     with pytest.raises(SystemExit):
         build_parser().parse_args(['optimize', '--iterations', '3', '--minutes', '1'])
 
 
+def test_config_round_trips_through_its_stored_form_and_flat_options():
+    cfg = TrainConfig.from_options(model='nerf', fine_samples=3, sparsity=0.02,
+                                   coarse_to_fine=[0.5], eval_at=(5, 2))
+    assert cfg.model.kind == 'nerf' and cfg.losses.sparsity == (0.02,)
+    assert cfg.schedule.coarse_to_fine == (0.5,) and cfg.output.eval_at == (2, 5)
+    stored = cfg.to_dict()
+    assert stored['model']['kind'] == 'nerf' and stored['sampling']['fine_samples'] == 3
+    assert TrainConfig.from_stored(stored) == cfg
+    assert TrainConfig.from_stored(cfg.options()) == cfg         # a flat (older) config
+    assert cfg.replace(seed=4).schedule.seed == 4 and cfg.schedule.seed == 0
+    with pytest.raises(TypeError, match='unknown training options: no_such'):
+        TrainConfig.from_options(no_such=1)
+
+
 def test_resume_without_checkpoint_is_an_error(dataset, tmp_path):
     with pytest.raises(TrainingError, match='no checkpoint at'):
-        Trainer(dataset, str(tmp_path), TrainConfig(iterations=2, **SMALL), resume=True)
+        Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=2, **SMALL),
+                resume=True)
 
 
 def test_optimize_command_end_to_end(capture, tmp_path):
@@ -200,7 +226,8 @@ def test_optimize_reports_bad_dataset(tmp_path):
 
 @pytest.mark.parametrize('field', ['nerf', 'vanilla'])
 def test_pure_mlp_fields_train(dataset, tmp_path, field):
-    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=3, field=field, **SMALL))
+    tr = Trainer(dataset, str(tmp_path),
+                 TrainConfig.from_options(iterations=3, field=field, **SMALL))
     before = _params(tr.model)
     losses = []
     tr.run(on_step=lambda t, loss, psnr: losses.append(loss))
@@ -212,7 +239,7 @@ def test_pure_mlp_fields_train(dataset, tmp_path, field):
 def test_sparsity_prior_reaches_each_volume_only_after_its_start(dataset, tmp_path):
     import drjit as dr
     tr = Trainer(dataset, str(tmp_path),
-                 TrainConfig(iterations=10, sparsity_start=(0.5, 0.0), **SMALL))
+                 TrainConfig.from_options(iterations=10, sparsity_start=(0.5, 0.0), **SMALL))
 
     def touched():
         tr.model.set_parameters({k: tr.opt[k] for k in tr.opt.keys()})
@@ -227,20 +254,21 @@ def test_sparsity_prior_reaches_each_volume_only_after_its_start(dataset, tmp_pa
     assert touched() == {'fg': False, 'bg': True}       # progress 0: the foreground is exempt
     tr.iteration = 5                                     # half the run
     assert touched() == {'fg': True, 'bg': True}
-    assert TrainConfig(sparsity_start=0.3).sparsity_start == (0.3,)
+    assert TrainConfig.from_options(sparsity_start=0.3).losses.sparsity_start == (0.3,)
     with pytest.raises(ValueError, match='--sparsity-start must be one fraction'):
-        TrainConfig(sparsity_start=(0.1, 0.2, 0.3))
+        TrainConfig.from_options(sparsity_start=(0.1, 0.2, 0.3))
 
 
 def test_sparsity_prior_weighs_each_volume_by_its_own_weight(dataset, tmp_path):
-    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=10, sparsity=(0.02, 0.005),
-                                                     sparsity_start=(0.0,), **SMALL))
-    assert tr.cfg.sparsity == (0.02, 0.005)
+    tr = Trainer(dataset, str(tmp_path),
+                 TrainConfig.from_options(iterations=10, sparsity=(0.02, 0.005),
+                                          sparsity_start=(0.0,), **SMALL))
+    assert tr.cfg.losses.sparsity == (0.02, 0.005)
     points = tr._step_inputs()['draws']['sparsity']
     assert all(u is not None for u in points)
 
     def loss(weights):
-        tr.cfg.sparsity = weights
+        tr.cfg.losses.sparsity = weights
         return float(tr._sparsity_loss(points).array[0])
 
     fg, bg = loss((1.0, 0.0)), loss((0.0, 1.0))
@@ -248,11 +276,11 @@ def test_sparsity_prior_weighs_each_volume_by_its_own_weight(dataset, tmp_path):
     assert loss((0.02, 0.005)) == pytest.approx(0.02 * fg + 0.005 * bg, rel=1e-5)
     assert loss((0.01,)) == pytest.approx(0.01 * (fg + bg), rel=1e-5)
     # A volume whose weight is 0 draws no points (and costs nothing).
-    tr.cfg.sparsity = (0.01, 0.0)
+    tr.cfg.losses.sparsity = (0.01, 0.0)
     assert tr._step_inputs()['draws']['sparsity'][1] is None
     for bad in ((0.01, 0.01, 0.01), (-0.01,), (0.01, float('nan'))):
         with pytest.raises(ValueError, match='--sparsity must be one finite number >= 0, or two'):
-            TrainConfig(sparsity=bad)
+            TrainConfig.from_options(sparsity=bad)
 
 
 @pytest.mark.parametrize('extra', [dict(sparsity_start=(0.5,)),
@@ -268,7 +296,8 @@ def test_frozen_step_replays_the_traced_step(dataset, tmp_path, extra):
     runs = {}
     with one_thread():
         for freeze in (False, True):
-            tr = Trainer(dataset, str(tmp_path / str(freeze)), TrainConfig(freeze=freeze, **cfg))
+            tr = Trainer(dataset, str(tmp_path / str(freeze)),
+                         TrainConfig.from_options(freeze=freeze, **cfg))
             losses = [tr.step()[0] for _ in range(8)]
             runs[freeze] = losses, _params(tr.model)
     # Recorded once, once more when Dr.Jit makes the first step's constants opaque, and once
@@ -330,8 +359,9 @@ def test_ctrl_c_while_a_step_is_recorded_saves_a_checkpoint(dataset, tmp_path, m
     else:
         monkeypatch.setattr(train_module, 'ray_distortion', once(
             train_module.ray_distortion, ctrl_c if where == 'recorded' else _interrupt_in_a_loop_body))
-    tr = Trainer(dataset, str(tmp_path), TrainConfig(iterations=4, **SMALL))
+    tr = Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=4, **SMALL))
     assert tr.run() is False
     assert os.path.exists(tmp_path / 'model.npz') and tr.iteration == 0
-    resumed = Trainer(dataset, str(tmp_path), TrainConfig(iterations=4, **SMALL), resume=True)
+    resumed = Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=4, **SMALL),
+                      resume=True)
     assert resumed.run() is True and resumed.iteration == 4

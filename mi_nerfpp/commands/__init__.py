@@ -30,8 +30,9 @@ def positive_int(value: str) -> int:
 
 
 def open_run_or_exit(run_dir):
-    """:func:`mi_nerfpp.train.open_run`, with problems reported as a command-line error."""
-    from ..train import TrainingError, open_run
+    """:func:`mi_nerfpp.run.open_run`, with problems reported as a command-line error."""
+    from ..run import open_run
+    from ..train import TrainingError
     try:
         return open_run(run_dir)
     except (TrainingError, ValueError) as e:

@@ -2,25 +2,23 @@
 
 Every dataset folder is trained with the optimize options given here (the same options as
 ``optimize``), once per ``--set`` when option sets are given, each in its own run folder
-(``OUT/<dataset>`` or ``OUT/<dataset>_<set>``) with its output in ``optimize.log`` there. With
-``--ray`` the runs are Ray tasks on a cluster (:mod:`mi_nerfpp.cluster`), else they run one
-after the other here. A failed run is reported in the table and the others go on; a run
+(``OUT/<dataset>`` or ``OUT/<dataset>_<set>``) with its progress in ``optimize.log`` there.
+With ``--ray`` the runs are Ray tasks on a cluster (:mod:`mi_nerfpp.cluster`), else they run
+one after the other here. A failed run is reported in the table and the others go on; a run
 interrupted before (``model.npz`` without ``metrics.json``) is resumed, a finished one is
 reported as it is (``--overwrite`` trains it again). One table of held-out PSNR/SSIM and
-times at the end, also written to ``OUT/sweep.json``.
+times at the end, also written to ``OUT/sweep.json``. The runs are :mod:`mi_nerfpp.sweep`'s.
 """
 from __future__ import annotations
 
 import argparse
 import os
-import re
 import shlex
-import time
 
 
 def add_parser(sub):
+    from ..config import TrainConfig
     from ..options import add_options
-    from ..train import TrainConfig
     from . import positive_int
     from .video import add_ray_options
     p = sub.add_parser('sweep', help='train many captures (or option sets), optionally on a '
@@ -42,85 +40,22 @@ def add_parser(sub):
 
 def option_parser(defaults: dict):
     """A parser of optimize's training options only, starting from ``defaults``."""
+    from ..config import TrainConfig
     from ..options import add_options
-    from ..train import TrainConfig
     p = argparse.ArgumentParser(prog='sweep --set', add_help=False)
     add_options(p, TrainConfig)
     p.set_defaults(**{a.dest: defaults[a.dest] for a in p._actions if a.dest in defaults})
     return p
 
 
-def slug(text):
-    return re.sub(r'[^A-Za-z0-9.]+', '-', text).strip('-')
-
-
-def jobs_of(args):
-    """One job per dataset and option set: its name, run folder and optimize arguments."""
+def option_sets(args):
+    """``[(text, options)]``: each ``--set`` as given and the training options it makes on top
+    of the command line's (one set of those alone without ``--set``)."""
+    from ..config import TrainConfig
     from ..options import values
-    from ..train import TrainConfig
-    names = [os.path.basename(os.path.normpath(d)) for d in args.data]
-    twice = sorted({n for n in names if names.count(n) > 1})
-    if twice:
-        raise ValueError(f'several datasets are named {", ".join(twice)}: their run folders '
-                         f'would collide; sweep folders with distinct names')
-    jobs = []
-    for data, name in zip(args.data, names):
-        for options in args.option_sets or ['']:
-            parsed = option_parser(vars(args)).parse_args(shlex.split(options))
-            TrainConfig(**values(parsed, TrainConfig))     # bad options: stop before any run
-            label = f'{name}_{slug(options)}' if options else name
-            optimize = argparse.Namespace(data=os.path.abspath(data), out=os.path.abspath(
-                os.path.join(args.out, label)), eval_at=None, overwrite=args.overwrite,
-                resume=False, **vars(parsed))
-            jobs.append({'name': label, 'options': options, 'args': optimize})
-    return jobs
-
-
-def optimize_one(job, threads=None):
-    """Run ``optimize`` for one job (output to ``optimize.log`` in its run folder); a result
-    row, failures included."""
-    import json
-    from contextlib import redirect_stderr, redirect_stdout
-
-    from ..cli import error_line
-    from . import optimize
-
-    args = job['args']
-    row = {'name': job['name'], 'options': job['options'], 'out': args.out}
-    metrics_path = os.path.join(args.out, 'metrics.json')
-    start = time.perf_counter()
-    try:
-        if threads:
-            from ..cluster import set_threads
-            set_threads(threads)
-        os.makedirs(args.out, exist_ok=True)
-        done = os.path.exists(metrics_path) and not args.overwrite
-        if not done:
-            # Resume a run a killed worker left (Ray retries the task), not one finished.
-            args.resume = os.path.exists(os.path.join(args.out, 'model.npz')) and \
-                not args.overwrite
-            with open(os.path.join(args.out, 'optimize.log'), 'a') as log, \
-                    redirect_stdout(log), redirect_stderr(log):
-                status = optimize.run(args)
-            if status:
-                raise RuntimeError(f'optimize ended with status {status} (see '
-                                   f'{args.out}/optimize.log)')
-        with open(metrics_path) as f:
-            metrics = json.load(f)
-        test = metrics.get('test', {})
-        row.update(status='finished before' if done else 'ok', psnr=test.get('psnr'),
-                   ssim=test.get('ssim'), iterations=metrics.get('iterations'),
-                   train_seconds=metrics.get('train_seconds'))
-    except (Exception, SystemExit) as e:
-        message = str(e.code) if isinstance(e, SystemExit) else error_line(e)
-        row.update(status='failed', error=message.removeprefix('error: '))
-    row['wall_seconds'] = round(time.perf_counter() - start, 2)
-    return row
-
-
-def failed(job, error):
-    return {'name': job['name'], 'options': job['options'], 'out': job['args'].out,
-            'status': 'failed', 'error': f'the task failed: {error}'}
+    parser = option_parser(vars(args))
+    return [(text, values(parser.parse_args(shlex.split(text)), TrainConfig))
+            for text in args.option_sets or ['']]
 
 
 def table(rows):
@@ -145,18 +80,19 @@ def run(args):
 
     from ..cluster import run_tasks
     from ..evaluate import write_json
+    from ..sweep import failed, make_jobs, run_job
 
     if args.ray:
         from ..cluster import import_ray
         import_ray()                # not installed: say how, before any work
-    jobs = jobs_of(args)
+    jobs = make_jobs(args.data, option_sets(args), args.out, args.overwrite)
     rows = {}
     with tqdm(total=len(jobs), desc='sweep', unit='run', dynamic_ncols=True) as bar:
-        for job, row in run_tasks(optimize_one, jobs, failed, args.ray, args.task_cpus):
-            rows[job['name']] = row
+        for job, row in run_tasks(run_job, jobs, failed, args.ray, args.task_cpus):
+            rows[job.name] = row
             bar.write(f"{row['name']}: {row['status']}")
             bar.update(1)
-    rows = [rows[job['name']] for job in jobs]
+    rows = [rows[job.name] for job in jobs]
     os.makedirs(args.out, exist_ok=True)
     write_json(os.path.join(args.out, 'sweep.json'), rows)
     print(table(rows))

@@ -13,9 +13,12 @@ def test_sweep_option_sets_in_one_process(capture, tmp_path, capsys):
     assert main(argv) == 0
     run = runs / 'data_seed-3'
     config = json.loads((run / 'metrics.json').read_text())['config']
-    assert config['seed'] == 3 and config['iterations'] == 5
+    assert config['schedule']['seed'] == 3 and config['schedule']['iterations'] == 5
     first = capsys.readouterr().out
     assert 'data_seed-3' in first and ' ok' in first
+    log = (run / 'optimize.log').read_text()        # the run's progress, in its folder
+    assert 'run folder' in log and 'training finished at iteration 5' in log
+    assert 'held-out views: PSNR' in log and 'training finished' not in first
     # A finished run is reported, not trained again.
     mtime = (run / 'model.npz').stat().st_mtime_ns
     assert main(argv) == 0

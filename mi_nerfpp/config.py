@@ -1,0 +1,472 @@
+"""The options of a training run: one dataclass per concern, gathered in :class:`TrainConfig`.
+
+:class:`TrainConfig` holds seven groups - :class:`DataOptions` (how the images are read),
+:class:`ModelOptions` (the volumes, their fields and what else is learned),
+:class:`SamplingOptions` (samples per ray, empty-space skipping), :class:`OptimizerOptions`
+(Adam and its learning rates), :class:`LossOptions` (colour loss and priors),
+:class:`ScheduleOptions` (budget, batches, seed) and :class:`OutputOptions` (checkpoints,
+previews, evaluations) - and each group is the one home of its options' defaults and help
+texts: the ``optimize`` command line is generated from them (:mod:`.options`), one section
+of ``--help`` per group. On the command line (and in :meth:`TrainConfig.from_options`) the
+options stay flat, each under its own name (``--batch-rays``, ``batch_rays=``).
+
+To add an option, add a field ``name: type = option(default, 'help text')`` to its group and
+check its value in the group's ``_validate``; give it ``shapes_model=True`` when a checkpoint
+trained with another value cannot be resumed.
+
+A checkpoint stores the config as :meth:`TrainConfig.to_dict` (the groups nested);
+:meth:`TrainConfig.from_stored` also reads the flat dict of checkpoints written before the
+groups, and fills options they do not know with today's defaults.
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import math
+from dataclasses import dataclass
+
+from . import appearance as app, occupancy as occ, optim, poses
+from .fields import GridField
+from .frame import NERF_CAMERA_RADIUS
+from .model import FIELD_KINDS, default_field_config
+from .options import flag, group, groups, option, option_name, options_of
+from .render import Sampling
+
+MODEL_KINDS = ('nerfpp', 'nerf')
+DEFAULT_ITERATIONS = 2000     # the budget when neither iterations nor minutes is given
+# The embedded default job (``optimize`` without a dataset, :func:`mi_nerfpp.run.default_job`):
+# the default capture trained for these minutes, evaluated after these minutes too.
+DEFAULT_JOB_MINUTES = 10.0
+DEFAULT_JOB_EVAL_AT = (2.0, 5.0)
+
+
+def _grid_default(name):
+    """A default of the grid field, read from :class:`~mi_nerfpp.fields.GridField` (its home)."""
+    return inspect.signature(GridField.__init__).parameters[name].default
+
+
+def _comma_floats(text):
+    """``'1,1,1'`` -> ``(1.0, 1.0, 1.0)`` (the ``--background`` option)."""
+    import argparse
+    try:
+        values = tuple(float(v) for v in text.split(','))
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expects three numbers like 1,1,1, got '{text}'")
+    return values
+
+
+def _as_tuple(value):
+    """An option of one or more numbers as a tuple (from Python, one number may be given
+    bare; from JSON, a list); the values are checked where the option is validated."""
+    return (value,) if isinstance(value, (int, float)) else tuple(value)
+
+
+def _finite(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def per_volume(values):
+    """An option of one value for both volumes or one per volume, as (foreground, background)."""
+    return tuple(values) * (2 // len(values))
+
+
+class _Options:
+    """What every group does: lists from JSON become tuples, then its values are checked."""
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            if isinstance(getattr(self, f.name), list):
+                setattr(self, f.name, tuple(getattr(self, f.name)))
+        self._validate()
+
+    def _validate(self):
+        pass
+
+    def _bad(self, name, need):
+        """Refuse the value of option ``name``: one message naming the flag and the value."""
+        value = getattr(self, name)
+        shown = ' '.join(map(str, value)) if isinstance(value, tuple) else value
+        raise ValueError(f'{flag(type(self), name)} must be {need}, got {shown}')
+
+    def _check(self, names, ok, need):
+        for name in names:
+            if not ok(getattr(self, name)):
+                self._bad(name, need)
+
+
+@dataclass
+class DataOptions(_Options):
+    downscale: int | None = option(
+        None, 'integer image downscale factor', type=int,
+        default_help='(default: the smallest that keeps the training images under 4.2 M '
+                     'pixels in all, announced)')
+    background: tuple = option((1.0, 1.0, 1.0), 'colour that transparent (RGBA) images are '
+                               'composited over', type=_comma_floats, metavar='R,G,B',
+                               default_help='(default: 1,1,1)')
+
+    def _validate(self):
+        if self.downscale is not None and self.downscale < 1:        # None: automatic
+            self._bad('downscale', 'at least 1')
+        if len(self.background) != 3 or not all(_finite(c) for c in self.background):
+            self._bad('background', 'three finite numbers R,G,B')
+
+
+@dataclass
+class ModelOptions(_Options):
+    kind: str = option('nerfpp', "'nerfpp': a foreground volume in the unit sphere and an "
+                       "inverted-sphere background; 'nerf': the paper's baseline, one bounded "
+                       'volume', choices=MODEL_KINDS, flag='--model', shapes_model=True)
+    field: str = option('grid', "field kind of both volumes: 'grid' (feature grids and a small "
+                        "colour MLP), 'nerf' (NeRF's MLP) or 'vanilla' (an MLP taking position "
+                        'and direction at its input)', choices=FIELD_KINDS, shapes_model=True)
+    bg_field: str | None = option(None, 'field kind of the background volume', type=str,
+                                  choices=FIELD_KINDS, default_help='(default: as --field)',
+                                  shapes_model=True)
+    grid_levels: tuple = option(tuple(_grid_default('resolutions')),
+                                'grid field: resolution of each level',
+                                metavar='RES', shapes_model=True)
+    bg_grid_levels: tuple | None = option(None, 'grid field: resolution of each level of the '
+                                          'background grid', type=int, nargs='+', metavar='RES',
+                                          default_help='(default: as --grid-levels)',
+                                          shapes_model=True)
+    grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
+                                shapes_model=True)
+    fg_warp: float = option(_grid_default('warp_radius'), 'grid field: radius of the inner ball '
+                            "that the foreground grid magnifies (it fills half the grid's "
+                            'radius; 0: a linear grid)', shapes_model=True)
+    bg_s_ratio: tuple = option((_grid_default('s_ratio'),), 'grid field: cells along s (inverse '
+                               'radius) per cell of colatitude in the background grid: one '
+                               'ratio, or one per background level', type=float, nargs='+',
+                               metavar='Q', shapes_model=True)
+    dir_octaves: int = option(_grid_default('dir_octaves'),
+                              'grid field: frequencies of the view-direction encoding',
+                              shapes_model=True)
+    color_layers: int = option(_grid_default('color_layers'),
+                               'grid field: hidden layers of the colour MLP', shapes_model=True)
+    color_width: int = option(_grid_default('hidden'), 'grid field: width of the colour MLP',
+                              shapes_model=True)
+    density_bias: float = option(0.0, 'grid field: initial density logit; 0 gives σ = 1 '
+                                 'everywhere, above the occupancy threshold, so that empty '
+                                 'space is carved out rather than grown into (the grid '
+                                 "field's own default, for random models, is more "
+                                 'transparent)', shapes_model=True)
+    composite: str = option('linear', "sRGB photos: 'linear' decodes each sample's colour and "
+                            'composites in linear light, so that the EXR layers recombine '
+                            "exactly; 'srgb' sums the encoded colours (the layers recombine "
+                            'only approximately)', choices=('linear', 'srgb'),
+                            shapes_model=True)
+    appearance: bool = option(False, 'learn a colour transform (exposure, white-balance gain and '
+                              'bias) per training image; training image 0 is the reference; '
+                              'held-out views are then scored NeRF-W style (transform fitted on '
+                              'the left half, right half scored)', shapes_model=True)
+    refine_poses: bool = option(False, 'learn an SE(3) correction of each training camera '
+                                '(rotation about its centre, translation) jointly with the '
+                                'fields; training image 0 is the reference; held-out views keep '
+                                'their given poses', shapes_model=True)
+
+    def _validate(self):
+        if self.kind not in MODEL_KINDS:
+            self._bad('kind', "'nerfpp' or 'nerf'")
+        for name in ('field', 'bg_field'):
+            if getattr(self, name) is not None and getattr(self, name) not in FIELD_KINDS:
+                self._bad(name, ' or '.join(f"'{k}'" for k in FIELD_KINDS))
+        self._check(('grid_channels', 'color_layers', 'color_width'),
+                    lambda v: v >= 1, 'at least 1')
+        self._check(('dir_octaves',), lambda v: v >= 0, '0 or more')
+        self._check(('density_bias',), _finite, 'a finite number')
+        if not self.grid_levels or min(self.grid_levels) < 2:
+            self._bad('grid_levels', 'one or more resolutions of at least 2')
+        if self.bg_grid_levels is not None and (not self.bg_grid_levels
+                                                or min(self.bg_grid_levels) < 2):
+            self._bad('bg_grid_levels', 'one or more resolutions of at least 2')
+        if not (_finite(self.fg_warp) and 0 <= self.fg_warp < 1):
+            self._bad('fg_warp', 'a radius in [0, 1)')
+        self.bg_s_ratio = _as_tuple(self.bg_s_ratio)
+        if (not self.bg_s_ratio or not all(_finite(q) and 0 < q <= 1 for q in self.bg_s_ratio)
+                or len(self.bg_s_ratio) not in (1, len(self.levels('inverted_sphere')))):
+            self._bad('bg_s_ratio', 'one number in (0, 1], or one per background grid level')
+        if self.composite not in ('linear', 'srgb'):
+            self._bad('composite', "'linear' or 'srgb'")
+        if self.bg_field is None:
+            self.bg_field = self.field
+
+    def levels(self, domain):
+        """The final grid resolutions of one volume's grid field."""
+        if domain == 'inverted_sphere' and self.bg_grid_levels is not None:
+            return self.bg_grid_levels
+        return self.grid_levels
+
+
+@dataclass
+class SamplingOptions(_Options):
+    fg_samples: int = option(16, 'coarse foreground samples per ray', joint='--samples',
+                             metavar='FG')
+    bg_samples: int = option(16, 'coarse background samples per ray', joint='--samples',
+                             metavar='BG')
+    fine_samples: int = option(8, 'fine samples per ray and volume', joint='--samples',
+                               metavar='FINE')
+    occupancy: bool = option(True, 'skip empty space: an occupancy grid per volume places the '
+                             'samples', shapes_model=True)
+    occupancy_res: int = option(occ.DEFAULT_RESOLUTION, 'resolution of the occupancy grids',
+                                shapes_model=True)
+    occupancy_threshold: float = option(
+        occ.DEFAULT_THRESHOLD, 'density below which an occupancy cell is empty (per unit '
+        'length in the foreground, per unit of s in the background)')
+    occupancy_every: int = option(occ.DEFAULT_EVERY,
+                                  'steps between refreshes of the occupancy grids')
+
+    def _validate(self):
+        self._check(('fg_samples', 'bg_samples', 'occupancy_res', 'occupancy_every'),
+                    lambda v: v >= 1, 'at least 1')
+        self._check(('fine_samples',), lambda v: v >= 0, '0 or more')
+        self._check(('occupancy_threshold',), lambda v: _finite(v) and v >= 0,
+                    'a finite number >= 0')
+
+
+@dataclass
+class OptimizerOptions(_Options):
+    lr_grid: float = option(optim.LR_GRID, 'learning rate of the feature grids')
+    lr_mlp: float = option(optim.LR_MLP, 'learning rate of the MLPs')
+    lr_final: float = option(optim.LR_FINAL, 'learning rates decay exponentially to this '
+                             'fraction of their start over the run')
+    adam_beta2: float = option(optim.ADAM_BETA2, "decay of Adam's second-moment estimate")
+    lazy_adam: bool = option(False, 'leave parameters whose gradient is zero untouched in an Adam '
+                             'step (moments included)')
+    lr_appearance: float = option(app.LR_APPEARANCE, 'learning rate of the appearance transforms')
+    lr_poses: float = option(poses.LR_POSES, 'learning rate of the pose corrections (radians and '
+                             'model-frame units: the cameras lie in the unit sphere)')
+    poses_start: float = option(poses.START, 'fraction of the run after which the pose '
+                                'corrections are learned (before it the fields are too rough '
+                                'to steer them)')
+
+    def _validate(self):
+        self._check(('lr_grid', 'lr_mlp', 'lr_final', 'lr_appearance', 'lr_poses'),
+                    lambda v: _finite(v) and v > 0, 'a positive finite number')
+        if not (_finite(self.adam_beta2) and 0 < self.adam_beta2 < 1):
+            self._bad('adam_beta2', 'a number in (0, 1)')
+        self._check(('poses_start',), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+
+
+@dataclass
+class LossOptions(_Options):
+    color_loss: str = option('charbonnier', "colour loss of the coarse and fine composites: "
+                             "'charbonnier' (mip-NeRF 360's robust loss) or 'mse' (the "
+                             "paper's squared error)", choices=tuple(optim.COLOR_LOSSES))
+    distortion: float = option(0.01, 'weight of the mip-NeRF 360 distortion loss, which '
+                               'gathers the weights along a ray against floaters and haze '
+                               '(0: off)')
+    distortion_scope: str = option('ray', "'ray': the distortion loss of whole rays, both "
+                                   'volumes on one axis, so that a surface split between the '
+                                   'volumes counts as spread out (crisper foreground mattes); '
+                                   "'volume': of each volume on its own",
+                                   choices=('volume', 'ray'))
+    opacity_entropy: float = option(0.0, 'weight of the binary-entropy prior on the foreground '
+                                    'opacity of each ray (pushes it to 0 or 1)')
+    entropy_start: float = option(0.0, 'fraction of the run after which the entropy prior applies')
+    sparsity: tuple = option((0.01,), 'weight of the sparsity prior: Cauchy loss log(1 + 2σ²) '
+                             'of the density at random points of each volume (Plenoxels), which '
+                             'removes haze and floaters: one for both volumes, or one for the '
+                             'foreground and one for the background',
+                             type=float, nargs='+', metavar='W', default_help='(default: 0.01)')
+    sparsity_start: tuple = option((0.15, 0.5), 'fraction of the run after which the sparsity '
+                                   'prior applies: one for both volumes, or one for the '
+                                   'foreground and one for the background. Starting late lets '
+                                   'the young, dense foreground keep the ground inside its '
+                                   'sphere (cleaner mattes) and the background form its '
+                                   'geometry before its prior starts',
+                                   type=float, nargs='+', metavar='F',
+                                   default_help='(default: 0.15 0.5)')
+    near_gradient: float = option(0.5, 'scale the gradients of samples within this distance of '
+                                  'their camera (in the units of the unit sphere of NeRF++) by '
+                                  '(distance / this)² (Floaters No More: fewer '
+                                  'floaters near the cameras; 0: off)')
+    tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
+    tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
+    appearance_prior: float = option(app.PRIOR, 'weight of the L2 prior that keeps the '
+                                     'appearance transforms near the identity')
+
+    def _validate(self):
+        if self.color_loss not in optim.COLOR_LOSSES:
+            self._bad('color_loss', ' or '.join(f"'{k}'" for k in optim.COLOR_LOSSES))
+        if self.distortion_scope not in ('volume', 'ray'):
+            self._bad('distortion_scope', "'volume' or 'ray'")
+        self._check(('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'appearance_prior',
+                     'near_gradient'), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+        self._check(('tv_cells',), lambda v: v >= 1, 'at least 1')
+        for name, ok, one in (('sparsity', lambda w: w >= 0, 'one finite number >= 0'),
+                              ('sparsity_start', lambda f: 0 <= f <= 1, 'one fraction in [0, 1]')):
+            v = _as_tuple(getattr(self, name))          # per volume: see per_volume()
+            setattr(self, name, v)
+            if len(v) not in (1, 2) or not all(_finite(x) and ok(x) for x in v):
+                self._bad(name, f'{one}, or two (foreground, background)')
+
+
+@dataclass
+class ScheduleOptions(_Options):
+    iterations: int | None = option(
+        None, 'training steps', type=int, exclusive='budget',
+        default_help=f'(default without --minutes: {DEFAULT_ITERATIONS}; the embedded '
+                     f'default run: --minutes {DEFAULT_JOB_MINUTES:g})')
+    minutes: float | None = option(
+        None, 'wall-time budget in minutes of training steps', type=float, exclusive='budget')
+    batch_rays: int = option(1024, 'rays per step')
+    seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
+    freeze: bool = option(True, 'record the kernels of a training step once and replay them '
+                          '(drjit.freeze) instead of tracing every step in Python; re-recorded '
+                          'when a prior starts or the grids change resolution')
+    coarse_to_fine: tuple = option((), 'grid field: fractions of the run at which the grids '
+                                   'double in resolution (they start at RES / 2^n)', type=float,
+                                   nargs='*', metavar='F', shapes_model=True)
+
+    def _validate(self):
+        if self.iterations is None and self.minutes is None:
+            self.iterations = DEFAULT_ITERATIONS
+        if self.minutes is not None and not (_finite(self.minutes) and self.minutes > 0):
+            self._bad('minutes', 'a positive number of minutes')
+        if self.iterations is not None and self.iterations < 1:
+            self._bad('iterations', 'at least 1')
+        self._check(('batch_rays',), lambda v: v >= 1, 'at least 1')
+        self._check(('seed',), lambda v: v >= 0, '0 or more')
+        if not all(_finite(f) and 0 < f < 1 for f in self.coarse_to_fine):
+            self._bad('coarse_to_fine', 'fractions between 0 and 1')
+
+
+@dataclass
+class OutputOptions(_Options):
+    checkpoint_every: int = option(500, 'iterations between checkpoints (0: only at the end)')
+    preview_every: int = option(500, 'iterations between held-out previews (0: never)')
+    eval_at: tuple | None = option(None, 'also evaluate the held-out views after these minutes '
+                                   'of training; recorded in metrics.json as "progress"',
+                                   type=float, nargs='*', metavar='MIN',
+                                   default_help='(default: none; the embedded default run: '
+                                                + ' '.join(f'{m:g}' for m in DEFAULT_JOB_EVAL_AT)
+                                                + ')')
+
+    def _validate(self):
+        self._check(('checkpoint_every', 'preview_every'), lambda v: v >= 0, '0 or more')
+        self.eval_at = tuple(sorted(self.eval_at or ()))
+        if not all(_finite(m) and m > 0 for m in self.eval_at):
+            self._bad('eval_at', 'positive numbers of minutes')
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run is told; the ``optimize`` command line is generated from it."""
+    data: DataOptions = group(DataOptions, 'data', 'how the images are read')
+    model: ModelOptions = group(ModelOptions, 'model',
+                                'the volumes, their fields and what else is learned (fixed '
+                                'for a run: --resume refuses other values)')
+    sampling: SamplingOptions = group(SamplingOptions, 'sampling',
+                                      'samples per ray and empty-space skipping; the sample '
+                                      'counts are stored with the model and renders use them')
+    optimizer: OptimizerOptions = group(OptimizerOptions, 'optimizer',
+                                        'Adam and its learning rates')
+    losses: LossOptions = group(LossOptions, 'losses and priors')
+    schedule: ScheduleOptions = group(ScheduleOptions, 'schedule',
+                                      'how long, in what batches, from which seed')
+    output: OutputOptions = group(OutputOptions, 'output',
+                                  'what the run writes along the way')
+
+    # ------------------------------------------------------------------ flat options
+    @classmethod
+    def from_options(cls, **options):
+        """A config from options by their command-line names (``batch_rays=512``,
+        ``model='nerf'``); options not given take their defaults. Raises ValueError naming the
+        flag of a bad value, TypeError for an unknown name."""
+        kwargs = {}
+        for name, sub, _ in groups(cls):
+            own = {f.name: options.pop(option_name(f)) for _, f in options_of(sub)
+                   if option_name(f) in options}
+            kwargs[name] = sub(**own)
+        if options:
+            raise TypeError(f'unknown training options: {", ".join(sorted(options))}')
+        return cls(**kwargs)
+
+    def options(self) -> dict:
+        """Every option by its command-line name (what :meth:`from_options` takes)."""
+        return {option_name(f): getattr(getattr(self, name), f.name)
+                for name, f in options_of(type(self))}
+
+    def replace(self, **options):
+        """A copy with some options (by their command-line names) changed, checked anew."""
+        return type(self).from_options(**dict(self.options(), **options))
+
+    def to_dict(self) -> dict:
+        """The config as JSON-ready nested dicts (as checkpoints and metrics.json store it)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def stored_options(cls, stored: dict) -> dict:
+        """The options (by command-line name) of a stored config: :meth:`to_dict`'s nested
+        groups, or the flat dict of checkpoints written before the groups; names this version
+        does not know are left out."""
+        known = {option_name(f): (name, f.name) for name, f in options_of(cls)}
+        if any(isinstance(stored.get(name), dict) for name, _, _ in groups(cls)):
+            where = {v: k for k, v in known.items()}
+            return {where[(name, key)]: value for name, _, _ in groups(cls)
+                    for key, value in (stored.get(name) or {}).items() if (name, key) in where}
+        return {k: v for k, v in stored.items() if k in known}
+
+    @classmethod
+    def from_stored(cls, stored: dict):
+        """The config a checkpoint's ``meta['config']`` stores (see :meth:`stored_options`);
+        options it does not store take today's defaults."""
+        return cls.from_options(**cls.stored_options(stored))
+
+    # ------------------------------------------------------------------ derived
+    def field_config(self, kind, domain):
+        """The field config of one volume: the grid options apply to grid fields only."""
+        if kind != 'grid':
+            return default_field_config(kind, domain)
+        m = self.model
+        start = [max(r >> len(self.schedule.coarse_to_fine), 4) for r in m.levels(domain)]
+        ratio = m.bg_s_ratio[0] if len(m.bg_s_ratio) == 1 else list(m.bg_s_ratio)
+        extra = ({'s_ratio': ratio} if domain == 'inverted_sphere' else
+                 {'warp_radius': m.fg_warp})
+        return dict(kind='grid', domain=domain, resolutions=start,
+                    channels=m.grid_channels, dir_octaves=m.dir_octaves,
+                    color_layers=m.color_layers, hidden=m.color_width,
+                    density_bias=m.density_bias, **extra)
+
+    @property
+    def render_sampling(self) -> Sampling:
+        """Samples per ray of the model (it stores them and renders with them); the NeRF
+        baseline gets both volumes' budget in its one volume."""
+        s = self.sampling
+        if self.model.kind == 'nerf':
+            return Sampling(fg_samples=s.fg_samples + s.bg_samples,
+                            bg_samples=s.bg_samples, fine_samples=2 * s.fine_samples)
+        return Sampling(s.fg_samples, s.bg_samples, s.fine_samples)
+
+    @property
+    def samples_per_ray(self):
+        """Field evaluations per training ray (coarse + fine, every volume)."""
+        s = self.render_sampling
+        n = s.fg_samples + s.fine_samples
+        return n if self.model.kind == 'nerf' else n + s.bg_samples + s.fine_samples
+
+    def model_normalization(self, dataset_normalization):
+        """The model frame: the dataset's, or for the NeRF baseline one shrunk into
+        :data:`~mi_nerfpp.frame.NERF_CAMERA_RADIUS`."""
+        if self.model.kind == 'nerf':
+            return dataset_normalization.with_camera_radius(NERF_CAMERA_RADIUS)
+        return dataset_normalization
+
+    def resume_conflicts(self, stored: dict) -> list[str]:
+        """The model-shaping options in which a stored config (:meth:`to_dict`, or a flat one
+        of an older checkpoint) differs from this one, as readable lines."""
+        now = json.loads(json.dumps(self.options()))
+        stored = self.stored_options(stored)
+        stored.setdefault('bg_field', stored.get('field'))
+        if isinstance(stored.get('bg_s_ratio'), (int, float)):    # before per-level ratios
+            stored['bg_s_ratio'] = [stored['bg_s_ratio']]
+        out = []
+        for _, f in options_of(type(self)):
+            name = option_name(f)
+            if f.metadata.get('shapes_model') and name in stored and stored[name] != now[name]:
+                out.append(f'{flag(TrainConfig, name)}: the checkpoint has {stored[name]!r}, '
+                           f'this run asks for {now[name]!r}')
+        return out

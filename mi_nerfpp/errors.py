@@ -1,0 +1,26 @@
+"""How an error reads in one line: what the command line prints, and a sweep records for a
+failed run."""
+from __future__ import annotations
+
+import re
+
+_EXCEPTION_LINE = re.compile(r'^(?:[A-Za-z_][\w.]*(?:Error|Exception)): (.+)$')
+
+
+def error_line(error: BaseException) -> str:
+    """One readable line for an error: an OSError's file and reason; for an error that wraps a
+    Python traceback (Mitsuba's plugin errors) the innermost exception's message, with
+    Mitsuba's location prefix (``At dictionary node ...`` / the scene file) kept in front."""
+    while error.__cause__ is not None and '(see above)' in str(error):
+        error = error.__cause__           # Dr.Jit wraps errors raised inside mi.render
+    if isinstance(error, OSError) and error.strerror:
+        where = f'{error.filename}: ' if error.filename else ''
+        return f'{where}{error.strerror}'
+    text = str(error).strip() or type(error).__name__
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    inner = [m.group(1) for m in map(_EXCEPTION_LINE.match, lines) if m]
+    if len(lines) > 1 and inner:
+        where = re.sub(r'^\[[\w.]+:\d+\]\s*', '', lines[0])
+        where = where.split(': failed to instantiate')[0].split(': Traceback')[0]
+        return f'{inner[-1]} ({where})' if where and where not in inner[-1] else inner[-1]
+    return ' '.join(lines)

@@ -1,0 +1,420 @@
+"""One training run, as a library: inputs -> train -> evaluate -> report.
+
+    from mi_nerfpp import run
+    from mi_nerfpp.config import TrainConfig
+
+    result = run.optimize('data/garden', TrainConfig.from_options(minutes=5), 'runs/garden')
+    print(result.metrics['test']['psnr'])
+
+The steps, each usable on its own:
+
+* :func:`prepare`: the inputs - a dataset folder (or a folder of photos, posed by structure
+  from motion into ``OUT/sfm`` first), the :class:`~mi_nerfpp.config.TrainConfig` (its
+  automatic downscale resolved) and the run folder, checked before any work;
+  :func:`default_job` is the embedded default (the default capture, its time budget);
+* :func:`start`: the :class:`~mi_nerfpp.train.Trainer`, new or resumed from ``OUT/model.npz``;
+* :func:`train`: training with held-out previews (``OUT/preview/``) and the evaluations at
+  the config's ``eval_at`` minutes (``OUT/test_at_<m>min/``);
+* :func:`report`: the held-out evaluation (``OUT/test/``), ``metrics.json``, ``render.xml``
+  and the plot ``training.png``.
+
+Nothing here prints: progress is reported to a :class:`RunObserver` (the ``optimize``
+command's shows a progress bar, a sweep's :class:`LogObserver` writes a log), and
+:func:`summary` words the outcome for whoever shows it. Errors are raised: bad input as
+ValueError / :class:`~mi_nerfpp.data.DatasetError`, a diverged or mismatched run as
+:class:`~mi_nerfpp.train.TrainingError`, an unwritable place as OSError.
+
+:func:`open_run` reopens a run folder (its model, config and dataset) and
+:func:`evaluate_run` evaluates it again.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from dataclasses import dataclass, field
+
+from .config import DEFAULT_JOB_EVAL_AT, DEFAULT_JOB_MINUTES, TrainConfig
+
+
+class RunObserver:
+    """What a run reports as it goes; every method does nothing here (override those you
+    need). ``shows_progress``: whether the steps that report their own progress (structure
+    from motion, synthesizing the default capture) may print it."""
+
+    shows_progress = False
+
+    def notice(self, text: str):
+        """Something the user should know: a choice made for them, a long step started."""
+
+    def started(self, trainer, inputs: 'RunInputs'):
+        """The trainer is ready (new, or resumed at ``trainer.iteration``)."""
+
+    def step(self, trainer, loss: float, psnr: float):
+        """A training step is done (``psnr``: of its batch)."""
+
+    def evaluated(self, point: dict):
+        """A held-out evaluation during training: ``{'minutes', 'iteration', 'psnr',
+        'ssim'}`` (as recorded in metrics.json's ``progress``)."""
+
+    def preview(self, trainer, path: str):
+        """A held-out preview was written to ``path``."""
+
+    def trained(self, trainer, finished: bool | None):
+        """Training stopped: finished (True), interrupted (False) or failed (None)."""
+
+    def track(self, iterable, desc: str = '', unit: str = 'it', leave: bool = True):
+        """``iterable`` of a long step (the views of an evaluation), e.g. with a progress
+        bar around it."""
+        return iterable
+
+
+class LogObserver(RunObserver):
+    """Writes a run's progress as lines of text to ``stream`` (a sweep's ``optimize.log``):
+    notices, a line every ``every`` steps, the evaluations and the end of training."""
+
+    def __init__(self, stream, every: int = 100):
+        self.stream, self.every = stream, every
+
+    def _write(self, text):
+        self.stream.write(text + '\n')
+        self.stream.flush()
+
+    def notice(self, text):
+        self._write(text)
+
+    def started(self, trainer, inputs):
+        self._write(dataset_line(trainer, inputs))
+
+    def step(self, trainer, loss, psnr):
+        if trainer.iteration % self.every == 0:
+            self._write(f'iteration {trainer.iteration}: loss {loss:.4f}, batch PSNR '
+                        f'{psnr:.2f} dB, {trainer.elapsed:.0f} s')
+
+    def evaluated(self, point):
+        self._write(evaluation_line(point))
+
+    def trained(self, trainer, finished):
+        what = {True: 'finished', False: 'interrupted', None: 'failed'}[finished]
+        self._write(f'training {what} at iteration {trainer.iteration}')
+
+
+@dataclass
+class RunInputs:
+    """What a run trains: ``data`` (the dataset folder; for photos, the one structure from
+    motion wrote), its ``dataset``, the ``config`` and the run folder ``out``."""
+    data: str
+    dataset: object
+    config: TrainConfig
+    out: str
+
+
+@dataclass
+class RunResult:
+    """What :func:`optimize` did: ``finished`` (False: interrupted, the checkpoint saved),
+    the held-out evaluations during training (``progress``), the ``metrics`` written (None
+    when interrupted) and the wall time of training (``wall_seconds``)."""
+    inputs: RunInputs
+    trainer: object
+    finished: bool
+    progress: list = field(default_factory=list)
+    metrics: dict | None = None
+    wall_seconds: float = 0.0
+
+
+# ---------------------------------------------------------------------------------- inputs
+
+def default_job(options: dict, progress: bool = False) -> tuple[str, dict]:
+    """The embedded default run: the default capture (synthesized and cached on first use;
+    ``progress``: show it) and ``options`` (by option name, see
+    :meth:`~mi_nerfpp.config.TrainConfig.from_options`) with, unless they set a budget,
+    :data:`~mi_nerfpp.config.DEFAULT_JOB_MINUTES` of training and evaluations after
+    :data:`~mi_nerfpp.config.DEFAULT_JOB_EVAL_AT` minutes (unless they set ``eval_at``)."""
+    from .synth import default_capture
+    options = dict(options)
+    if options.get('iterations') is None and options.get('minutes') is None:
+        options['minutes'] = DEFAULT_JOB_MINUTES
+        if options.get('eval_at') is None:
+            options['eval_at'] = DEFAULT_JOB_EVAL_AT
+    return default_capture(progress=progress), options
+
+
+def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool = False,
+            overwrite: bool = False, observer: RunObserver | None = None) -> RunInputs:
+    """The inputs of a run, checked before any work.
+
+    ``data``: a dataset folder (NeRF++ layout, transforms.json, LLFF or COLMAP) or a folder
+    of photos without poses (structure from motion runs first, cached in ``OUT/sfm``).
+    ``out``: the run folder (default ``runs/<dataset name>``); one that holds a trained run
+    is only continued (``resume``) or replaced (``overwrite``). The config's automatic
+    downscale (``downscale=None``) is resolved from the image size (a copy of ``config``).
+    """
+    from .data import DatasetError, load_dataset
+    observer = observer or RunObserver()
+    if not os.path.exists(data):
+        raise DatasetError(f'{data}: dataset folder not found')
+    out = out or os.path.join('runs', os.path.basename(os.path.normpath(data)))
+    check_run_folder(out, resume=resume, overwrite=overwrite)
+    data = photos_to_dataset(data, os.path.join(out, 'sfm'), observer)
+    dataset = load_dataset(data, downscale=config.data.downscale,
+                           background=config.data.background)
+    if config.data.downscale is None:       # chosen from the image size: announced when it shrinks
+        config = dataclasses.replace(config, data=dataclasses.replace(
+            config.data, downscale=dataset.downscale))
+        if dataset.downscale > 1:
+            train = dataset.train.cameras[0]
+            observer.notice(f'downscale {dataset.downscale} chosen from the image size: '
+                            f'{len(dataset.train)} train images of {train.width}x{train.height} '
+                            f'after it (pass --downscale to choose)')
+    return RunInputs(data, dataset, config, out)
+
+
+def check_run_folder(out, resume, overwrite):
+    """Refuse, before any work, a run folder that cannot hold the run or would lose one.
+
+    ``out`` must be a folder (or not exist yet) that can be written; a folder that holds a
+    trained run (``model.npz``) is only continued (``--resume``) or replaced (``--overwrite``).
+    Raises ValueError / OSError with what to do.
+    """
+    from .files import check_writable_folder
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ValueError(f'--out {out} is an existing file, not a folder: choose another --out')
+    checkpoint = os.path.join(out, 'model.npz')
+    if os.path.exists(checkpoint) and not (resume or overwrite):
+        raise ValueError(f'{out} already holds a trained run ({checkpoint}): continue it with '
+                         f'--resume, replace it with --overwrite, or choose another --out')
+    if resume and overwrite:
+        raise ValueError('--resume and --overwrite exclude each other')
+    check_writable_folder(out, what='run folder (--out)')
+
+
+def photos_to_dataset(data: str, sfm_out: str, observer: RunObserver | None = None) -> str:
+    """``data`` if it is a dataset; for a folder of photos without poses, the NeRF++ dataset
+    structure from motion writes to ``sfm_out`` (run once, then reused)."""
+    from .data import DatasetError, detect_format
+    from .sfm import is_photo_folder, run_sfm
+    observer = observer or RunObserver()
+    try:
+        detect_format(data)
+        return data
+    except DatasetError:
+        if not is_photo_folder(data):
+            return data  # load_dataset reports what is wrong
+    observer.notice(f'{data}: a folder of photos without poses; running structure from motion '
+                    f'(COLMAP) into {sfm_out}')
+    run_sfm(data, sfm_out, progress=observer.shows_progress)    # SfmError: to the caller
+    return sfm_out
+
+
+# ---------------------------------------------------------------------------------- training
+
+def start(inputs: RunInputs, resume: bool = False, observer: RunObserver | None = None):
+    """The :class:`~mi_nerfpp.train.Trainer` of the inputs: new, or (``resume``) continued
+    from ``OUT/model.npz``."""
+    from .train import Trainer
+    trainer = Trainer(inputs.dataset, inputs.out, inputs.config, resume=resume)
+    (observer or RunObserver()).started(trainer, inputs)
+    return trainer
+
+
+@dataclass
+class Training:
+    """The outcome of :func:`train`: ``finished`` (False: interrupted, the checkpoint saved)
+    and the held-out evaluations done along the way (``progress``)."""
+    finished: bool
+    progress: list
+
+
+def train(trainer, observer: RunObserver | None = None) -> Training:
+    """Train until the budget is spent, with a held-out preview every ``preview_every``
+    steps (``OUT/preview/iter_NNNNNN.png``) and a held-out evaluation after each of the
+    config's ``eval_at`` minutes (``OUT/test_at_<m>min/``). Raises
+    :class:`~mi_nerfpp.train.TrainingError` (the last good checkpoint is kept)."""
+    from .evaluate import evaluate_split
+    from .preview import write_linear_png
+    from .views import ViewRenderer, rgb
+
+    observer = observer or RunObserver()
+    cfg, out = trainer.cfg, trainer.out
+    eval_at = list(cfg.output.eval_at)
+    held_out = trainer.validation if len(trainer.validation) else trainer.test
+    test_views = trainer.test if len(trainer.test) else trainer.validation
+    previews = ViewRenderer(trainer.model) if len(held_out) else None
+    progress = []
+
+    def on_step(tr, loss, psnr):
+        observer.step(tr, loss, psnr)
+        while eval_at and tr.elapsed >= 60 * eval_at[0] and len(test_views):
+            minute = eval_at.pop(0)
+            r = evaluate_split(tr.model, test_views, os.path.join(out, f'test_at_{minute:g}min'),
+                               fit_appearance=cfg.model.appearance)
+            point = {'minutes': minute, 'iteration': tr.iteration, 'psnr': r['psnr'],
+                     'ssim': r['ssim']}
+            progress.append(point)
+            observer.evaluated(point)
+
+    def on_preview(tr):
+        if previews is not None:
+            path = os.path.join(out, 'preview', f'iter_{tr.iteration:06d}.png')
+            write_linear_png(path, rgb(previews.render(held_out.cameras[0])))
+            observer.preview(tr, path)
+
+    finished = None
+    try:
+        finished = trainer.run(on_step=on_step, on_preview=on_preview)
+    finally:
+        observer.trained(trainer, finished)
+    return Training(finished, progress)
+
+
+# ---------------------------------------------------------------------------------- report
+
+def report(trainer, progress: list, observer: RunObserver | None = None) -> dict:
+    """Evaluate the held-out views (test, else validation) and write the run's files:
+    ``test/`` (layered EXRs and PNGs), ``metrics.json``, ``render.xml`` and ``training.png``.
+    Returns the metrics written."""
+    from .evaluate import finish_run
+    observer = observer or RunObserver()
+    held_out = trainer.test if len(trainer.test) else trainer.validation
+    metrics = finish_run(trainer.out, trainer.model, held_out, trainer.cfg,
+                         trainer.checkpoint_path,
+                         {'dataset': os.path.abspath(trainer.dataset.root),
+                          'iterations': trainer.iteration,
+                          'train_seconds': round(trainer.elapsed, 2),
+                          'train_samples_per_second': trainer.samples_per_second(),
+                          'progress': progress},
+                         progress=observer.track)
+    plot_training(trainer.history, metrics, trainer.cfg.losses.color_loss,
+                  os.path.join(trainer.out, 'training.png'))
+    return metrics
+
+
+def plot_training(history, metrics, color_loss, path):
+    """``training.png``: the training loss, and the PSNR of the training batches with the
+    held-out PSNR of the evaluations (metrics.json's ``progress`` and the final ``test``)
+    as points, against seconds of training."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    from .optim import COLOR_LOSS_NAMES
+    if not history:
+        return
+    it, t, loss, psnr = zip(*history)
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    ax[0].semilogy(t, loss)
+    ax[0].set(xlabel='seconds of training',
+              ylabel=f'loss ({COLOR_LOSS_NAMES[color_loss]}, coarse + fine, + priors)')
+    ax[1].plot(t, psnr, label='training batches')
+    points = [(60 * p['minutes'], p['psnr']) for p in metrics.get('progress', [])]
+    if 'test' in metrics:
+        points.append((metrics['train_seconds'], metrics['test']['psnr']))
+    if points:
+        ax[1].plot(*zip(*points), 'o', color='C3', label='held-out views')
+    ax[1].set(xlabel='seconds of training', ylabel='PSNR (dB)')
+    ax[1].legend(loc='lower right')
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------- a whole run
+
+def optimize(data: str, config: TrainConfig, out: str | None = None, resume: bool = False,
+             overwrite: bool = False, observer: RunObserver | None = None) -> RunResult:
+    """A whole run: :func:`prepare`, :func:`start`, :func:`train` and, when training
+    finished (not interrupted), :func:`report`."""
+    observer = observer or RunObserver()
+    inputs = prepare(data, config, out, resume=resume, overwrite=overwrite, observer=observer)
+    trainer = start(inputs, resume=resume, observer=observer)
+    t0 = time.perf_counter()
+    training = train(trainer, observer)
+    result = RunResult(inputs, trainer, training.finished, training.progress,
+                       wall_seconds=time.perf_counter() - t0)
+    if training.finished:
+        result.metrics = report(trainer, training.progress, observer)
+    return result
+
+
+def dataset_line(trainer, inputs: RunInputs) -> str:
+    """What a run trains on, in one line."""
+    ds = inputs.dataset
+    return (f'dataset {inputs.data} ({ds.format}): {len(ds.train)} train / '
+            f'{len(ds.validation)} validation / {len(ds.test)} test views, {trainer.rays.size} '
+            f'training rays; run folder {inputs.out}')
+
+
+def evaluation_line(point: dict) -> str:
+    """A held-out evaluation during training, in one line."""
+    return (f'after {point["minutes"]:g} min ({point["iteration"]} iterations): held-out PSNR '
+            f'{point["psnr"]:.2f} dB, SSIM {point["ssim"]:.3f}')
+
+
+def summary(result: RunResult) -> tuple[list[str], list[str]]:
+    """The outcome of a finished run in words: ``(lines, warnings)``."""
+    from .evaluate import matte_warning
+    trainer, metrics, out = result.trainer, result.metrics, result.inputs.out
+    lines = [f'trained {trainer.iteration} iterations in {trainer.elapsed / 60:.1f} min '
+             f'({metrics["train_samples_per_second"] / 1e6:.2f} M samples/s); '
+             f'wall time {result.wall_seconds:.0f} s']
+    warnings = []
+    if 'test' in metrics:
+        test = metrics['test']
+        lines.append(f'held-out views: PSNR {test["psnr"]:.2f} dB, SSIM {test["ssim"]:.3f} over '
+                     f'{len(test["views"])} views')
+        if 'psnr_neutral' in test:
+            lines.append(f'  (scored NeRF-W style: each view\'s appearance fitted on its left '
+                         f'half, right half scored; neutral whole views: PSNR '
+                         f'{test["psnr_neutral"]:.2f} dB)')
+        warning = matte_warning(test)
+        if warning:
+            warnings.append(warning)
+    written = ['model.npz', 'metrics.json', 'training.png']
+    if 'test' in metrics:
+        written[2:2] = ['test/*.exr|png', 'render.xml']
+    if os.path.isdir(os.path.join(out, 'preview')):
+        written.append('preview/')
+    lines.append(f'written to {out}/: ' + ', '.join(written))
+    if 'test' in metrics:
+        lines.append(f'render a view: python -m mi_nerfpp render '
+                     f'{os.path.join(out, "render.xml")} -o view.exr --preview view.png')
+    return lines, warnings
+
+
+# ---------------------------------------------------------------------------------- a run folder
+
+def open_run(run_dir):
+    """A finished or interrupted run: ``(model, meta, config, splits)``.
+
+    The dataset is re-read from where the run found it, with the same options; ``splits``
+    (a dataset with ``train``, ``validation`` and ``test``) are in the model's frame.
+    Raises :class:`~mi_nerfpp.train.TrainingError` when the dataset is not there any more.
+    """
+    from .checkpoint import load_checkpoint
+    from .data import load_dataset
+    from .train import TrainingError, in_model_frame
+    model, meta, _ = load_checkpoint(os.path.join(run_dir, 'model.npz'))
+    cfg = TrainConfig.from_stored(meta.get('config', {}))
+    root = meta.get('dataset')
+    if not root or not os.path.exists(root):
+        raise TrainingError(f'{run_dir}/model.npz: its dataset {root!r} is not there any more')
+    dataset = load_dataset(root, downscale=cfg.data.downscale, background=cfg.data.background)
+    return model, meta, cfg, dataclasses.replace(dataset, **in_model_frame(dataset,
+                                                                           model.normalization))
+
+
+def evaluate_run(run_dir, observer: RunObserver | None = None) -> dict:
+    """Evaluate a run folder's model on its held-out views again (test, else validation):
+    ``test/``, ``metrics.json`` and ``render.xml`` are written anew. Returns the metrics."""
+    from .evaluate import finish_run
+    from .train import samples_per_second
+    observer = observer or RunObserver()
+    model, meta, cfg, dataset = open_run(run_dir)
+    held_out = dataset.test if len(dataset.test) else dataset.validation
+    return finish_run(run_dir, model, held_out, cfg, os.path.join(run_dir, 'model.npz'), {
+        'dataset': dataset.root, 'iterations': meta['iteration'],
+        'train_seconds': round(meta['elapsed'], 2),
+        'train_samples_per_second': samples_per_second(cfg, meta['iteration'], meta['elapsed'])},
+        progress=observer.track)

@@ -1,0 +1,115 @@
+"""The package's modules import each other without a cycle: data flows one way.
+
+The graph is read from the source with ``ast`` (nothing is imported): every ``import`` and
+``from ... import`` of a module of the package, at module level or inside a function (an
+import deferred into a function is still a dependency, only a later one), is an edge to the
+module it names - ``from .data import load_dataset`` to ``mi_nerfpp.data``, ``from . import
+optim`` to ``mi_nerfpp.optim``. An import of one of the module's own ancestor packages (``from
+. import __version__`` in ``mi_nerfpp/exr.py``, ``from . import positive_int`` in a command)
+is not an edge: Python has set up the ancestor packages before the module runs, so such an
+import starts no import of its own.
+"""
+import ast
+import os
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def modules(root, package):
+    """``{module name: path}`` of every ``.py`` file of ``package`` under ``root``."""
+    out = {}
+    for folder, _, files in os.walk(os.path.join(root, package)):
+        for name in files:
+            if name.endswith('.py'):
+                path = os.path.join(folder, name)
+                parts = os.path.relpath(path, root)[:-3].split(os.sep)
+                if parts[-1] == '__init__':
+                    parts = parts[:-1]
+                out['.'.join(parts)] = path
+    return out
+
+
+def import_graph(root, package):
+    """``{module: set of the package's modules it imports}`` (see the module docstring)."""
+    found = modules(root, package)
+    graph = {}
+    for module, path in found.items():
+        with open(path, encoding='utf-8') as f:
+            tree = ast.parse(f.read(), path)
+        is_package = path.endswith('__init__.py')
+        here = module if is_package else module.rpartition('.')[0]
+        named = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                named.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = here.split('.')
+                    base = base[:len(base) - node.level + 1]
+                    target = '.'.join(base + ([node.module] if node.module else []))
+                else:
+                    target = node.module or ''
+                for alias in node.names:        # a submodule, or a name of the module
+                    sub = f'{target}.{alias.name}'
+                    named.add(sub if sub in found else target)
+        ancestors = {module.rsplit('.', n)[0] for n in range(1, module.count('.') + 1)}
+        graph[module] = {m for m in named if m in found and m != module and m not in ancestors}
+    return graph
+
+
+def find_cycle(graph):
+    """A cycle of the graph as a list of modules (first = last), or None."""
+    state, stack = {}, []
+
+    def visit(node):
+        state[node] = 'open'
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 'open':
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state:
+                cycle = visit(nxt)
+                if cycle:
+                    return cycle
+        state[node] = 'done'
+        stack.pop()
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            cycle = visit(node)
+            if cycle:
+                return cycle
+    return None
+
+
+def test_the_package_has_no_import_cycle():
+    graph = import_graph(ROOT, 'mi_nerfpp')
+    assert len(graph) > 40 and 'mi_nerfpp.run' in graph['mi_nerfpp.commands.optimize']
+    assert 'mi_nerfpp.checkpoint' in graph['mi_nerfpp.train']
+    cycle = find_cycle(graph)
+    assert cycle is None, ' -> '.join(cycle)
+
+
+def _write(root, files):
+    for name, text in files.items():
+        path = os.path.join(root, name)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, 'w') as f:
+            f.write(text)
+
+
+def test_a_cycle_through_a_function_level_import_is_found(tmp_path):
+    _write(tmp_path, {
+        'pkg/__init__.py': 'from . import a\n__version__ = "1"\n',
+        'pkg/a.py': 'from . import __version__\nfrom .sub import b\n',      # the ancestor: no edge
+        'pkg/sub/__init__.py': '',
+        'pkg/sub/b.py': 'def later():\n    from ..c import thing\n    return thing\n',
+        'pkg/c.py': 'import os\nimport pkg.sub\nthing = 1\n',
+    })
+    graph = import_graph(str(tmp_path), 'pkg')
+    assert graph['pkg.a'] == {'pkg.sub.b'} and graph['pkg.sub.b'] == {'pkg.c'}
+    assert find_cycle(graph) is None            # c imports the package sub, not b
+    _write(tmp_path, {'pkg/c.py': 'import pkg.a\nthing = 1\n'})
+    cycle = find_cycle(import_graph(str(tmp_path), 'pkg'))
+    assert cycle == ['pkg.a', 'pkg.sub.b', 'pkg.c', 'pkg.a']

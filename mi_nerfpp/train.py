@@ -49,10 +49,20 @@ from .files import remove_stale_temporaries
 from .frame import NERF_CAMERA_RADIUS, reframe_cameras
 from .model import FIELD_KINDS, NeRFPPModel, default_field_config
 from .options import flag, option
+from .profiling import stage
 from .render import Sampling, distortion, ray_distortion, render_rays
 
 MODEL_KINDS = ('nerfpp', 'nerf')
 DEFAULT_ITERATIONS = 2000     # the budget when neither iterations nor minutes is given
+# The colour loss's weight against the priors, whose weights were tuned when the loss had two
+# terms of about equal size (the coarse and the fine composite; the coarse pass now only places
+# samples).
+PHOTOMETRIC_WEIGHT = float(os.environ.get('MI_NERFPP_PW', 2.0))
+# Gradients scattered into arrays of up to this many entries are summed in one copy per thread
+# and added up after the kernel (Dr.Jit's "expand" reduction) instead of by atomic adds: the
+# 8.4 M-entry grid levels are above Dr.Jit's default threshold (1 M), and their atomics cost
+# twice as much per sample at thousands of rays per step.
+GRADIENT_EXPAND_THRESHOLD = 1 << 25
 
 
 class TrainingError(RuntimeError):
@@ -185,6 +195,10 @@ class TrainConfig:
                                    nargs='*', metavar='F', shapes_model=True)
     grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
                                 shapes_model=True)
+    color: str = option(_grid_default('color'), "grid field: 'deferred' composites the grid "
+                        "features along each ray and runs the colour MLP once per ray; 'sample' "
+                        "runs it at every sample", choices=('deferred', 'sample'),
+                        shapes_model=True)
     dir_octaves: int = option(_grid_default('dir_octaves'),
                               'grid field: frequencies of the view-direction encoding',
                               shapes_model=True)
@@ -306,7 +320,7 @@ class TrainConfig:
                  {'warp_radius': self.fg_warp})
         return dict(kind='grid', domain=domain, resolutions=start,
                     channels=self.grid_channels, dir_octaves=self.dir_octaves,
-                    color_layers=self.color_layers, hidden=self.color_width,
+                    color_layers=self.color_layers, hidden=self.color_width, color=self.color,
                     density_bias=self.density_bias, **extra)
 
     def levels(self, domain):
@@ -527,16 +541,20 @@ class Trainer:
         optim.set_learning_rates(self.opt, self.progress(), cfg.lr_grid, cfg.lr_mlp, cfg.lr_final,
                                  {'appearance': cfg.lr_appearance, 'poses': cfg.lr_poses})
         if self.model.occupancy and self.iteration % cfg.occupancy_every == 0:
-            self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
-            self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
+            with stage('occupancy refresh'):
+                self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+                self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
         inputs = self._step_inputs()
         # No cyclic garbage collection while a step is recorded: releasing a collected
         # array that maps NumPy memory cannot be recorded (:mod:`.arrays`).
         collecting = gc.isenabled()
         gc.disable()
+        threshold = dr.expand_threshold()
+        dr.set_expand_threshold(GRADIENT_EXPAND_THRESHOLD)
         try:
             loss, fine = self._compute(inputs)
         finally:
+            dr.set_expand_threshold(threshold)
             if collecting:
                 gc.enable()
         # The model's fields read the parameters after the update (previews, evaluations);
@@ -604,9 +622,12 @@ class Trainer:
         if model.appearance is not None:
             image, params = rays.images(index), opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
+        pred = encode(res.fine.rgb)
         color_loss = optim.COLOR_LOSSES[cfg.color_loss]
-        pred, coarse = encode(res.fine.rgb), encode(res.coarse.rgb)
-        loss = color_loss(pred, gt) + color_loss(coarse, gt)
+        if res.coarse is not None:
+            loss = color_loss(pred, gt) + color_loss(encode(res.coarse.rgb), gt)
+        else:
+            loss = PHOTOMETRIC_WEIGHT * color_loss(pred, gt)
         fine = dr.detach(optim.mse(pred, gt))     # for the PSNR shown while training
         if model.appearance is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])
@@ -622,8 +643,10 @@ class Trainer:
         if cfg.tv > 0:
             loss += cfg.tv * sum((priors.grid_tv(opt[k], idx) for k, idx in draws['tv'].items()),
                                  mi.Float(0.0))
-        dr.backward(loss)
-        opt.step()
+        with stage('losses and reverse pass'):
+            dr.backward(loss)
+        with stage('adam'):
+            opt.step()
         return loss, fine
 
     def _coarse_to_fine(self):

@@ -2,7 +2,8 @@
 
 Keys:
 
-* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 2);
+* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 3; grid fields
+  of version 1 and 2 files have per-sample colour and are read as ``color: "sample"``);
 * ``config`` — JSON: ``{"fg": <field config>, "bg": <field config or null>,
   "normalization": {"center": [x, y, z], "scale": s}, "color_space": "srgb"|"linear",
   "composite": "linear"|"srgb" (where samples are composited; missing: "srgb", older files),
@@ -45,8 +46,9 @@ from .occupancy import OccupancyGrid
 from .render import Sampling
 
 FORMAT = 'mi-nerfpp-checkpoint'
-VERSION = 2
-READABLE_VERSIONS = (1, 2)    # 1: normalization as top-level center / scale
+VERSION = 3
+# 1: normalization as top-level center / scale; 1-2: grid fields coloured every sample.
+READABLE_VERSIONS = (1, 2, 3)
 
 
 class CheckpointError(ValueError):
@@ -93,6 +95,10 @@ def load_checkpoint(path, seed=0):
                               f'{", ".join(map(str, READABLE_VERSIONS))}')
     try:
         config = json.loads(str(z['config']))
+        if version < 3:                   # before deferred colour, grid fields had an MLP per sample
+            for key in ('fg', 'bg'):
+                if config.get(key) and config[key].get('kind', 'grid') == 'grid':
+                    config[key].setdefault('color', 'sample')
         fg = make_field(config['fg'], seed=seed)
         bg = make_field(config['bg'], seed=seed + 1) if config.get('bg') else None
         occupancy = {k: OccupancyGrid(density=z[f'occupancy/{k}'], **c)

@@ -141,6 +141,10 @@ class ModelOptions(_Options):
                                'radius) per cell of colatitude in the background grid: one '
                                'ratio, or one per background level', type=float, nargs='+',
                                metavar='Q', shapes_model=True)
+    color: str = option(_grid_default('color'), "grid field: 'deferred' composites the grid "
+                        'features along each ray and runs the colour MLP once per ray; '
+                        "'sample' runs it at every sample", choices=('deferred', 'sample'),
+                        shapes_model=True)
     dir_octaves: int = option(_grid_default('dir_octaves'),
                               'grid field: frequencies of the view-direction encoding',
                               shapes_model=True)
@@ -428,7 +432,7 @@ class TrainConfig:
                  {'warp_radius': m.fg_warp})
         return dict(kind='grid', domain=domain, resolutions=start,
                     channels=m.grid_channels, dir_octaves=m.dir_octaves,
-                    color_layers=m.color_layers, hidden=m.color_width,
+                    color_layers=m.color_layers, hidden=m.color_width, color=m.color,
                     density_bias=m.density_bias, **extra)
 
     @property

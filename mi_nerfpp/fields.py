@@ -36,6 +36,9 @@ import mitsuba as mi
 from .geometry import ball_warp, grid_coordinates
 
 DOMAINS = {'ball': 3, 'inverted_sphere': 4}
+# How a grid field colours a ray: 'deferred' (features composited, one MLP per ray) or
+# 'sample' (an MLP per sample, as the paper's fields and models trained before deferred colour).
+COLOR_MODES = ('deferred', 'sample')
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -185,8 +188,12 @@ class _LateNet:
         self.rest = _Net(field, f'{prefix}.rest', nn.Sequential(*layers, nn.Linear(-1, out)),
                          first, rng)
 
-    def __call__(self, sample_inputs, ray_inputs, ray):
+    def __call__(self, sample_inputs, ray_inputs, ray=None):
+        """``ray``: the ray of each sample (UInt32), or None when the sample inputs are per
+        ray too (deferred colour)."""
         per_ray = self.ray(ray_inputs)
+        if ray is None:
+            return self.rest([a + b for a, b in zip(self.sample(sample_inputs), per_ray)])
         # One kernel for all of them: a gather from an unevaluated array evaluates that array
         # alone, so each of the ``first`` outputs would otherwise be a kernel of its own.
         dr.eval(per_ray)
@@ -204,10 +211,14 @@ class GridField(Field):
     (``density_activation='exp'``, clamped; or ``'softplus'``). The exponential
     lets opaque surfaces (σ·δ ≫ 1) form in a few hundred Adam steps.
     The other channels are concatenated into a feature vector ``f(x)``; colour
-    is ``sigmoid(MLP([f(x), γ^dir_octaves(d)]))`` with ``color_layers`` hidden
-    layers of ``hidden`` units (its first layer's direction share computed once
-    per ray). The default — one layer of 32, ``γ^2`` — is the late-injection
-    prior: the direction passes one non-linearity. Two octaves, not NeRF's four: with
+    is ``sigmoid(MLP([f, γ^dir_octaves(d)]))`` with ``color_layers`` hidden
+    layers of ``hidden`` units. With ``color='deferred'`` (the default) ``f`` is the
+    feature vector composited along the ray (normalized by its opacity, see
+    :func:`mi_nerfpp.render.composite_features`) and the MLP runs once per ray; with
+    ``color='sample'`` (models trained before deferred colour) it runs at every sample on
+    ``f(x)``, its first layer's direction share computed once per ray. The default — one
+    layer of 32, ``γ^2`` — is the late-injection prior: the direction passes one
+    non-linearity. Two octaves, not NeRF's four: with
     fewer view-dependent degrees of freedom the colour generalizes better to held-out views
     (measured on the default capture, README tuning table). ``color_layers=4, hidden=64,
     dir_octaves=10`` is the grid analogue of the paper's vanilla MLP (§3): grid
@@ -228,8 +239,12 @@ class GridField(Field):
 
     def __init__(self, domain, resolutions=(32, 128), channels=4, hidden=32, dir_octaves=2,
                  density_bias=-3.0, density_activation='exp', color_layers=1, s_ratio=0.5,
-                 warp_radius=0.0, seed=0):
+                 warp_radius=0.0, color='deferred', seed=0):
         super().__init__(domain)
+        if color not in COLOR_MODES:
+            raise ValueError(f"GridField color must be one of {', '.join(COLOR_MODES)}, "
+                             f"got {color!r}")
+        self.color_mode = color
         self.warp_radius = float(warp_radius)
         if not 0 <= self.warp_radius < 1:
             raise ValueError(f'GridField warp_radius must be in [0, 1), got {warp_radius}')
@@ -281,7 +296,12 @@ class GridField(Field):
                     channels=self.channels, hidden=self.hidden, dir_octaves=self.dir_octaves,
                     color_layers=self.color_layers, density_bias=self.density_bias,
                     density_activation=self.density_activation, s_ratio=self.s_ratio,
-                    warp_radius=self.warp_radius)
+                    warp_radius=self.warp_radius, color=self.color_mode)
+
+    @property
+    def deferred(self):
+        """Whether colour comes from features composited along the ray (one MLP per ray)."""
+        return self.color_mode == 'deferred'
 
     def upsample(self, level, resolution):
         """Resample grid ``level`` to ``resolution`` by trilinear interpolation of the current grid
@@ -327,7 +347,20 @@ class GridField(Field):
     def density(self, x):
         return ACTIVATIONS[self.density_activation](self._lookup(x)[0])
 
+    def features(self, x):
+        """Density and feature vector (list of Floats) at field inputs ``x``: what deferred
+        colour composites along a ray."""
+        density, features = self._lookup(x)
+        return ACTIVATIONS[self.density_activation](density), features
+
+    def color(self, features, d):
+        """Colour (Color3f in [0, 1]) of composited ``features`` (one list entry per feature
+        channel, one value per ray) seen along unit directions ``d`` (one per ray)."""
+        out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves))
+        return mi.Color3f(*[sigmoid(o) for o in out])
+
     def __call__(self, x, d, ray):
+        """Per-sample colour (``color='sample'``): the colour MLP at every sample."""
         density, features = self._lookup(x)
         out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves), ray)
         return ACTIVATIONS[self.density_activation](density), mi.Color3f(*[sigmoid(o) for o in out])

@@ -41,10 +41,12 @@ class RenderSettings:
 
 
 class LinearRadiance:
-    """A field whose sRGB-encoded colour output is decoded to linear light."""
+    """A field whose sRGB-encoded colour output is decoded to linear light: per sample for a
+    field with per-sample colour, per ray (after the colour network) for deferred colour."""
 
     def __init__(self, field):
         self.field = field
+        self.deferred = getattr(field, 'deferred', False)
 
     def __call__(self, *args, **kwargs):
         sigma, rgb = self.field(*args, **kwargs)
@@ -52,6 +54,12 @@ class LinearRadiance:
 
     def density(self, x):
         return self.field.density(x)
+
+    def features(self, x):
+        return self.field.features(x)
+
+    def color(self, features, d):
+        return dr.srgb_to_linear(self.field.color(features, d))
 
 
 class NeRFPPModel:

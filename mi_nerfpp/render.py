@@ -28,14 +28,23 @@ the foreground segment stops there, the background runs from ``s_max`` down to `
 with a finite last interval, so the composite is no longer opaque and ``1 - opacity`` is
 the transmittance to the surface.
 
-Hierarchical sampling per volume: ``n_coarse`` stratified samples are shaded
-and composited; ``n_fine`` more are drawn from their weights by inverse CDF;
-the fine image composites the union of both sets, reusing the coarse samples'
-field values (one field per volume serves both passes). Primal renders (the integrator)
-terminate rays early: colour is evaluated only at samples that can show, after the
-densities of both passes, and the background only behind a foreground that lets light
-through (``skip_occluded`` of :func:`render_rays`); the image moves by less than 1e-4 per
-threshold.
+Hierarchical sampling per volume: the field is evaluated at ``n_coarse`` stratified
+samples; ``n_fine`` more are drawn from their weights by inverse CDF; the image composites
+the union of both sets, reusing the coarse samples' field values (one field per volume
+serves both passes; the coarse pass only places samples).
+
+Colour (paper Fig. 3: the view direction enters late). A field with *deferred* colour (the
+grid field) gives each sample a density and a feature vector ``f_i``; the features are
+composited along the ray like colour, ``F = Σ w_i f_i``, and the field's colour network runs
+once per ray on ``F/α`` and the view direction: ``C = α·c(F/α, d)`` (:func:`composite_features`).
+A field with per-sample colour (the pure-MLP fields, closed-form test fields) gives each
+sample its colour ``c_i(d)``, composited as ``C = Σ w_i c_i``. For a colour network that is
+affine in its features the two agree.
+
+Primal renders (the integrator) terminate rays early: the background is rendered only
+behind a foreground that lets light through (``skip_occluded`` of :func:`render_rays`), and
+per-sample colour is evaluated only at samples that can show, after the densities of both
+passes; the image moves by less than 1e-4 per threshold.
 """
 from __future__ import annotations
 
@@ -46,6 +55,7 @@ import mitsuba as mi
 
 from . import geometry as geo
 from .occupancy import DEFAULT_BINS, OccupiedVolume
+from .profiling import stage
 from .sampling import flat_index, gather_merged, inverse_cdf, merge_order, stratified, uniforms
 
 MAX_DEPTH_RADIUS = 1000.0
@@ -57,6 +67,11 @@ OCCLUDED_TRANSMITTANCE = 1e-4
 # Early ray termination within a volume (primal renders): the samples whose colour is not
 # evaluated hold less than this much of a ray's weight in all (see :func:`_shade_visible`).
 HIDDEN_WEIGHT = 1e-4
+# Deferred colour: composited features are divided by the opacity, at least this much (a ray
+# that sees nothing has no colour to speak of; its premultiplied colour is ~0 either way).
+FEATURE_OPACITY_FLOOR = 1e-4
+import os
+COARSE_LOSS = bool(int(os.environ.get('MI_NERFPP_COARSE', '0')))
 
 
 @dataclass
@@ -69,23 +84,24 @@ class Shading:
 
 @dataclass
 class VolumeRender:
-    """Both passes of one volume, plus the fine pass's per-sample weights (for regularizers)."""
-    coarse: Shading
+    """One volume's composite and the per-sample weights of its merged samples (for the
+    regularizers and the surface estimate)."""
     fine: Shading
     weights: mi.Float          # w_i of the fine pass, flat layout with n samples per ray
     position: mi.Float         # sample positions normalized to [0, 1] along the volume
     n: int
     distance: mi.Float = None  # distance along the ray of each sample (same layout as weights)
     rays: mi.UInt32 = None     # the rays the per-sample arrays belong to (None: every ray)
+    coarse: Shading = None     # the coarse samples' own composite (differentiable renders)
 
 
 @dataclass
 class RenderResult:
-    """Per-ray output of :func:`render_rays`: the fine (final) and coarse passes."""
+    """Per-ray output of :func:`render_rays`: both volumes and their Eq. 4 composite."""
     fg: VolumeRender
     bg: VolumeRender | None
-    coarse: Shading          # Eq. 4 composite of the coarse passes
-    fine: Shading            # Eq. 4 composite of the fine passes (the image)
+    fine: Shading            # Eq. 4 composite of the volumes (the image)
+    coarse: Shading = None   # Eq. 4 composite of the coarse passes (differentiable renders)
 
 
 # ----------------------------------------------------------------------------- volumes
@@ -251,58 +267,97 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
                   near_gradient=0.0):
     """Hierarchical sampling and quadrature of one volume (see module docs).
 
-    ``visible_only`` (primal rendering with fine samples): both passes take densities only,
-    and colour is evaluated at the merged samples that can show (:func:`_shade_visible`); the
-    coarse pass is then not shaded and ``coarse`` repeats the fine shading.
+    The coarse pass places ``n_coarse`` stratified samples and evaluates the field there; its
+    weights (constants) place ``n_fine`` more by inverse CDF, where the field is evaluated too;
+    the union of both sets is composited. For a field with ``deferred`` colour the composite
+    is of the field's features (:func:`composite_features`) and the colour network runs once per
+    ray; otherwise the field's colour is composited sample by sample.
+
+    ``visible_only`` (primal rendering of a field with per-sample colour, with fine samples):
+    both passes take densities only and colour is evaluated at the merged samples that can
+    show (:func:`_shade_visible`). A deferred field's features come with its density at no
+    extra cost, so its render is the same with or without it.
     ``near_gradient`` (training; 0: off): the gradients of samples within this distance of the
     ray's origin are scaled down by :func:`near_gradient_scale`; values are unchanged."""
-    lazy = visible_only and n_fine > 0
+    deferred = getattr(field, 'deferred', False)
+    lazy = visible_only and n_fine > 0 and not deferred
     n_rays = dr.width(volume.lo)
 
     def evaluate(ray, t):
+        """Density and the per-sample values to composite (features, or colour) at ``t``."""
         x = volume.inputs(ray, t)
-        out = (field.density(x), None) if lazy else field(x, volume.d, ray)
+        if lazy:
+            out = (field.density(x), [])
+        elif deferred:
+            out = field.features(x)
+        else:
+            sigma, rgb = field(x, volume.d, ray)
+            out = (sigma, [rgb.x, rgb.y, rgb.z])
         if near_gradient > 0 and not lazy:
             scale = near_gradient_scale(dr.detach(volume.distance(ray, t)), near_gradient)
-            out = tuple(scale_gradient(v, scale) for v in out)
+            out = (scale_gradient(out[0], scale), [scale_gradient(f, scale) for f in out[1]])
         # One kernel computes all outputs of the field; without this, every later
         # use (gathers, block sums) would re-trace the field for its own channel.
         dr.eval(out)
         return out
 
     ray_c, _ = flat_index(n_rays, n_coarse)
-    v_c = stratified(volume.lo, volume.hi, n_coarse, uniforms(seed, n_coarse, stream))
-    t_c = volume.parameter(ray_c, v_c)
-    dr.eval(v_c, t_c)
-    sigma_c, rgb_c = evaluate(ray_c, t_c)
-    w_c, _ = weights(volume, v_c, sigma_c, n_coarse)
+    with stage('sampling'):
+        v_c = stratified(volume.lo, volume.hi, n_coarse, uniforms(seed, n_coarse, stream))
+        t_c = volume.parameter(ray_c, v_c)
+        dr.eval(v_c, t_c)
+    with stage('field'):
+        sigma_c, values_c = evaluate(ray_c, t_c)
     if n_fine == 0:
-        distance_c = volume.distance(ray_c, t_c)
-        coarse = shade(w_c, rgb_c, distance_c, n_coarse)
-        return VolumeRender(coarse, coarse, w_c, volume.normalized(ray_c, v_c), n_coarse,
-                            distance_c)
-
-    ray_f, _ = flat_index(n_rays, n_fine)
-    v_f = inverse_cdf(v_c, w_c, volume.lo, volume.hi, n_coarse, n_fine,
-                      uniforms(seed, n_fine, stream + 1))
-    t_f = volume.parameter(ray_f, v_f)
-    dr.eval(v_f, t_f)
-    sigma_f, rgb_f = evaluate(ray_f, t_f)
-
-    order = merge_order(v_c, n_coarse, v_f, n_fine)
-    v, t = gather_merged(order, v_c, v_f), gather_merged(order, t_c, t_f)
-    sigma = gather_merged(order, sigma_c, sigma_f)
-    n = n_coarse + n_fine
+        v, t, sigma, values, n = v_c, t_c, sigma_c, values_c, n_coarse
+    else:
+        with stage('sampling'):
+            w_c, _ = weights(volume, v_c, dr.detach(sigma_c), n_coarse)
+            ray_f, _ = flat_index(n_rays, n_fine)
+            v_f = inverse_cdf(v_c, w_c, volume.lo, volume.hi, n_coarse, n_fine,
+                              uniforms(seed, n_fine, stream + 1))
+            t_f = volume.parameter(ray_f, v_f)
+            dr.eval(v_f, t_f)
+        with stage('field'):
+            sigma_f, values_f = evaluate(ray_f, t_f)
+        order = merge_order(v_c, n_coarse, v_f, n_fine)
+        v, t = gather_merged(order, v_c, v_f), gather_merged(order, t_c, t_f)
+        sigma = gather_merged(order, sigma_c, sigma_f)
+        values = [gather_merged(order, a, b) for a, b in zip(values_c, values_f)]
+        n = n_coarse + n_fine
     ray, _ = flat_index(n_rays, n)
     w, transmittance = weights(volume, v, sigma, n)
     if lazy:
         rgb = _shade_visible(volume, field, t, w, transmittance, n)
-    else:
-        rgb = gather_merged(order, rgb_c, rgb_f)
+        values = [rgb.x, rgb.y, rgb.z]
     distance = volume.distance(ray, t)
-    fine = shade(w, rgb, distance, n)
-    coarse = fine if lazy else shade(w_c, rgb_c, volume.distance(ray_c, t_c), n_coarse)
-    return VolumeRender(coarse, fine, w, volume.normalized(ray, v), n, distance)
+    coarse = None
+    if COARSE_LOSS and not visible_only and n_fine > 0:
+        w_c, _ = weights(volume, v_c, sigma_c, n_coarse)
+        coarse = _shading(field, deferred, w_c, values_c, volume.distance(ray_c, t_c), n_coarse,
+                          volume.d)
+    return VolumeRender(_shading(field, deferred, w, values, distance, n, volume.d), w,
+                        volume.normalized(ray, v), n, distance, coarse=coarse)
+
+
+def _shading(field, deferred, w, values, distance, n, d):
+    """Colour, opacity and depth of ``n`` samples per ray with weights ``w``."""
+    sums = dr.block_sum([w * f for f in values] + [w, w * distance], n)
+    opacity, depth = sums[-2], sums[-1]
+    if deferred:
+        with stage('colour'):
+            rgb = composite_features(field, sums[:-2], opacity, d)
+    else:
+        rgb = mi.Color3f(*sums[:3])
+    return Shading(rgb=rgb, opacity=opacity, depth=depth)
+
+
+def composite_features(field, features, opacity, d):
+    """Deferred colour of a volume: the colour network of ``field`` evaluated once per ray on
+    its composited features ``F = Σ w_i f_i``, normalized by the opacity ``α = Σ w_i`` (the
+    features of what the ray sees, whatever its opacity), premultiplied: ``α·c(F/α, d)``."""
+    scale = dr.rcp(dr.maximum(opacity, FEATURE_OPACITY_FLOOR))
+    return opacity * field.color([f * scale for f in features], d)
 
 
 def _shade_visible(volume, field, t, w, transmittance, n):
@@ -393,12 +448,12 @@ def _render_visible_background(o, d, fg, render, seed, far=None):
         return out
 
     if dr.width(visible) == 0:
-        return VolumeRender(expand(None), expand(None), None, None, 0)
+        return VolumeRender(expand(None), None, None, 0)
     sub = render(dr.gather(mi.Point3f, o, visible), dr.gather(mi.Vector3f, d, visible),
                  None if seed is None else dr.gather(mi.UInt32, seed, visible),
                  None if far is None else dr.gather(mi.Float, far, visible))
-    return VolumeRender(expand(sub.coarse), expand(sub.fine), sub.weights, sub.position, sub.n,
-                        sub.distance, rays=visible)
+    return VolumeRender(expand(sub.fine), sub.weights, sub.position, sub.n, sub.distance,
+                        rays=visible)
 
 
 def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
@@ -412,10 +467,10 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
     occupied space only (:class:`~.occupancy.OccupiedVolume`). ``skip_occluded`` (primal
     rendering only) terminates rays early: the background is rendered only for rays whose
     foreground transmittance ``λ`` exceeds :data:`OCCLUDED_TRANSMITTANCE` (elsewhere its
-    layers are zero), and within each volume colour is evaluated only at the samples that can
-    show (:func:`_shade_visible`: densities of both passes first, then colour where the
-    transmittance and the weight exceed :data:`HIDDEN_WEIGHT`), so the ``coarse`` passes are
-    not shaded. The fields are then asked for ``density(x)`` too.
+    layers are zero), and within a volume whose field has per-sample colour, colour is
+    evaluated only at the samples that can show (:func:`_shade_visible`: densities of both
+    passes first, then colour where the transmittance and the weight exceed
+    :data:`HIDDEN_WEIGHT`); such fields are then asked for ``density(x)`` too.
     ``ray_gradients``: let gradients flow to ``o`` and ``d`` (pose refinement, :mod:`.poses`)
     through the sample positions; the samples' distances along the ray stay constants.
     Otherwise the rays are detached.
@@ -434,7 +489,10 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
 
     def volume(v, key):
         grid = occupancy.get(key)
-        return v if grid is None else OccupiedVolume(v, grid, DEFAULT_BINS[grid.domain])
+        if grid is None:
+            return v
+        with stage('occupancy sampling'):
+            return OccupiedVolume(v, grid, DEFAULT_BINS[grid.domain])
 
     fg = render_volume(volume(Foreground(o, d, sampling.near, far), 'fg'), fg_field,
                        sampling.fg_samples, sampling.fine_samples, seed, stream=0,
@@ -448,9 +506,11 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
         bg = render_volume(volume(Background(o, d, far), 'bg'), bg_field,
                            sampling.bg_samples, sampling.fine_samples, seed, stream=2,
                            near_gradient=near_gradient)
-    return RenderResult(fg=fg, bg=bg,
-                        coarse=composite(fg.coarse, bg.coarse if bg else None),
-                        fine=composite(fg.fine, bg.fine if bg else None))
+    coarse = None
+    if fg.coarse is not None:
+        coarse = composite(fg.coarse, bg.coarse if bg else None)
+    return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None),
+                        coarse=coarse)
 
 
 def _crossing(weights, distance, n, level):

@@ -43,7 +43,18 @@ from .data import pixel_rays
 from .files import remove_stale_temporaries
 from .frame import reframe_cameras
 from .model import NeRFPPModel
+from .profiling import stage
 from .render import distortion, ray_distortion, render_rays
+
+# The colour loss's weight against the priors, whose weights were tuned when the loss had two
+# terms of about equal size (the coarse and the fine composite; the coarse pass now only places
+# samples).
+PHOTOMETRIC_WEIGHT = float(os.environ.get('MI_NERFPP_PW', 2.0))
+# Gradients scattered into arrays of up to this many entries are summed in one copy per thread
+# and added up after the kernel (Dr.Jit's "expand" reduction) instead of by atomic adds: the
+# 8.4 M-entry grid levels are above Dr.Jit's default threshold (1 M), and their atomics cost
+# twice as much per sample at thousands of rays per step.
+GRADIENT_EXPAND_THRESHOLD = 1 << 25
 
 
 class TrainingError(RuntimeError):
@@ -231,16 +242,20 @@ class Trainer:
         optim.set_learning_rates(self.opt, self.progress(), o.lr_grid, o.lr_mlp, o.lr_final,
                                  {'appearance': o.lr_appearance, 'poses': o.lr_poses})
         if self.model.occupancy and self.iteration % self.cfg.sampling.occupancy_every == 0:
-            self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
-            self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
+            with stage('occupancy refresh'):
+                self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+                self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
         inputs = self._step_inputs()
         # No cyclic garbage collection while a step is recorded: releasing a collected
         # array that maps NumPy memory cannot be recorded (:mod:`.arrays`).
         collecting = gc.isenabled()
         gc.disable()
+        threshold = dr.expand_threshold()
+        dr.set_expand_threshold(GRADIENT_EXPAND_THRESHOLD)
         try:
             loss, fine = self._compute(inputs)
         finally:
+            dr.set_expand_threshold(threshold)
             if collecting:
                 gc.enable()
         # The model's fields read the parameters after the update (previews, evaluations);
@@ -308,9 +323,12 @@ class Trainer:
         if model.appearance is not None:
             image, params = rays.images(index), opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
+        pred = encode(res.fine.rgb)
         color_loss = optim.COLOR_LOSSES[cfg.color_loss]
-        pred, coarse = encode(res.fine.rgb), encode(res.coarse.rgb)
-        loss = color_loss(pred, gt) + color_loss(coarse, gt)
+        if res.coarse is not None:
+            loss = color_loss(pred, gt) + color_loss(encode(res.coarse.rgb), gt)
+        else:
+            loss = PHOTOMETRIC_WEIGHT * color_loss(pred, gt)
         fine = dr.detach(optim.mse(pred, gt))     # for the PSNR shown while training
         if model.appearance is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])
@@ -326,8 +344,10 @@ class Trainer:
         if cfg.tv > 0:
             loss += cfg.tv * sum((priors.grid_tv(opt[k], idx) for k, idx in draws['tv'].items()),
                                  mi.Float(0.0))
-        dr.backward(loss)
-        opt.step()
+        with stage('losses and reverse pass'):
+            dr.backward(loss)
+        with stage('adam'):
+            opt.step()
         return loss, fine
 
     def _coarse_to_fine(self):

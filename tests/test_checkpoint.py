@@ -112,7 +112,7 @@ def test_parameters_are_float32_arrays_without_pickle(tmp_path):
     p = tmp_path / 'm.npz'
     save_checkpoint(p, tiny_model())
     with np.load(p, allow_pickle=False) as z:
-        assert str(z['format']) == 'mi-nerfpp-checkpoint' and int(z['version']) == VERSION == 2
+        assert str(z['format']) == 'mi-nerfpp-checkpoint' and int(z['version']) == VERSION == 3
         params = [k for k in z.files if k.startswith('param/')]
         assert params and all(z[k].dtype == np.float32 for k in params)
     assert TINY_GRID['kind'] == 'grid' and dr.width(tiny_model().fg.params['grid0'].array) > 0
@@ -239,3 +239,34 @@ def test_a_checkpoint_with_a_flat_training_config_loads_evaluates_and_resumes(
     model, meta, _ = load_checkpoint(run / 'model.npz')
     assert meta['iteration'] == 7 and meta['config']['schedule']['iterations'] == 7
     assert model.sampling == Sampling(8, 8, 8)
+
+
+def test_version_2_grid_fields_keep_their_per_sample_colour(tmp_path):
+    """Files written before deferred colour (version 2) hold grid fields whose MLP coloured every
+    sample: they load as ``color='sample'`` and render as such; version 3 files say which."""
+    m = tiny_model(seed=4)
+    path = tmp_path / 'm.npz'
+    save_checkpoint(path, m)
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    config = json.loads(str(arrays['config']))
+    assert config['fg']['color'] == 'deferred' and config['bg']['color'] == 'deferred'
+    for key in ('fg', 'bg'):
+        del config[key]['color']
+    arrays['config'], arrays['version'] = np.array(json.dumps(config)), np.array(2)
+    old = tmp_path / 'old.npz'
+    np.savez(old, **arrays)
+    m2, _, _ = load_checkpoint(old)
+    assert m2.fg.color_mode == 'sample' and m2.bg.color_mode == 'sample'
+    assert not m2.fg.deferred
+    for k, v in m.parameters().items():
+        np.testing.assert_array_equal(np.array(v), np.array(m2.parameters()[k]))
+    # It renders as the same parameters in fields that colour every sample.
+    per_sample = NeRFPPModel.create(seed=4, fg_config=dict(TINY_GRID, domain='ball', color='sample'),
+                                    bg_config=dict(TINY_GRID, domain='inverted_sphere',
+                                                   color='sample'))
+    per_sample.set_parameters(m.parameters())
+    a = mi.load_dict(scene_dict(checkpoint=str(old)))
+    b = mi.load_dict(scene_dict())
+    b.integrator().set_model(per_sample)
+    np.testing.assert_array_equal(np.array(mi.render(a, seed=0)), np.array(mi.render(b, seed=0)))

@@ -170,7 +170,7 @@ def test_empty_foreground_contributes_nothing():
     d = mi.Vector3f(F([1.0]), F([0.0]), F([0.0]))
     vol = Foreground(o, d)
     out = render_volume(vol, constant_field(50.0, (1, 1, 1)), 8, 8)
-    for sh in (out.coarse, out.fine):
+    for sh in (out.fine,):
         assert npf(sh.opacity)[0] == 0 and np.all(npf(sh.rgb) == 0) and npf(sh.depth)[0] == 0
 
 
@@ -270,15 +270,13 @@ def test_render_rays_constant_fields_composite():
     c_fg, c_bg = np.array([0.9, 0.1, 0.2]), np.array([0.1, 0.4, 0.8])
     res = render_rays(o, d, constant_field(2.0, c_fg), constant_field(0.7, c_bg),
                       Sampling(fg_samples=16, bg_samples=16, fine_samples=32))
-    for fg, full in ((res.fg.coarse, res.coarse), (res.fg.fine, res.fine)):
-        alpha = npf(fg.opacity)
-        assert np.all((alpha > 0.05) & (alpha < 1))
-        np.testing.assert_allclose(npf(fg.rgb, 40), np.outer(c_fg, alpha), atol=1e-5)
-        np.testing.assert_allclose(npf(full.opacity), 1.0, atol=1e-6)
-        np.testing.assert_allclose(npf(full.rgb, 40), np.outer(c_fg, alpha) + np.outer(c_bg, 1 - alpha),
-                                   atol=1e-5)
-    # The fine pass sees more of the chord start than the coarse pass, never less.
-    assert np.all(npf(res.fg.fine.opacity) >= npf(res.fg.coarse.opacity) - 1e-6)
+    fg, full = res.fg.fine, res.fine
+    alpha = npf(fg.opacity)
+    assert np.all((alpha > 0.05) & (alpha < 1))
+    np.testing.assert_allclose(npf(fg.rgb, 40), np.outer(c_fg, alpha), atol=1e-5)
+    np.testing.assert_allclose(npf(full.opacity), 1.0, atol=1e-6)
+    np.testing.assert_allclose(npf(full.rgb, 40), np.outer(c_fg, alpha) + np.outer(c_bg, 1 - alpha),
+                               atol=1e-5)
 
 
 # ----------------------------------------------------------------------------- hierarchical
@@ -321,9 +319,9 @@ def test_render_volume_fine_pass_constant_density(seeded):
         np.testing.assert_allclose(npf(out.fine.rgb, n_rays)[:, r], np.multiply(c, alpha), atol=1e-5)
         # Depth depends on every interval: only right if the merged samples are in order.
         assert npf(out.fine.depth)[r] == pytest.approx(np.sum(w * v), abs=1e-4)
-        # The coarse pass: constant density from its own first sample.
-        v0 = lo[r] + (0.5 if xi_c[r] is None else xi_c[r][0]) / n_c * (hi[r] - lo[r])
-        assert npf(out.coarse.opacity)[r] == pytest.approx(1 - np.exp(-sigma * (hi[r] - v0)), abs=1e-5)
+        # (The coarse pass only places samples: its weights are checked through the merged
+        # sample positions of the reference, which the fine samples follow.)
+        assert npf(out.distance, n_c + n_f)[r] == pytest.approx(v, abs=1e-5)
 
 
 def test_render_volume_fine_pass_varying_density():
@@ -386,9 +384,9 @@ def test_ray_distortion_puts_both_volumes_on_one_axis():
 
     def result(w_fg, w_bg, m_fg, m_bg):
         alpha = w_fg.sum(1)
-        fg = VolumeRender(None, Shading(None, F(alpha), None), F(w_fg), F(m_fg), n_fg)
-        bg = VolumeRender(None, None, F(w_bg), F(m_bg), n_bg)
-        return RenderResult(fg, bg, None, None), alpha
+        fg = VolumeRender(Shading(None, F(alpha), None), F(w_fg), F(m_fg), n_fg)
+        bg = VolumeRender(None, F(w_bg), F(m_bg), n_bg)
+        return RenderResult(fg, bg, None), alpha
 
     m_fg = np.sort(rng.uniform(0, 1, (n_rays, n_fg)), axis=1)
     m_bg = np.sort(rng.uniform(0, 1, (n_rays, n_bg)), axis=1)
@@ -529,7 +527,7 @@ def test_near_gradient_scales_each_sample_by_its_squared_distance():
         theta = mi.Float(0.7)
         dr.enable_grad(theta)
         res = render(theta, radius)
-        loss = dr.mean(res.fine.rgb.x + res.fine.rgb.z + res.coarse.rgb.x + res.fine.opacity)
+        loss = dr.mean(res.fine.rgb.x + res.fine.rgb.z + res.fg.fine.rgb.y + res.fine.opacity)
         dr.backward(loss)
         grads.append(np.array(dr.grad(theta))[0])
         images.append(np.array(dr.detach(res.fine.rgb)))
@@ -539,3 +537,77 @@ def test_near_gradient_scales_each_sample_by_its_squared_distance():
     assert grads[1] == pytest.approx(grads[0], rel=1e-6)
     assert grads[3] == pytest.approx(grads[2] / 4, rel=1e-5)
     assert 0 < grads[2] < grads[0]
+
+
+# ----------------------------------------------------------------------------- deferred colour
+
+class AffineColourField:
+    """Closed-form density, two features per sample, and a colour that is affine in the
+    features: ``c(F, d) = A·F + b(d)``. With ``deferred`` it composites the features and
+    colours each ray once (the grid field's path); without, it colours every sample."""
+
+    A = np.array([[0.7, -0.2], [0.1, 0.5], [-0.3, 0.4]])
+
+    def __init__(self, deferred):
+        self.deferred = deferred
+
+    def density(self, x):
+        return 2.0 + 6.0 * dr.square(x[0])
+
+    def _features(self, x):
+        return [0.5 + 0.4 * dr.sin(3.0 * x[0] + x[1]), 0.2 + 0.3 * dr.cos(2.0 * x[2] - x[1])]
+
+    def _bias(self, d):
+        return [0.1 + 0.05 * d.x, 0.2 - 0.1 * d.y, 0.05 * d.z]
+
+    def features(self, x):
+        return self.density(x), self._features(x)
+
+    def color(self, f, d):
+        b = self._bias(d)
+        return mi.Color3f(*[self.A[i, 0] * f[0] + self.A[i, 1] * f[1] + b[i] for i in range(3)])
+
+    def __call__(self, x, d, ray):
+        return self.density(x), self.color(self._features(x), dr.gather(mi.Vector3f, d, ray))
+
+
+def test_deferred_and_per_sample_colour_agree_for_an_affine_colour_network():
+    """``α·c(Σw f/α, d) = Σ w c(f, d)`` when c is affine in f: both volumes, jittered samples."""
+    o, d = rays(64, seed=21)
+    seed = mi.UInt32(np.arange(64, dtype=np.uint32) * 7 + 3)
+    out = {}
+    for deferred in (False, True):
+        out[deferred] = render_rays(o, d, AffineColourField(deferred), AffineColourField(deferred),
+                                    Sampling(12, 12, 12), seed=seed)
+    for name in ('fg', 'bg'):
+        a, b = getattr(out[False], name).fine, getattr(out[True], name).fine
+        assert npf(a.opacity).min() > 0.05
+        np.testing.assert_allclose(npf(b.rgb, 64), npf(a.rgb, 64), rtol=0, atol=1e-5)
+        np.testing.assert_array_equal(npf(b.opacity), npf(a.opacity))
+    np.testing.assert_allclose(npf(out[True].fine.rgb, 64), npf(out[False].fine.rgb, 64),
+                               rtol=0, atol=1e-5)
+
+
+def test_deferred_grid_field_colours_the_composited_features_once_per_ray():
+    """A grid field's volume colour is ``α·c(F/α, d)`` with ``F = Σ w_i f_i`` over its merged
+    samples (float64 composite of the field's own features at the returned positions)."""
+    from tests.helpers import TINY_GRID
+    from mi_nerfpp.fields import GridField
+    field = GridField('ball', **{k: v for k, v in TINY_GRID.items() if k != 'kind'},
+                      density_bias=1.0, seed=3)
+    assert field.deferred
+    n_rays, n_c, n_f = 32, 8, 8
+    o, d = rays(n_rays, seed=22)
+    vol = Foreground(o, d)
+    out = render_volume(vol, field, n_c, n_f)
+    n = n_c + n_f
+    ray, _ = flat_index(n_rays, n)
+    sigma, feats = field.features(vol.inputs(ray, out.distance))
+    w = npf(out.weights, n)
+    f = np.stack([npf(c, n) for c in feats])                    # (channels, rays, n)
+    F64 = (w[None] * f).sum(-1)
+    alpha = w.sum(-1)
+    assert alpha.min() > 0.01
+    c = field.color([mi.Float(x.astype(np.float32)) for x in F64 / alpha], d)
+    np.testing.assert_allclose(npf(out.fine.opacity), alpha, atol=1e-6)
+    np.testing.assert_allclose(npf(out.fine.rgb, n_rays), npf(c, n_rays) * alpha, atol=2e-6)

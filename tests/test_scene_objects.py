@@ -29,7 +29,7 @@ def test_far_at_infinity_renders_bit_identically():
                             skip_occluded=skip, far=dr.full(mi.Float, dr.inf, 64))
             for x, y in ((a.fine.rgb, b.fine.rgb), (a.fine.opacity, b.fine.opacity),
                          (a.fine.depth, b.fine.depth), (a.fg.fine.rgb, b.fg.fine.rgb),
-                         (a.coarse.rgb, b.coarse.rgb)):
+                         (a.bg.fine.rgb, b.bg.fine.rgb)):
                 np.testing.assert_array_equal(npf(x), npf(y))
 
 

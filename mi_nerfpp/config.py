@@ -256,7 +256,7 @@ class OptimizerOptions(_Options):
 
 @dataclass
 class LossOptions(_Options):
-    color_loss: str = option('charbonnier', "colour loss of the coarse and fine composites: "
+    color_loss: str = option('charbonnier', "colour loss of the rendered pixels: "
                              "'charbonnier' (mip-NeRF 360's robust loss) or 'mse' (the "
                              "paper's squared error)", choices=tuple(optim.COLOR_LOSSES))
     distortion: float = option(0.01, 'weight of the mip-NeRF 360 distortion loss, which '
@@ -316,7 +316,7 @@ class ScheduleOptions(_Options):
                      f'default run: --minutes {DEFAULT_JOB_MINUTES:g})')
     minutes: float | None = option(
         None, 'wall-time budget in minutes of training steps', type=float, exclusive='budget')
-    batch_rays: int = option(1024, 'rays per step')
+    batch_rays: int = option(4096, 'rays per step')
     seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
     freeze: bool = option(True, 'record the kernels of a training step once and replay them '
                           '(drjit.freeze) instead of tracing every step in Python; re-recorded '

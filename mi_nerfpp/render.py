@@ -70,8 +70,6 @@ HIDDEN_WEIGHT = 1e-4
 # Deferred colour: composited features are divided by the opacity, at least this much (a ray
 # that sees nothing has no colour to speak of; its premultiplied colour is ~0 either way).
 FEATURE_OPACITY_FLOOR = 1e-4
-import os
-COARSE_LOSS = bool(int(os.environ.get('MI_NERFPP_COARSE', '0')))
 
 
 @dataclass
@@ -92,7 +90,6 @@ class VolumeRender:
     n: int
     distance: mi.Float = None  # distance along the ray of each sample (same layout as weights)
     rays: mi.UInt32 = None     # the rays the per-sample arrays belong to (None: every ray)
-    coarse: Shading = None     # the coarse samples' own composite (differentiable renders)
 
 
 @dataclass
@@ -101,7 +98,6 @@ class RenderResult:
     fg: VolumeRender
     bg: VolumeRender | None
     fine: Shading            # Eq. 4 composite of the volumes (the image)
-    coarse: Shading = None   # Eq. 4 composite of the coarse passes (differentiable renders)
 
 
 # ----------------------------------------------------------------------------- volumes
@@ -331,13 +327,8 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
         rgb = _shade_visible(volume, field, t, w, transmittance, n)
         values = [rgb.x, rgb.y, rgb.z]
     distance = volume.distance(ray, t)
-    coarse = None
-    if COARSE_LOSS and not visible_only and n_fine > 0:
-        w_c, _ = weights(volume, v_c, sigma_c, n_coarse)
-        coarse = _shading(field, deferred, w_c, values_c, volume.distance(ray_c, t_c), n_coarse,
-                          volume.d)
     return VolumeRender(_shading(field, deferred, w, values, distance, n, volume.d), w,
-                        volume.normalized(ray, v), n, distance, coarse=coarse)
+                        volume.normalized(ray, v), n, distance)
 
 
 def _shading(field, deferred, w, values, distance, n, d):
@@ -506,11 +497,7 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
         bg = render_volume(volume(Background(o, d, far), 'bg'), bg_field,
                            sampling.bg_samples, sampling.fine_samples, seed, stream=2,
                            near_gradient=near_gradient)
-    coarse = None
-    if fg.coarse is not None:
-        coarse = composite(fg.coarse, bg.coarse if bg else None)
-    return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None),
-                        coarse=coarse)
+    return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None))
 
 
 def _crossing(weights, distance, n, level):

@@ -304,7 +304,7 @@ def plot_training(history, metrics, color_loss, path):
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     ax[0].semilogy(t, loss)
     ax[0].set(xlabel='seconds of training',
-              ylabel=f'loss ({COLOR_LOSS_NAMES[color_loss]}, coarse + fine, + priors)')
+              ylabel=f'loss ({COLOR_LOSS_NAMES[color_loss]} + priors)')
     ax[1].plot(t, psnr, label='training batches')
     points = [(60 * p['minutes'], p['psnr']) for p in metrics.get('progress', [])]
     if 'test' in metrics:

@@ -46,10 +46,6 @@ from .model import NeRFPPModel
 from .profiling import stage
 from .render import distortion, ray_distortion, render_rays
 
-# The colour loss's weight against the priors, whose weights were tuned when the loss had two
-# terms of about equal size (the coarse and the fine composite; the coarse pass now only places
-# samples).
-PHOTOMETRIC_WEIGHT = float(os.environ.get('MI_NERFPP_PW', 2.0))
 # Gradients scattered into arrays of up to this many entries are summed in one copy per thread
 # and added up after the kernel (Dr.Jit's "expand" reduction) instead of by atomic adds: the
 # 8.4 M-entry grid levels are above Dr.Jit's default threshold (1 M), and their atomics cost
@@ -324,11 +320,7 @@ class Trainer:
             image, params = rays.images(index), opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
         pred = encode(res.fine.rgb)
-        color_loss = optim.COLOR_LOSSES[cfg.color_loss]
-        if res.coarse is not None:
-            loss = color_loss(pred, gt) + color_loss(encode(res.coarse.rgb), gt)
-        else:
-            loss = PHOTOMETRIC_WEIGHT * color_loss(pred, gt)
+        loss = optim.COLOR_LOSS_WEIGHT * optim.COLOR_LOSSES[cfg.color_loss](pred, gt)
         fine = dr.detach(optim.mse(pred, gt))     # for the PSNR shown while training
         if model.appearance is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])

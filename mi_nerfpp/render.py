@@ -55,7 +55,7 @@ import mitsuba as mi
 
 from . import geometry as geo
 from .occupancy import DEFAULT_BINS, OccupiedVolume
-from .profiling import stage
+from .profiling import settle, stage
 from .sampling import flat_index, gather_merged, inverse_cdf, merge_order, stratified, uniforms
 
 MAX_DEPTH_RADIUS = 1000.0
@@ -316,19 +316,23 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
             dr.eval(v_f, t_f)
         with stage('field'):
             sigma_f, values_f = evaluate(ray_f, t_f)
-        order = merge_order(v_c, n_coarse, v_f, n_fine)
-        v, t = gather_merged(order, v_c, v_f), gather_merged(order, t_c, t_f)
-        sigma = gather_merged(order, sigma_c, sigma_f)
-        values = [gather_merged(order, a, b) for a, b in zip(values_c, values_f)]
+        with stage('merge'):
+            order = merge_order(v_c, n_coarse, v_f, n_fine)
+            v, t = gather_merged(order, v_c, v_f), gather_merged(order, t_c, t_f)
+            sigma = gather_merged(order, sigma_c, sigma_f)
+            values = [gather_merged(order, a, b) for a, b in zip(values_c, values_f)]
+            settle(v, t, sigma, values)
         n = n_coarse + n_fine
     ray, _ = flat_index(n_rays, n)
-    w, transmittance = weights(volume, v, sigma, n)
-    if lazy:
-        rgb = _shade_visible(volume, field, t, w, transmittance, n)
-        values = [rgb.x, rgb.y, rgb.z]
-    distance = volume.distance(ray, t)
-    return VolumeRender(_shading(field, deferred, w, values, distance, n, volume.d), w,
-                        volume.normalized(ray, v), n, distance)
+    with stage('quadrature'):
+        w, transmittance = weights(volume, v, sigma, n)
+        if lazy:
+            rgb = _shade_visible(volume, field, t, w, transmittance, n)
+            values = [rgb.x, rgb.y, rgb.z]
+        distance = volume.distance(ray, t)
+        shading = _shading(field, deferred, w, values, distance, n, volume.d)
+        settle(shading.rgb, shading.opacity, shading.depth, w, distance)
+    return VolumeRender(shading, w, volume.normalized(ray, v), n, distance)
 
 
 def _shading(field, deferred, w, values, distance, n, d):

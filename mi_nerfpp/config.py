@@ -287,6 +287,9 @@ class LossOptions(_Options):
                                   'their camera (in the units of the unit sphere of NeRF++) by '
                                   '(distance / this)² (Floaters No More: fewer '
                                   'floaters near the cameras; 0: off)')
+    far_smoothness: float = option(0.0, "weight of the smoothness prior on the background "
+                                   "grid's far slice (what directions no training view saw "
+                                   'show), which continues the neighbouring colours there')
     tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
     appearance_prior: float = option(app.PRIOR, 'weight of the L2 prior that keeps the '
@@ -297,7 +300,8 @@ class LossOptions(_Options):
             self._bad('color_loss', ' or '.join(f"'{k}'" for k in optim.COLOR_LOSSES))
         if self.distortion_scope not in ('volume', 'ray'):
             self._bad('distortion_scope', "'volume' or 'ray'")
-        self._check(('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'appearance_prior',
+        self._check(('distortion', 'opacity_entropy', 'tv', 'far_smoothness', 'entropy_start',
+                     'appearance_prior',
                      'near_gradient'), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
         self._check(('tv_cells',), lambda v: v >= 1, 'at least 1')
         for name, ok, one in (('sparsity', lambda w: w >= 0, 'one finite number >= 0'),

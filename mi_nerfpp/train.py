@@ -336,6 +336,10 @@ class Trainer:
         if cfg.tv > 0:
             loss += cfg.tv * sum((priors.grid_tv(opt[k], idx) for k, idx in draws['tv'].items()),
                                  mi.Float(0.0))
+        if cfg.far_smoothness > 0 and model.bg is not None and model.bg.kind == 'grid':
+            loss += cfg.far_smoothness * sum(
+                (priors.far_field_smoothness(opt[k]) for k in opt.keys()
+                 if k.startswith('bg.') and optim.is_grid(k)), mi.Float(0.0))
         with stage('losses and reverse pass'):
             dr.backward(loss)
         with stage('adam'):

@@ -10,7 +10,7 @@ from mitsuba.ad.integrators.common import ADIntegrator
 
 from .checkpoint import load_checkpoint
 from .color import srgb_to_linear
-from .layers import AOVS, aov_list, layer_channels, rst_table
+from .layers import AOVS, BACKGROUND_WEIGHT_FLOOR, aov_list, layer_channels, rst_table
 from .model import FIELD_KINDS, NeRFPPModel
 from .objects import combine, path_rng, split_scene, trace_paths
 from .render import Sampling, render_rays, surface_distance
@@ -355,9 +355,15 @@ class NeRFPPIntegrator(ADIntegrator):
         else:
             center, axis = self._view
             depth = dr.dot(o - center, axis) + surface * dr.dot(dr.normalize(d), axis)
-        aovs = layer_channels(fg=(fg_rgb.x, fg_rgb.y, fg_rgb.z, alpha), bg=(bg.x, bg.y, bg.z),
+        # The background as seen through the foreground (weighted by λ + ε: see
+        # mi_nerfpp.layers), so that the layers add up after the film averages the samples.
+        seen = (1.0 - alpha) + BACKGROUND_WEIGHT_FLOOR
+        aovs = layer_channels(fg=(fg_rgb.x, fg_rgb.y, fg_rgb.z, alpha),
+                              bg=(seen * bg.x, seen * bg.y, seen * bg.z),
                               depth=(depth,),
-                              distance=(norm.to_world_distance(res.fine.depth),))
+                              distance=(norm.to_world_distance(res.fine.depth),),
+                              A=(dr.full(mi.Float, 1.0, dr.width(alpha)) if self.background
+                                 else alpha,))
         return L, aovs, res.fine.opacity
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
@@ -481,10 +487,15 @@ class NeRFPPIntegrator(ADIntegrator):
         depth = dr.select(hit & (opacity0 < 0.5), z_hit, volumes['depth.Z'])
         distance = volumes['distance.Y'] + dr.select(hit, (1.0 - opacity0) * t_hit, 0.0)
         mask = dr.select(hit, 1.0, 0.0)
+        fg_alpha = volumes['fg.A']
         aovs = dict(volumes, **layer_channels(
             depth=(depth,), distance=(distance,),
-            obj=(surfaces.x, surfaces.y, surfaces.z, mask, dr.select(hit, z_hit, 0.0)),
-            shadow=(shadow.x, shadow.y, shadow.z)))
+            obj=(surfaces.x, surfaces.y, surfaces.z, mask),
+            obj_depth=(dr.select(hit, z_hit, 0.0),),
+            shadow=(shadow.x, shadow.y, shadow.z),
+            # Without the background: the foreground over the shapes, sample by sample.
+            A=(dr.full(mi.Float, 1.0, n) if self.background
+               else fg_alpha + (1.0 - fg_alpha) * mask,)))
         return L0 + surfaces + shadow, aovs
 
     def _shadowed_by_volumes(self, paths, primal):

@@ -90,9 +90,8 @@ def object_scene(fg, bg, shapes, width=16, height=12, origin=(0.0, 0.1, 0.9), ta
 
 
 def channels(scene, **kwargs):
-    from mi_nerfpp.layers import LAYERS
-    img = np.array(mi.render(scene, **kwargs))
-    return {name: img[..., i] for i, name in enumerate(LAYERS)}
+    from mi_nerfpp.views import render_layers
+    return render_layers(mi.render(scene, **kwargs), scene.integrator())
 
 
 def pixel_rays(scene):
@@ -135,8 +134,8 @@ def test_sphere_in_front_of_the_volume_has_its_analytic_depth():
     np.testing.assert_array_equal(c['obj.A'], hit.astype(np.float32))
     z = camera_z(scene, o, d, np.where(hit, t, 0.0))
     np.testing.assert_allclose(c['depth.Z'][hit], z[hit], rtol=1e-5)
-    np.testing.assert_allclose(c['obj.Z'][hit], z[hit], rtol=1e-5)
-    assert np.all(c['obj.Z'][~hit] == 0) and np.all(c['obj.R'][~hit] == 0)
+    np.testing.assert_allclose(c['obj_depth.Z'][hit], z[hit], rtol=1e-5)
+    assert np.all(c['obj_depth.Z'][~hit] == 0) and np.all(c['obj.R'][~hit] == 0)
     # The volume in front of the sphere is integrated up to the hit only: fg.A = 1 - exp(-σ t)
     # (64 + 32 samples from the near plane; the first half interval is not integrated).
     np.testing.assert_allclose(c['fg.A'][hit], 1 - np.exp(-0.2 * t[hit]), atol=3e-3)
@@ -324,8 +323,8 @@ def test_gradients_through_a_mirror_match_finite_differences():
     dr.enable_grad(params[key])
     params.update()
     img = mi.render(scene, params, seed=1)
-    from mi_nerfpp.layers import LAYERS
-    assert np.array(img)[..., LAYERS.index('obj.A')].max() == 1.0     # the mirror is in view
+    from mi_nerfpp.layers import AOVS
+    assert np.array(img)[..., 4 + AOVS.index('obj.A')].max() == 1.0     # the mirror is in view
     dr.backward(loss(img))
     grad = np.array(dr.grad(params[key])).ravel()
     base = np.array(params[key]).ravel().astype(np.float64)
@@ -478,7 +477,7 @@ def test_scene_without_shapes_renders_the_volumes_alone():
     scene = mi.load_dict(scene_dict(jitter=False))      # rays through the pixel centres
     scene.integrator().set_model(tiny_model())
     c = channels(scene)
-    for name in ('obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj.Z', 'shadow.R', 'shadow.G', 'shadow.B'):
+    for name in ('obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj_depth.Z', 'shadow.R', 'shadow.G', 'shadow.B'):
         assert np.all(c[name] == 0), name
     o, d = pixel_rays(scene)
     L, _ = scene.integrator().render_layers(mi.Point3f(*[F(o[..., i]) for i in range(3)]),

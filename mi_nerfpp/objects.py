@@ -71,8 +71,11 @@ def split_scene(scene, catcher_ids=()):
     # Keyed by their own ids: load_dict gives every object its key as id.
     catchers = {_key(s, i): s for i, s in enumerate(shapes) if s.id() in catcher_ids}
     objects = {_key(s, i): s for i, s in enumerate(shapes) if s.id() not in catcher_ids}
+    # Area emitters travel with their shapes; the others (point, spot, directional) are
+    # scene children of their own. (Only area emitters have a shape: Mitsuba's Python
+    # Emitter of a point light has no ``shape()`` at all.)
     emitters = {_key(e, f'emitter{i}'): e for i, e in enumerate(scene.emitters())
-                if e.shape() is None}
+                if not mi.has_flag(e.flags(), mi.EmitterFlags.Surface)}
     objects_scene = None
     if objects:
         objects_scene = mi.load_dict(dict({'type': 'scene'}, **objects, **emitters))

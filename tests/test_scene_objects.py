@@ -485,3 +485,34 @@ def test_scene_without_shapes_renders_the_volumes_alone():
                                             None, primal=True)
     np.testing.assert_allclose(np.stack([c[ch] for ch in 'RGB'], -1).reshape(-1, 3),
                                npf(L, dr.width(L)).T, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize('emitter', ['point', 'spot', 'directional', 'area'])
+def test_shapes_catchers_and_each_emitter_type_render_together(emitter):
+    """Issue 37: shapes + shadow_catchers + a point or area light failed with "'Emitter'
+    object has no attribute 'shape'". Each emitter type with objects and a catcher: it lights
+    the ball (brighter than without it) and the layers still add up."""
+    lights = {
+        'point': {'type': 'point', 'position': [0.1, 0.5, 0.2],
+                  'intensity': {'type': 'rgb', 'value': 2.0}},
+        'spot': {'type': 'spot', 'to_world': mi.ScalarTransform4f().look_at(
+            origin=[0.1, 0.5, 0.3], target=[0, -0.1, 0], up=[0, 0, 1]), 'cutoff_angle': 40,
+            'intensity': {'type': 'rgb', 'value': 4.0}},
+        'directional': {'type': 'directional', 'direction': [0, -1, -0.3],
+                        'irradiance': {'type': 'rgb', 'value': 2.0}},
+        'area': {'type': 'rectangle', 'to_world': mi.ScalarTransform4f().translate(
+            [0, 0.5, 0.2]).rotate([1, 0, 0], 90).scale(0.1),
+            'emitter': {'type': 'area', 'radiance': {'type': 'rgb', 'value': 20.0}}},
+    }
+    ball = {'ball': {'type': 'sphere', 'center': [0, -0.1, 0], 'radius': 0.12,
+                     'bsdf': {'type': 'diffuse'}}}
+    dark = ground_scene(dict(ball, **CATCHER), shadow_catchers='catcher')
+    lit = ground_scene(dict(ball, light=lights[emitter], **CATCHER), shadow_catchers='catcher')
+    c, d = channels(lit), channels(dark)
+    on = c['obj.A'] == 1.0
+    assert on.sum() > 5
+    assert c['obj.R'][on].mean() > d['obj.R'][on].mean() + 0.01
+    for ch in 'RGB':
+        np.testing.assert_allclose(
+            c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'] + c[f'obj.{ch}']
+            + c[f'shadow.{ch}'], atol=1e-5)

@@ -436,6 +436,15 @@ def test_example_scene_renders_objects_into_a_checkpoint(tmp_path):
         np.testing.assert_allclose(
             c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'] + c[f'obj.{ch}']
             + c[f'shadow.{ch}'], atol=2e-5)
+        # The catcher only darkens (issue 35: it brightened 19 % of the pixels).
+        assert np.all(c[f'shadow.{ch}'] <= 0), ch
+    # -D catchers= renders no proxy (issue 35: an opaque grey quad over 45 % of the frame):
+    # the objects' coverage is the same as with the catcher, and nothing is shadowed.
+    plain = channels(mi.load_file(xml, checkpoint=str(tmp_path / 'model.npz'), width='32',
+                                  height='18', spp='1', catchers=''))
+    np.testing.assert_array_equal(plain['obj.A'], c['obj.A'])
+    assert not np.any(plain['shadow.R'])
+    np.testing.assert_allclose(plain['R'], c['R'] - c['shadow.R'], atol=1e-5)
 
 
 def test_shadow_catcher_ratio_under_a_black_disk_is_the_unblocked_cosine_fraction():

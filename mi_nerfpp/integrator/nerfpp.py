@@ -267,11 +267,16 @@ class NeRFPPIntegrator(ADIntegrator):
         # render's seed), so no two samples share a path even where the sampler repeats.
         path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n),
                                         mi.UInt32(sampler.next_1d() * 4294967040.0))
+        environment = None
+        if parts.catchers is not None and parts.objects is not None:
+            environment = self._catcher_environment(parts, mode == dr.ADMode.Primal)
         if mode != dr.ADMode.Primal:
-            L, aovs = self._render_scene(parts, o, d, seed, path_seed, primal=False)
+            L, aovs = self._render_scene(parts, o, d, seed, path_seed, primal=False,
+                                         environment=environment)
         else:
             L, aovs = self._chunked(lambda o, d, seed, path_seed: self._render_scene(
-                parts, o, d, seed, path_seed, primal=True), [o, d, seed, path_seed], n)
+                parts, o, d, seed, path_seed, primal=True, environment=environment),
+                [o, d, seed, path_seed], n)
         return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
 
 

@@ -87,7 +87,7 @@ def read_parameters(props, field_kinds) -> dict:
     p['shadow_catchers'] = tuple(c.strip() for c in catchers.split(',') if c.strip())
     proxies = read('proxies', str, '')
     p['proxies'] = tuple(c.strip() for c in proxies.split(',') if c.strip())
-    p['catcher_samples'] = read('catcher_samples', int, 64, minimum=1)
+    p['catcher_samples'] = read('catcher_samples', int, 16, minimum=1)
     p['volume_shadows'] = read('volume_shadows', bool, True)
     read.reject_unknown()
     if p['random_seed'] >= 2 ** 32:

@@ -15,12 +15,13 @@ class ShapeLayers:
     """The shapes' methods of :class:`~mi_nerfpp.integrator.NeRFPPIntegrator` (which takes
     them as its own; they use those of :class:`~.volumes.VolumeLayers`)."""
 
-    def _render_scene(self, parts, o, d, seed, path_seed, primal, catchers=True,
+    def _render_scene(self, parts, o, d, seed, path_seed, primal, environment=None,
                       transform=True, camera=True):
         """Beauty and AOVs of camera rays through a scene with shapes (see
         :mod:`mi_nerfpp.objects`): the volumes up to the first surface, the surfaces path
         traced with the volumes as their light, the shadow catchers' differential shading
-        (``catchers``); ``transform=False`` leaves out the appearance transform;
+        (with the ``environment`` of :meth:`_catcher_environment`, where the scene has
+        catchers); ``transform=False`` leaves out the appearance transform;
         ``camera=False``: the rays start on a surface (see :meth:`_volume`)."""
         n = dr.width(o)
         hit = dr.zeros(mi.Bool, n)
@@ -52,8 +53,8 @@ class ShapeLayers:
             if self.appearance_image >= 0 and transform:
                 surfaces = appearance_transform(self.model, self.appearance_image)[0] * surfaces
         shadow = dr.zeros(mi.Color3f, n)
-        if catchers and parts.catchers is not None and parts.objects is not None:
-            shadow = self._shadow(parts, o, d, far0, L0, path_seed, primal)
+        if environment is not None and parts.objects is not None:
+            shadow = self._shadow(parts, o, d, far0, L0, path_seed, environment)
         t_hit = dr.select(hit, far0, 0.0) if far0 is not None else dr.zeros(mi.Float, n)
         z_hit = t_hit
         if self._view is not None:
@@ -72,6 +73,8 @@ class ShapeLayers:
             # Without the background: the foreground over the shapes, sample by sample.
             A=(dr.full(mi.Float, 1.0, n) if self.background
                else fg_alpha + (1.0 - fg_alpha) * mask,)))
+        if camera and transform and getattr(self, '_deep', None) is not None:
+            self._deep.update(far=far0, hit=hit, L0=L0, surfaces=surfaces, shadow=shadow)
         return L0 + surfaces + shadow, aovs
 
     def _shadowed_by_volumes(self, paths, primal):
@@ -88,14 +91,37 @@ class ShapeLayers:
                    - (1.0 - T) * dr.gather(mi.Color3f, paths.nee, rays), rays)
         return vertex
 
-    def _shadow(self, parts, o, d, far0, L0, path_seed, primal):
-        """Differential rendering on the shadow catchers (Debevec 1998): where a camera ray
-        meets a catcher before any object, the radiance ``L0`` of the volumes along it is
-        scaled by ``E_with / E_without``, the catcher's irradiance with and without the
-        objects, both estimated from the same ``catcher_samples`` cosine-distributed
-        directions (a direction that meets no object contributes the same volume radiance
-        to both). Returns the change, ``(ratio - 1)·L0`` (0 where no catcher is seen, and
-        where no direction meets an object)."""
+    def _catcher_environment(self, parts, primal):
+        """The reconstruction as the shadow catchers see it: the volumes' radiance along
+        :data:`ENVIRONMENT_SIZE` directions (a latitude-longitude map) from the centre of the
+        catchers' bounding box, rendered once per frame, as a bilinear texture
+        (:func:`environment_direction`)."""
+        height, width = ENVIRONMENT_SIZE
+        v, u = dr.meshgrid(dr.arange(mi.Float, height), dr.arange(mi.Float, width),
+                           indexing='ij')
+        d = environment_direction((u + 0.5) / width, (v + 0.5) / height)
+        n = height * width
+        centre = parts.catchers.bbox().center()
+        o = mi.Point3f(*[dr.full(mi.Float, float(c), n) for c in centre])
+        with dr.suspend_grad():
+            L, _ = self._volume_batch(o, d, dr.full(mi.Float, dr.inf, n), primal=True)
+            texels = dr.ravel(dr.detach(L))
+            dr.eval(texels)
+        return mi.Texture2f(mi.TensorXf(texels, (height, width, 3)),
+                            filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
+
+    def _shadow(self, parts, o, d, far0, L0, path_seed, environment):
+        """Differential rendering on the shadow catchers (Debevec 1998), the occlusion part:
+        where a camera ray meets a catcher before any object, the radiance ``L0`` of the
+        volumes along it is scaled by ``E_with / E_without``, the catcher's irradiance with
+        and without the objects, estimated from the same ``catcher_samples``
+        cosine-distributed directions over its hemisphere that faces the camera, each carrying
+        the reconstruction's radiance from the catcher ``environment``; a direction that meets
+        an object carries none. Returns the change, ``(ratio - 1)·L0``: never positive, and
+        exactly 0 where no catcher is seen or no direction meets an object. The light that
+        objects reflect onto the catcher is left out (no colour bleeding), and the
+        environment is seen from one point (the catchers' centre), whose parallax mostly
+        cancels in the ratio."""
         n, K = dr.width(o), self.catcher_samples
         ray = mi.Ray3f(o, d)
         if far0 is not None:
@@ -116,31 +142,33 @@ class ShapeLayers:
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
         local = mi.warp.square_to_cosine_hemisphere(u)
         ray_k = si_k.spawn_ray(mi.Frame3f(normal).to_world(local))
-        seed_k = rng.next_uint32()
-        # Where no direction meets an object the ratio is 1: only catcher points next to
-        # objects are shaded, each from all of its directions.
         blocked = parts.objects.ray_test(ray_k)
-        near = dr.compress(dr.block_sum(dr.select(blocked, 1, 0), K) > 0)
-        if dr.width(near) == 0:
-            return shadow
-        j = dr.arange(mi.UInt32, dr.width(near) * K)
-        r = dr.gather(mi.UInt32, near, j // K) * K + j % K
-        o_r, d_r = dr.gather(mi.Point3f, ray_k.o, r), dr.gather(mi.Vector3f, ray_k.d, r)
-        without, _ = self._volume_batch(o_r, d_r, dr.full(mi.Float, dr.inf, dr.width(r)), primal)
-        with_objects = mi.Color3f(without)
-        hits = dr.compress(dr.gather(mi.Bool, blocked, r))
-        def render_hits(o, d, seed):
-            return self._render_scene(parts, o, d, None, seed, primal, catchers=False,
-                                      transform=False, camera=False)
-        hit_args = [dr.gather(mi.Point3f, o_r, hits), dr.gather(mi.Vector3f, d_r, hits),
-                    dr.gather(mi.UInt32, seed_k, dr.gather(mi.UInt32, r, hits))]
-        if primal:      # up to chunk_rays x catcher_samples rays: in chunks too
-            L_hit, _ = self._chunked(render_hits, hit_args, dr.width(hits), progress=False)
-        else:
-            L_hit, _ = render_hits(*hit_args)
-        dr.scatter(with_objects, L_hit, hits)
-        e_with, e_without = dr.block_sum(with_objects, K), dr.block_sum(without, K)
-        ratio = dr.select(e_without > 0.0, e_with / dr.maximum(e_without, 1e-30), 1.0)
-        rays = dr.gather(mi.UInt32, caught, near)
-        dr.scatter(shadow, (ratio - 1.0) * dr.gather(mi.Color3f, L0, rays), rays)
+        texel = environment.eval(environment_uv(ray_k.d))
+        L_k = mi.Color3f(texel[0], texel[1], texel[2])
+        e_without = dr.block_sum(L_k, K)
+        e_with = dr.block_sum(dr.select(blocked, 0.0, L_k), K)
+        any_blocked = dr.block_sum(dr.select(blocked, 1, 0), K) > 0
+        ratio = dr.select(any_blocked & (e_without > 0.0),
+                          e_with / dr.maximum(e_without, 1e-30), 1.0)
+        change = (ratio - 1.0) * dr.gather(mi.Color3f, L0, caught)
+        dr.scatter(shadow, dr.select(any_blocked, change, 0.0), caught)
         return shadow
+
+
+# Texels (height, width) of the latitude-longitude map of the reconstruction that the shadow
+# catchers see (:meth:`ShapeLayers._catcher_environment`): 8192 volume rays per frame.
+ENVIRONMENT_SIZE = (64, 128)
+
+
+def environment_direction(u, v):
+    """The unit direction at ``(u, v)`` of the latitude-longitude map (v = 0: +y, u from the
+    -z axis round through +x)."""
+    phi, theta = dr.two_pi * (u - 0.5), dr.pi * v
+    sin_theta = dr.sin(theta)
+    return mi.Vector3f(sin_theta * dr.sin(phi), dr.cos(theta), -sin_theta * dr.cos(phi))
+
+
+def environment_uv(d):
+    """The inverse of :func:`environment_direction`."""
+    return mi.Point2f(dr.atan2(d.x, -d.z) * dr.inv_two_pi + 0.5,
+                      dr.safe_acos(dr.clip(d.y, -1.0, 1.0)) * dr.inv_pi)

@@ -68,6 +68,9 @@ class VolumeLayers:
                               distance=(norm.to_world_distance(res.fine.depth),),
                               A=(dr.full(mi.Float, 1.0, dr.width(alpha)) if self.background
                                  else alpha,))
+        if camera and transform and getattr(self, '_deep', None) is not None:
+            # A deep render (mi_nerfpp.deep) reads the samples of the camera rays.
+            self._deep.update(res=res, aovs=aovs)
         return L, aovs, res.fine.opacity
 
     def _chunked(self, render, args, n, progress=True):

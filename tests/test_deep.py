@@ -133,5 +133,5 @@ def test_render_command_writes_a_deep_exr(tmp_path):
     import OpenEXR
     with OpenEXR.File(str(out)) as f:
         header = f.header()
-    assert header['type'] == OpenEXR.deepscanline
-    assert {c.name for c in header['channels']} == set(deep.DEEP_CHANNELS)
+        assert header['type'] == OpenEXR.deepscanline
+        assert {c.name for c in header['channels']} == set(deep.DEEP_CHANNELS)

@@ -60,11 +60,13 @@ class NeRFPPIntegrator(ADIntegrator):
     estimation, their shadow rays attenuated by the volumes (``volume_shadows``;
     the opaque end of the background at infinity excepted); environment maps
     are refused (the background volume is the environment). Shapes listed in
-    ``shadow_catchers`` are not rendered: they stand for a reconstructed surface
-    (the ground), and the volumes seen through them are scaled by the ratio of
-    their irradiance with and without the objects (differential rendering), so
-    objects cast shadows on the reconstruction. A scene without shapes renders
-    exactly as the volumes alone, with no intersection work.
+    ``shadow_catchers`` or ``proxies`` are not rendered: they stand for a
+    reconstructed surface (the ground). On a shadow catcher the volumes seen
+    through it are scaled by the ratio of its irradiance with and without the
+    objects (the occlusion part of differential rendering, against a map of the
+    reconstruction rendered once per frame), so objects cast shadows on the
+    reconstruction. A scene without shapes renders exactly as the volumes alone,
+    with no intersection work.
 
     The model comes from ``checkpoint``, or from Python: :meth:`set_model` hands
     the integrator a model already in memory (evaluation does this with the
@@ -135,7 +137,7 @@ class NeRFPPIntegrator(ADIntegrator):
        - |int|
        - Largest film (pixels times samples per pixel) a render accepts; larger
          ones are refused before any memory is taken. (Default: 16777216,
-         :data:`MAX_FILM_SAMPLES`)
+         :data:`~mi_nerfpp.integrator.parameters.MAX_FILM_SAMPLES`)
      * - max_depth
        - |int|
        - Longest light path through the scene's shapes, in segments (1: the
@@ -148,10 +150,16 @@ class NeRFPPIntegrator(ADIntegrator):
        - |string|
        - Comma-separated ids of shapes that are shadow catchers (Mitsuba
          refuses unknown properties on shapes, so they are named here). (Default: none)
+     * - proxies
+       - |string|
+       - Comma-separated ids of shapes that stand for the reconstruction and
+         are never rendered, like the catchers, but receive no shadows (a
+         catcher whose shadows are turned off). (Default: none)
      * - catcher_samples
        - |int|
        - Directions per camera sample over a catcher's hemisphere for its
-         irradiance ratio. (Default: 16)
+         irradiance ratio (ray tests against the objects; the reconstruction's
+         radiance along each comes from a map rendered once per frame). (Default: 16)
      * - volume_shadows
        - |bool|
        - Attenuate the light of the scene's emitters by the volumes'
@@ -159,7 +167,11 @@ class NeRFPPIntegrator(ADIntegrator):
          objects); off: shadow rays see shapes only, and are cheaper. (Default: true)
 
     Unknown parameters, values of the wrong type and out-of-range values are
-    refused with a message naming the parameter. The model carries how it is
+    refused with a message naming the parameter; so are sizes beyond what a
+    render holds (sample counts, ``max_depth`` and ``catcher_samples`` times
+    ``chunk_rays``, the film, a sensor with a non-finite ``to_world`` or farther
+    than 1e4 unit-sphere radii from the model), with the largest value that
+    fits, before Dr.Jit sees them (:mod:`~mi_nerfpp.integrator.parameters`). The model carries how it is
     rendered (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`: its sample
     counts, ``near``, whether it has a background, where it composites); the
     parameters above that say "the model's" override those settings one by one,
@@ -167,9 +179,11 @@ class NeRFPPIntegrator(ADIntegrator):
 
     Radiance is scene-linear (Rec.709 primaries), also for models fitted to
     sRGB photos (:meth:`~mi_nerfpp.model.NeRFPPModel.radiance_fields`).
-    The AOVs follow the film's ``R G B [A]`` in this order (the layers of
-    :mod:`mi_nerfpp.layers`; :func:`mi_nerfpp.views.render_layers` reads a
-    render by name, and sets the beauty ``A``):
+    The AOVs are the *sample channels* of :data:`mi_nerfpp.layers.AOVS`, after
+    the film's ``R G B [A]``: per-sample values that the film averages, from
+    which :func:`mi_nerfpp.views.render_layers` develops the layers below
+    (ratios of averages, so that they add up at any samples per pixel:
+    :mod:`mi_nerfpp.layers`):
 
     {layer_table}
     """

@@ -116,17 +116,17 @@ def _largest(name, per_ray, chunk_rays, extra=0, also=''):
 def check_chunk_sizes(chunk_rays, sampling, max_depth, catcher_samples):
     """Refuse sample counts, path depth and catcher directions whose per-chunk arrays exceed
     :data:`MAX_CHUNK_ENTRIES` (``sampling``: a dict or :class:`~mi_nerfpp.render.Sampling`;
-    None counts are not checked)."""
+    None counts are not checked). Each count is first checked alone (the others at their
+    least), so the message names the one that is out of range."""
     get = sampling.get if isinstance(sampling, dict) else (lambda k: getattr(sampling, k))
-    fine = get('fine_samples') or 0
+    fine = get('fine_samples')
+    if fine is not None and chunk_rays * (1 + fine) > MAX_CHUNK_ENTRIES:
+        raise _largest('fine_samples', 1 + fine, chunk_rays, 1, 'one coarse sample')
+    fine = fine or 0
     for name in ('fg_samples', 'bg_samples'):
         n = get(name)
         if n is not None and chunk_rays * (n + fine) > MAX_CHUNK_ENTRIES:
             raise _largest(name, n + fine, chunk_rays, fine, f'fine_samples={fine}')
-    coarse = max(get('fg_samples') or 1, get('bg_samples') or 1)
-    if chunk_rays * (coarse + fine) > MAX_CHUNK_ENTRIES:
-        raise _largest('fine_samples', coarse + fine, chunk_rays, coarse,
-                       f'{coarse} coarse samples')
     for name, n in (('max_depth', max_depth), ('catcher_samples', catcher_samples)):
         if chunk_rays * n > MAX_CHUNK_ENTRIES:
             raise _largest(name, n, chunk_rays)
@@ -156,6 +156,18 @@ def check_sensor(to_world, normalization):
     ``to_world``, 4x4; ``normalization``: the model's
     :class:`~mi_nerfpp.frame.Normalization`)."""
     m = np.asarray(to_world, dtype=np.float64).reshape(4, 4)
+    centre, scale = normalization.center_array, float(normalization.scale)
+    # Distance first: a lookat that far away also fills its rotation with NaN (float32
+    # overflow), and the distance is what to fix.
+    if np.all(np.isfinite(m[:3, 3])):
+        radius = float(np.linalg.norm((m[:3, 3] - centre) * scale))
+        if not radius <= MAX_CAMERA_RADIUS:
+            largest = MAX_CAMERA_RADIUS / scale
+            raise ValueError(
+                f"nerfpp: the sensor is at {np.linalg.norm(m[:3, 3]):.3g} world units from the "
+                f"origin, {radius:.3g} unit-sphere radii from the model's centre; the largest "
+                f"distance that renders is {MAX_CAMERA_RADIUS:g} radii ({largest:.6g} world "
+                f"units from the centre {centre.tolist()}): move the sensor's to_world closer")
     if not np.all(np.isfinite(m)):
         raise ValueError("nerfpp: the sensor's to_world has NaN or infinite entries: give a "
                          "finite <transform name=\"to_world\">")
@@ -163,12 +175,3 @@ def check_sensor(to_world, normalization):
         raise ValueError("nerfpp: the sensor's to_world is degenerate (a zero scale or a "
                          "lookat with origin = target or up parallel to the view): fix its "
                          "<transform name=\"to_world\">")
-    centre, scale = normalization.center_array, float(normalization.scale)
-    radius = float(np.linalg.norm((m[:3, 3] - centre) * scale))
-    if not radius <= MAX_CAMERA_RADIUS:
-        largest = MAX_CAMERA_RADIUS / scale
-        raise ValueError(
-            f"nerfpp: the sensor is at {np.linalg.norm(m[:3, 3]):.3g} world units from the "
-            f"origin, {radius:.3g} unit-sphere radii from the model's centre; the largest "
-            f"distance that renders is {MAX_CAMERA_RADIUS:g} radii ({largest:.6g} world units "
-            f"from the centre {centre.tolist()}): move the sensor's to_world closer")

@@ -149,8 +149,8 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
     is only continued (``resume``) or replaced (``overwrite``). What the config leaves to the
     capture is chosen and announced (in a copy of ``config``): the resolution
     (``downscale=None``: the photos' own unless they do not fit in memory,
-    :func:`resolution_line`) and the budget (neither ``iterations`` nor ``minutes``:
-    :func:`~mi_nerfpp.config.default_minutes`).
+    :func:`resolution_line`; a resumed run keeps the one it was trained at) and the budget
+    (neither ``iterations`` nor ``minutes``: :func:`~mi_nerfpp.config.default_minutes`).
     """
     from .config import default_minutes
     from .data import AutoDownscale, DatasetError, load_dataset
@@ -162,6 +162,15 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
     check_run_folder(out, resume=resume, overwrite=overwrite)
     data = photos_to_dataset(data, os.path.join(out, 'sfm'), observer)
     downscale = config.data.downscale
+    checkpoint = os.path.join(out, 'model.npz')
+    if downscale is None and resume and os.path.exists(checkpoint):
+        # A resumed run goes on at the resolution it was trained at, whatever memory is free.
+        from .checkpoint import read_meta
+        stored = TrainConfig.stored_options(read_meta(checkpoint).get('config', {}))
+        downscale = stored.get('downscale')
+        if downscale is not None:
+            config = dataclasses.replace(config, data=dataclasses.replace(
+                config.data, downscale=downscale))
     if downscale is None:        # the photos' own resolution, unless it does not fit in memory
         available, step = available_bytes(), training_working_set(config)
         downscale = AutoDownscale(image_budget(step, available))

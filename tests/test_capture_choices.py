@@ -136,3 +136,25 @@ def test_the_available_memory_is_what_the_machine_has():
     assert 0 < memory.available_bytes() <= total
     assert memory.image_budget(step_bytes=10, available=1000) == 790
     assert memory.image_budget(step_bytes=10 ** 9, available=1000) == 0
+
+
+def test_a_resumed_run_keeps_the_resolution_it_was_trained_at(capture, tmp_path, monkeypatch):
+    out = str(tmp_path / 'run')
+    tiny = dict(iterations=2, batch_rays=64, fg_samples=4, bg_samples=4, fine_samples=4,
+                checkpoint_every=0, preview_every=0)
+    inputs = run.prepare(capture, TrainConfig.from_options(**tiny), out)
+    assert inputs.config.data.downscale == 1
+    run.train(run.start(inputs))
+    # Too little memory now for the images at any size: a new run is refused, the resumed one
+    # goes on as it was trained.
+    monkeypatch.setattr(memory, 'available_bytes', lambda: memory.training_working_set(
+        inputs.config) + 1000)
+    observer = Recorder()
+    config = TrainConfig.from_options(**dict(tiny, iterations=3))
+    resumed = run.prepare(capture, config, out, resume=True, observer=observer)
+    assert observer.of('notice') == []
+    assert resumed.config.data.downscale == resumed.dataset.downscale == 1
+    trainer = run.start(resumed, resume=True)
+    assert trainer.iteration == 2 and trainer.rays.size == len(resumed.dataset.train) * 32 * 24
+    with pytest.raises(DatasetError, match='choose a --downscale'):
+        run.prepare(capture, config, str(tmp_path / 'new'), observer=observer)

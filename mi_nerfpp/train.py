@@ -110,7 +110,11 @@ class RayBank:
     def batch(self, index):
         """``(origin, direction, colour)`` of the rays ``index``."""
         i = mi.UInt32(index)
-        image, (x, y) = self.images(i), self._pixel(i)
+        h, w = self.layout[1:3]
+        image = self.images(i)
+        within = i - image * (h * w)                  # the pixel (x, y) in its image
+        y = within // w
+        x = within - y * w
         K, R, center = self.cameras
 
         def k(j):
@@ -129,15 +133,8 @@ class RayBank:
 
     def images(self, index):
         """The training-image index of the rays ``index`` (UInt32)."""
-        n, h, w = self.layout[:3]
+        h, w = self.layout[1:3]
         return mi.UInt32(index) // (h * w)
-
-    def _pixel(self, i):
-        """``(x, y)`` of the rays ``i`` in their image."""
-        n, h, w = self.layout[:3]
-        within = i - (i // (h * w)) * (h * w)
-        y = within // w
-        return within - y * w, y
 
     def _channel(self, i, c):
         """Channel ``c`` of the stored colour of the rays ``i``, as float32."""

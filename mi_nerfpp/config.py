@@ -34,11 +34,31 @@ from .options import flag, group, groups, option, option_name, options_of
 from .render import Sampling
 
 MODEL_KINDS = ('nerfpp', 'nerf')
-DEFAULT_ITERATIONS = 2000     # the budget when neither iterations nor minutes is given
 # The embedded default job (``optimize`` without a dataset, :func:`mi_nerfpp.run.default_job`):
 # the default capture trained for these minutes, evaluated after these minutes too.
 DEFAULT_JOB_MINUTES = 10.0
 DEFAULT_JOB_EVAL_AT = (2.0, 5.0)
+# The budget of a run given neither iterations nor minutes (:func:`default_minutes`): the
+# default capture's training pixels (48 views of 128x96) get DEFAULT_JOB_MINUTES, other
+# captures minutes in proportion to the square root of their training pixels, within these
+# bounds.
+BUDGET_REFERENCE_PIXELS = 48 * 128 * 96
+DEFAULT_MINUTES_RANGE = (2.0, 60.0)
+
+
+def default_minutes(train_pixels: int) -> float:
+    """The training minutes of a capture of ``train_pixels`` training pixels when no budget is
+    given: ``DEFAULT_JOB_MINUTES * sqrt(train_pixels / BUDGET_REFERENCE_PIXELS)``, rounded to
+    whole minutes within :data:`DEFAULT_MINUTES_RANGE`.
+
+    A step takes a fixed batch of rays whatever the capture, so a minute is a fixed number of
+    rays. Minutes in proportion to the pixels would give every capture the same number of
+    passes over its pixels, hours for a photo set (118 photos of 1200x800 are 190 times the
+    default capture); a field's detail grows with the images' side rather than their area,
+    hence the square root (4 times the pixels, twice the minutes)."""
+    low, high = DEFAULT_MINUTES_RANGE
+    minutes = DEFAULT_JOB_MINUTES * math.sqrt(max(train_pixels, 0) / BUDGET_REFERENCE_PIXELS)
+    return float(min(max(round(minutes), low), high))
 
 
 def _grid_default(name):
@@ -101,8 +121,8 @@ class _Options:
 class DataOptions(_Options):
     downscale: int | None = option(
         None, 'integer image downscale factor', type=int,
-        default_help='(default: the smallest that keeps the training images under 4.2 M '
-                     'pixels in all, announced)')
+        default_help="(default: the photos' own resolution, or the smallest factor that "
+                     'makes the images and training fit in the available memory; announced)')
     background: tuple = option((1.0, 1.0, 1.0), 'colour that transparent (RGBA) images are '
                                'composited over', type=_comma_floats, metavar='R,G,B',
                                default_help='(default: 1,1,1)')
@@ -316,8 +336,10 @@ class LossOptions(_Options):
 class ScheduleOptions(_Options):
     iterations: int | None = option(
         None, 'training steps', type=int, exclusive='budget',
-        default_help=f'(default without --minutes: {DEFAULT_ITERATIONS}; the embedded '
-                     f'default run: --minutes {DEFAULT_JOB_MINUTES:g})')
+        default_help=f'(default: a time budget chosen from the training pixels, '
+                     f'{DEFAULT_MINUTES_RANGE[0]:g} to {DEFAULT_MINUTES_RANGE[1]:g} minutes, '
+                     f'announced; the embedded default run: --minutes '
+                     f'{DEFAULT_JOB_MINUTES:g})')
     minutes: float | None = option(
         None, 'wall-time budget in minutes of training steps', type=float, exclusive='budget')
     batch_rays: int = option(4096, 'rays per step')
@@ -329,9 +351,7 @@ class ScheduleOptions(_Options):
                                    'double in resolution (they start at RES / 2^n)', type=float,
                                    nargs='*', metavar='F', shapes_model=True)
 
-    def _validate(self):
-        if self.iterations is None and self.minutes is None:
-            self.iterations = DEFAULT_ITERATIONS
+    def _validate(self):        # neither iterations nor minutes: chosen from the capture
         if self.minutes is not None and not (_finite(self.minutes) and self.minutes > 0):
             self._bad('minutes', 'a positive number of minutes')
         if self.iterations is not None and self.iterations < 1:

@@ -155,7 +155,9 @@ def test_sigterm_and_sigint_save_a_checkpoint(capture, tmp_path, sig):
                              '--preview-every', '0', '--checkpoint-every', '0'],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert 'run folder' in proc.stdout.readline()      # the dataset is loaded
+        # The resolution chosen is announced first, then the dataset is loaded.
+        assert 'training at the images\' own resolution' in proc.stdout.readline()
+        assert 'run folder' in proc.stdout.readline()
         time.sleep(4.0)                                      # some iterations are done
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=120)

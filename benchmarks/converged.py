@@ -32,7 +32,7 @@ import numpy as np
 import mi_nerfpp  # noqa: F401
 import mitsuba as mi
 from mi_nerfpp import bench
-from mi_nerfpp.bench import ray_distance_to_z, render_encoded
+from mi_nerfpp.bench import render_encoded
 from mi_nerfpp.exr import read_exr
 from mi_nerfpp.metrics import equivalent_blur, masked_psnr, psnr
 from mi_nerfpp.run import open_run
@@ -93,7 +93,7 @@ def main():
                    masked_psnr(pred, truth, ~inside)]
             row.append(equivalent_blur(pred, truth))
             surface = ~inside & (gt['depth.Z'] > 0)
-            true_z = ray_distance_to_z(gt['depth.Z'], camera)[surface]
+            true_z = gt['depth.Z'][surface]
             z = layers['depth.Z'][surface]
             row += [np.mean(z > FAR * true_z), np.mean(np.abs(z - true_z) < NEAR * true_z)]
             rows.setdefault(split, []).append(row)

@@ -5,9 +5,10 @@
 
 Writes (once) a synthetic posed photo set of that size in the NeRF++ layout, as JPEGs of
 smooth random texture on orbiting cameras (every 8th a test view), then runs ``optimize`` on
-it in a child process for a few iterations with the default (automatic) downscale and prints
-the child's peak RSS. Options after ``--`` go to ``optimize`` (e.g. ``--downscale 1``).
-Results: ``benchmarks/results/photo_set_memory.json``.
+it in a child process for a few iterations with the default (automatic) resolution - the
+photos' own unless they do not fit in memory (issue 34) - and prints the child's peak RSS,
+which includes the final evaluation of the test views. Options after ``--`` go to
+``optimize`` (e.g. ``--downscale 2``). Results: ``benchmarks/results/photo_set_memory.json``.
 """
 import argparse
 import os
@@ -67,8 +68,8 @@ def main():
                     ['photos', 'size', 'optimize options', 'peak RSS (MiB)', 'wall time (s)'],
                     [[args.views, f'{width}x{height}', shlex.join(extra) or 'defaults', peak,
                       seconds]],
-                    note=f'{args.iterations} iterations, automatic downscale unless an option '
-                         f'sets it.')])
+                    note=f'{args.iterations} iterations and the evaluation of the test views; '
+                         f'the automatic resolution unless an option sets it.')])
 
 
 if __name__ == '__main__':

@@ -1,36 +1,45 @@
 """Where a training step's and a render's time goes: kernels by stage and kind, launches, cores.
 
     python benchmarks/profile.py [--data DATA] [--steps 20] [--warmup 20] [--run RUN]
-                                 [--width 1280 --height 720] [-- name=value ...]
+                                 [--width 1280 --height 720] [--base REV --base-run RUN]
+                                 [name=value ...]
 
 Training (the default capture without DATA, default options; ``name=value`` sets options of the
 training config): after ``--warmup`` steps, ``--steps`` steps are traced without
 ``drjit.freeze`` under a :class:`mi_nerfpp.profiling.KernelProfile`, which attributes every
-kernel to the stage that launched it (occupancy refresh and sampling, field evaluations,
-deferred colour, losses and the reverse pass, Adam) and tells the reverse pass's kernels apart by
-kind (gradient scatters into the grids, memsets, block reductions, matrix products). Then the
-same number of frozen steps (how training runs) are timed: wall time, kernel launches and
-kernel time per step, and the cores busy (process CPU time over wall time; 2 = both cores of
-this machine). With ``--run RUN`` one frame of the run's ``render.xml`` at ``--width x
---height`` (1 spp) is profiled the same way. Prints tables; writes
-``benchmarks/results/profile.json``.
+kernel to the stage that launched it (occupancy refresh and sampling, field evaluations, the
+merge of coarse and fine samples, quadrature, deferred colour, losses and the reverse pass,
+Adam) and tells kernels apart by kind (gradient scatters, memsets, block reductions, matrix
+products). Then the same number of frozen steps (how training runs) are timed: wall time,
+kernel launches and kernel time per step, and the cores busy (process CPU time over wall time;
+2 = both cores of this machine). With ``--run RUN`` one frame of the run's ``render.xml`` at
+``--width x --height`` (1 spp) is profiled the same way.
+
+``--base REV`` measures the same for git revision ``REV`` too (exported with ``git archive``,
+run in its own process with this checkout's :mod:`mi_nerfpp.profiling` copied in; code without
+stage marks shows its kernels by kind only), one version after the other; ``--base-run`` is the
+base version's run to render. Prints tables; writes ``benchmarks/results/profile.json``.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import shutil
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 
-import mi_nerfpp  # noqa: F401
-import drjit as dr
-import mitsuba as mi
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-from mi_nerfpp.profiling import KernelProfile
+
+# ----------------------------------------------------------------------------- one version
 
 def cores_busy(fn):
     """``(wall seconds, cores busy)`` of ``fn()``."""
+    import drjit as dr
     c0, t0 = time.process_time(), time.perf_counter()
     fn()
     dr.sync_thread()
@@ -39,7 +48,7 @@ def cores_busy(fn):
 
 
 def stage_rows(profile, per):
-    """Table rows ``[stage, kind, ms per unit, launches per unit]``, largest first."""
+    """Rows ``[stage, kind, ms per unit, launches per unit]``, largest first."""
     rows = []
     for name, kinds in profile.by_stage().items():
         for kind, (ms, n) in kinds.items():
@@ -47,21 +56,27 @@ def stage_rows(profile, per):
     return sorted(rows, key=lambda r: -r[2])
 
 
-def print_table(title, columns, rows):
-    print(f'\n{title}')
-    print('  ' + ' | '.join(columns))
-    for r in rows:
-        print('  ' + ' | '.join(str(v) for v in r))
+def training_config(options, freeze):
+    """A training config of this version (flat TrainConfig before the option groups)."""
+    import mi_nerfpp.train as T
+    make = getattr(T.TrainConfig, 'from_options', T.TrainConfig)
+    cfg = make(iterations=10 ** 9, checkpoint_every=0, preview_every=0,
+               **dict(options, freeze=freeze))
+    batch = cfg.schedule.batch_rays if hasattr(cfg, 'schedule') else cfg.batch_rays
+    return cfg, batch
 
 
-def profile_training(dataset, options, steps, warmup):
-    from mi_nerfpp.config import TrainConfig
+def profile_training(data, options, steps, warmup):
+    import drjit as dr
+    from mi_nerfpp.data import load_dataset
+    from mi_nerfpp.profiling import KernelProfile
+    from mi_nerfpp.synth import default_capture
     from mi_nerfpp.train import Trainer
+    dataset = load_dataset(data or default_capture(progress=False))
     out = {}
     for freeze in (False, True):
-        cfg = TrainConfig.from_options(iterations=10 ** 9, checkpoint_every=0, preview_every=0,
-                                       **dict(options, freeze=freeze))
-        trainer = Trainer(dataset, f'/tmp/mi_nerfpp_profile_{freeze}', cfg)
+        cfg, batch = training_config(options, freeze)
+        trainer = Trainer(dataset, tempfile.mkdtemp(prefix='mi_nerfpp_profile_'), cfg)
         for _ in range(warmup):
             trainer.step()
         dr.sync_thread()
@@ -71,29 +86,30 @@ def profile_training(dataset, options, steps, warmup):
             out['stages'] = stage_rows(profile, steps)
             out['traced'] = {'step_ms': 1e3 * wall / steps, 'cores_busy': busy,
                              'launches': profile.launches() / steps}
-        else:
-            times = []
-            with KernelProfile() as profile:
-                c0, t0 = time.process_time(), time.perf_counter()
-                for _ in range(steps):
-                    s = time.perf_counter()
-                    trainer.step()
-                    dr.sync_thread()
-                    times.append(time.perf_counter() - s)
-                wall = time.perf_counter() - t0
-                busy = (time.process_time() - c0) / wall
-            kernel_ms = sum(ms for _, _, ms in profile.records) / steps
-            out['frozen'] = {'step_ms': 1e3 * statistics.median(times),
-                             'mean_step_ms': 1e3 * statistics.mean(times),
-                             'kernel_ms': kernel_ms, 'cores_busy': busy,
-                             'launches': profile.launches() / steps,
-                             'rays_per_second': cfg.schedule.batch_rays / statistics.mean(times),
-                             'batch_rays': cfg.schedule.batch_rays}
+            continue
+        times = []
+        with KernelProfile() as profile:
+            c0, t0 = time.process_time(), time.perf_counter()
+            for _ in range(steps):
+                s = time.perf_counter()
+                trainer.step()
+                dr.sync_thread()
+                times.append(time.perf_counter() - s)
+            busy = (time.process_time() - c0) / (time.perf_counter() - t0)
+        out['frozen'] = {'step_ms': 1e3 * statistics.median(times),
+                         'mean_step_ms': 1e3 * statistics.mean(times),
+                         'kernel_ms': sum(ms for _, _, ms in profile.records) / steps,
+                         'cores_busy': busy, 'launches': profile.launches() / steps,
+                         'rays_per_second': batch / statistics.mean(times), 'batch_rays': batch}
     return out
 
 
-def render_scene(run, width, height):
+def profile_render(run, width, height):
     import re
+
+    import drjit as dr
+    import mitsuba as mi
+    from mi_nerfpp.profiling import KernelProfile
     with open(os.path.join(run, 'render.xml')) as f:
         xml = f.read()
     for name, value in (('width', width), ('height', height), ('sample_count', 1)):
@@ -101,10 +117,47 @@ def render_scene(run, width, height):
     path = os.path.join(run, 'render_profile.xml')
     with open(path, 'w') as f:
         f.write(xml)
-    return mi.load_file(path)
+    scene = mi.load_file(path)
+    dr.eval(mi.render(scene))            # compile
+    dr.sync_thread()
+    with KernelProfile() as profile:
+        wall, busy = cores_busy(lambda: dr.eval(mi.render(scene)))
+    return {'seconds': wall, 'launches': profile.launches(), 'cores_busy': busy,
+            'kernel_ms': sum(ms for _, _, ms in profile.records),
+            'stages': stage_rows(profile, 1)}
+
+
+def worker(args):
+    """Measure the version this process imports; print the result as JSON."""
+    import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
+    result = {'training': profile_training(args['data'], args['options'], args['steps'],
+                                           args['warmup'])}
+    if args.get('run'):
+        result['render'] = profile_render(args['run'], args['width'], args['height'])
+    print(json.dumps(result))
+
+
+def measure(tree, args):
+    """Run :func:`worker` on the package in ``tree`` in a process of its own."""
+    env = dict(os.environ, PYTHONPATH=tree, PYTHONUNBUFFERED='1')
+    out = subprocess.run([sys.executable, os.path.abspath(__file__), '--worker',
+                          json.dumps(args)], cwd=tree, env=env, check=True,
+                         stdout=subprocess.PIPE, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+# ----------------------------------------------------------------------------- report
+
+def print_table(title, columns, rows):
+    print(f'\n{title}')
+    print('  ' + ' | '.join(columns))
+    for r in rows:
+        print('  ' + ' | '.join(str(v) for v in r))
 
 
 def main():
+    if len(sys.argv) == 3 and sys.argv[1] == '--worker':
+        return worker(json.loads(sys.argv[2]))
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--data', help='dataset folder (default: the embedded default capture)')
@@ -113,52 +166,63 @@ def main():
     ap.add_argument('--run', help='also profile a render of this run folder')
     ap.add_argument('--width', type=int, default=1280)
     ap.add_argument('--height', type=int, default=720)
-    ap.add_argument('options', nargs='*', help='training options as name=value')
+    ap.add_argument('--base', help='also measure this git revision')
+    ap.add_argument('--base-run', help="the base revision's run folder to render")
+    ap.add_argument('options', nargs='*', help='training options as name=value (this version)')
     a = ap.parse_intermixed_args()
-    from mi_nerfpp.data import load_dataset
-    from mi_nerfpp.synth import default_capture
-    options = {k: json.loads(v) for k, v in (o.split('=', 1) for o in a.options)}
-    dataset = load_dataset(a.data or default_capture(progress=False))
-    train = profile_training(dataset, options, a.steps, a.warmup)
-    f, t = train['frozen'], train['traced']
-    print(f"training step ({f['batch_rays']} rays): frozen {f['step_ms']:.1f} ms median "
-          f"({f['rays_per_second']:,.0f} rays/s from the mean), {f['launches']:.0f} kernel "
-          f"launches, {f['kernel_ms']:.1f} ms of kernels, {f['cores_busy']:.2f} cores busy; "
-          f"traced in Python {t['step_ms']:.1f} ms, {t['launches']:.0f} launches, "
-          f"{t['cores_busy']:.2f} cores busy")
-    columns = ['stage', 'kind', 'ms per step', 'launches per step']
-    print_table('kernels of a traced training step', columns, train['stages'])
-    tables = [{'title': 'Training step: kernels by stage and kind (traced, per step)',
-               'columns': columns, 'rows': train['stages']},
-              {'title': 'Training step', 'columns': ['', 'step (ms)', 'launches', 'kernel ms',
-                                                     'cores busy', 'rays/s'],
-               'rows': [['frozen (as trained)', round(f['step_ms'], 1), round(f['launches']),
-                         round(f['kernel_ms'], 1), round(f['cores_busy'], 2),
-                         round(f['rays_per_second'])],
-                        ['traced in Python', round(t['step_ms'], 1), round(t['launches']),
-                         '', round(t['cores_busy'], 2), '']]}]
-    raw = {'training': train}
-    if a.run:
-        scene = render_scene(a.run, a.width, a.height)
-        mi.render(scene)            # compile
-        dr.sync_thread()
-        with KernelProfile() as profile:
-            wall, busy = cores_busy(lambda: dr.eval(mi.render(scene)))
-        rows = stage_rows(profile, 1)
-        print(f'\nrender {a.width}x{a.height}, 1 spp, {a.run}: {wall:.2f} s, '
-              f'{profile.launches()} launches, {busy:.2f} cores busy')
-        columns = ['stage', 'kind', 'ms per frame', 'launches per frame']
-        print_table('kernels of a render', columns, rows)
-        tables.append({'title': f'Render {a.width}x{a.height}, 1 spp: kernels by stage and kind',
-                       'columns': columns, 'rows': rows,
-                       'note': f'{wall:.2f} s per frame, {profile.launches()} launches, '
-                               f'{busy:.2f} cores busy'})
-        raw['render'] = {'seconds': wall, 'launches': profile.launches(), 'cores_busy': busy}
+    common = {'data': a.data and os.path.abspath(a.data), 'steps': a.steps,
+              'warmup': a.warmup, 'width': a.width, 'height': a.height}
+    versions = {'this checkout': measure(ROOT, dict(
+        common, options={k: json.loads(v) for k, v in (o.split('=', 1) for o in a.options)},
+        run=a.run and os.path.abspath(a.run)))}
+    if a.base:
+        tmp = tempfile.mkdtemp(prefix='mi_nerfpp_profile_base_')
+        archive = subprocess.run(['git', '-C', ROOT, 'archive', a.base], check=True,
+                                 stdout=subprocess.PIPE).stdout
+        subprocess.run(['tar', '-x', '-C', tmp], input=archive, check=True)
+        shutil.copy(os.path.join(ROOT, 'mi_nerfpp', 'profiling.py'),
+                    os.path.join(tmp, 'mi_nerfpp', 'profiling.py'))
+        versions[a.base] = measure(tmp, dict(common, options={},
+                                             run=a.base_run and os.path.abspath(a.base_run)))
+
+    columns = ['version', 'step (ms, median)', 'rays per step', 'rays/s', 'kernel launches',
+               'kernel ms', 'cores busy']
+    rows = []
+    for name, v in versions.items():
+        f = v['training']['frozen']
+        rows.append([name, round(f['step_ms'], 1), f['batch_rays'], round(f['rays_per_second']),
+                     round(f['launches']), round(f['kernel_ms'], 1), round(f['cores_busy'], 2)])
+    print_table('Training step, frozen (as trained)', columns, rows)
+    tables = [{'title': 'Training step, frozen (as trained)', 'columns': columns, 'rows': rows}]
+    stage_columns = ['stage', 'kind', 'ms per step', 'launches per step']
+    for name, v in versions.items():
+        t = v['training']['traced']
+        title = (f'{name}: kernels of a training step traced in Python by stage and kind '
+                 f"({t['step_ms']:.1f} ms, {t['launches']:.0f} launches, "
+                 f"{t['cores_busy']:.2f} cores busy)")
+        print_table(title, stage_columns, v['training']['stages'])
+        tables.append({'title': title, 'columns': stage_columns,
+                       'rows': v['training']['stages']})
+    if any('render' in v for v in versions.values()):
+        columns = ['version', 'seconds', 'kernel launches', 'kernel ms', 'cores busy']
+        rows = [[name, round(v['render']['seconds'], 2), v['render']['launches'],
+                 round(v['render']['kernel_ms']), round(v['render']['cores_busy'], 2)]
+                for name, v in versions.items() if 'render' in v]
+        title = f'Render of a trained model, {a.width}x{a.height}, 1 spp'
+        print_table(title, columns, rows)
+        tables.append({'title': title, 'columns': columns, 'rows': rows})
+        for name, v in versions.items():
+            if 'render' in v:
+                title = f'{name}: kernels of a render by stage and kind'
+                print_table(title, ['stage', 'kind', 'ms', 'launches'], v['render']['stages'])
+                tables.append({'title': title, 'columns': ['stage', 'kind', 'ms', 'launches'],
+                               'rows': v['render']['stages']})
     from mi_nerfpp.bench import write_results
-    write_results('profile', 'Where the time goes', tables, raw=raw,
-                  notes='Kernels attributed to the stage that launched them (Dr.Jit evaluates '
-                        'lazily, so a stage holds the kernels it evaluates); the reverse pass '
-                        'by kind. Cores busy: process CPU time over wall time.')
+    write_results('profile', 'Where the time goes', tables, raw=versions,
+                  notes='Kernels are attributed to the stage that launched them (Dr.Jit '
+                        'evaluates lazily; while profiling, stages evaluate their outputs '
+                        'before they end). Cores busy: process CPU time over wall time. '
+                        'Versions are measured one after the other, each in its own process.')
 
 
 if __name__ == '__main__':

@@ -32,7 +32,6 @@ import numpy as np
 
 
 def score(data, test_dir):
-    from mi_nerfpp.bench import ray_distance_to_z
     from mi_nerfpp.data import direction_coverage, load_dataset
     from mi_nerfpp.exr import read_exr
     from mi_nerfpp.metrics import SEEN_BY, masked_psnr, psnr, separation, ssim
@@ -49,9 +48,8 @@ def score(data, test_dir):
         seen = direction_coverage(test.cameras[i], dataset.train.cameras) >= SEEN_BY
         row = {'psnr': psnr(pred, test.images[i]), 'ssim': ssim(pred, test.images[i]),
                'psnr_seen': masked_psnr(pred, test.images[i], seen)}
-        # The ground truth holds ray distances; depth.Z is camera-space z.
-        row.update(separation(layers['fg.A'], gt['fg.A'], layers['depth.Z'],
-                              ray_distance_to_z(gt['depth.Z'], test.cameras[i])))
+        # Both hold camera-space z.
+        row.update(separation(layers['fg.A'], gt['fg.A'], layers['depth.Z'], gt['depth.Z']))
         rows.append(row)
     mean = {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}
     mean['worst_psnr'] = min(r['psnr'] for r in rows)

@@ -256,8 +256,12 @@ def object_scenes(checkpoint, defines=None, scene=None):
     for label, objects, catchers in OBJECT_VARIANTS:
         root = ET.fromstring(xml)
         for shape in root.findall('shape'):
-            if not objects or (not catchers and shape.get('id') == 'lawn'):
+            if not objects:
                 root.remove(shape)
+        if not objects:         # no shapes left for the integrator's proxies to name
+            for proxies in root.iter('string'):
+                if proxies.get('name') == 'proxies':
+                    proxies.set('value', '')
         if not catchers or not objects:
             for default in root.findall('default'):
                 if default.get('name') == 'catchers':

@@ -109,6 +109,19 @@ def _read(path):
                               f'{e or type(e).__name__}') from None
 
 
+def read_meta(path) -> dict:
+    """The ``meta`` a checkpoint was saved with (its training config, iteration, ...), read
+    without building its model; errors as :func:`load_checkpoint`'s."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise CheckpointError(f'{path}: checkpoint not found')
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return json.loads(str(z['config'])).get('meta', {})
+    except (zipfile.BadZipFile, ValueError, OSError, KeyError) as e:
+        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): {e}') from None
+
+
 def load_checkpoint(path, seed=0):
     """Read a checkpoint. Returns ``(model, meta, state)``; errors name the path and the problem."""
     path = os.fspath(path)

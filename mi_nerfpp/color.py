@@ -18,8 +18,10 @@ COLOR_SPACES = ('linear', 'srgb')
 
 # The colour space of every render: its OpenImageIO name, its description, and the Rec.709 /
 # sRGB primaries and D65 white point (red xy, green xy, blue xy, white xy) of the EXR
-# ``chromaticities`` attribute.
-COLOR_SPACE = 'lin_rec709'
+# ``chromaticities`` attribute. 'linear' is the name OIIO's built-in colour config resolves
+# (2.4 knows no 'lin_rec709'; OCIO's ACES configs call it 'Linear Rec.709 (sRGB)', which OIIO
+# 2.4 does not know); the standard ``chromaticities`` attribute says which primaries it has.
+COLOR_SPACE = 'linear'
 COLOR_SPACE_DESCRIPTION = 'scene-linear Rec.709 (sRGB primaries, D65)'
 REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
 

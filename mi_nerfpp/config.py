@@ -34,7 +34,6 @@ from .options import flag, group, groups, option, option_name, options_of
 from .render import Sampling
 
 MODEL_KINDS = ('nerfpp', 'nerf')
-DEFAULT_ITERATIONS = 2000     # the budget when neither iterations nor minutes is given
 # The embedded default job (``optimize`` without a dataset, :func:`mi_nerfpp.run.default_job`):
 # the default capture trained for these minutes, evaluated after these minutes too.
 DEFAULT_JOB_MINUTES = 10.0
@@ -47,6 +46,27 @@ MAX_SEED = 2 ** 64 - 2
 # frequencies 2^k beyond float32's 24-bit mantissa are noise.
 MAX_COLOR_LAYERS = 64
 MAX_DIR_OCTAVES = 24
+# The budget of a run given neither iterations nor minutes (:func:`default_minutes`): the
+# default capture's training pixels (48 views of 128x96) get DEFAULT_JOB_MINUTES, other
+# captures minutes in proportion to the square root of their training pixels, within these
+# bounds.
+BUDGET_REFERENCE_PIXELS = 48 * 128 * 96
+DEFAULT_MINUTES_RANGE = (2.0, 60.0)
+
+
+def default_minutes(train_pixels: int) -> float:
+    """The training minutes of a capture of ``train_pixels`` training pixels when no budget is
+    given: ``DEFAULT_JOB_MINUTES * sqrt(train_pixels / BUDGET_REFERENCE_PIXELS)``, rounded to
+    whole minutes within :data:`DEFAULT_MINUTES_RANGE`.
+
+    A step takes a fixed batch of rays whatever the capture, so a minute is a fixed number of
+    rays. Minutes in proportion to the pixels would give every capture the same number of
+    passes over its pixels, hours for a photo set (118 photos of 1200x800 are 190 times the
+    default capture); a field's detail grows with the images' side rather than their area,
+    hence the square root (4 times the pixels, twice the minutes)."""
+    low, high = DEFAULT_MINUTES_RANGE
+    minutes = DEFAULT_JOB_MINUTES * math.sqrt(max(train_pixels, 0) / BUDGET_REFERENCE_PIXELS)
+    return float(min(max(round(minutes), low), high))
 
 
 def _grid_default(name):
@@ -115,8 +135,8 @@ class _Options:
 class DataOptions(_Options):
     downscale: int | None = option(
         None, 'integer image downscale factor', type=int,
-        default_help='(default: the smallest that keeps the training images under 4.2 M '
-                     'pixels in all, announced)')
+        default_help="(default: the photos' own resolution, or the smallest factor that "
+                     'makes the images and training fit in the available memory; announced)')
     background: tuple = option((1.0, 1.0, 1.0), 'colour that transparent (RGBA) images are '
                                'composited over', type=_comma_floats, metavar='R,G,B',
                                default_help='(default: 1,1,1)')
@@ -275,7 +295,7 @@ class OptimizerOptions(_Options):
 
 @dataclass
 class LossOptions(_Options):
-    color_loss: str = option('charbonnier', "colour loss of the coarse and fine composites: "
+    color_loss: str = option('charbonnier', "colour loss of the rendered pixels: "
                              "'charbonnier' (mip-NeRF 360's robust loss) or 'mse' (the "
                              "paper's squared error)", choices=tuple(optim.COLOR_LOSSES))
     distortion: float = option(0.01, 'weight of the mip-NeRF 360 distortion loss, which '
@@ -306,6 +326,9 @@ class LossOptions(_Options):
                                   'their camera (in the units of the unit sphere of NeRF++) by '
                                   '(distance / this)² (Floaters No More: fewer '
                                   'floaters near the cameras; 0: off)')
+    far_smoothness: float = option(0.0, "weight of the smoothness prior on the background "
+                                   "grid's far slice (what directions no training view saw "
+                                   'show), which continues the neighbouring colours there')
     tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
     appearance_prior: float = option(app.PRIOR, 'weight of the L2 prior that keeps the '
@@ -316,7 +339,8 @@ class LossOptions(_Options):
             self._bad('color_loss', ' or '.join(f"'{k}'" for k in optim.COLOR_LOSSES))
         if self.distortion_scope not in ('volume', 'ray'):
             self._bad('distortion_scope', "'volume' or 'ray'")
-        self._check(('distortion', 'opacity_entropy', 'tv', 'entropy_start', 'appearance_prior',
+        self._check(('distortion', 'opacity_entropy', 'tv', 'far_smoothness', 'entropy_start',
+                     'appearance_prior',
                      'near_gradient'), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
         self._check(('tv_cells',), lambda v: v >= 1, 'at least 1')
         for name, ok, one in (('sparsity', lambda w: w >= 0, 'one finite number >= 0'),
@@ -331,11 +355,13 @@ class LossOptions(_Options):
 class ScheduleOptions(_Options):
     iterations: int | None = option(
         None, 'training steps', type=int, exclusive='budget',
-        default_help=f'(default without --minutes: {DEFAULT_ITERATIONS}; the embedded '
-                     f'default run: --minutes {DEFAULT_JOB_MINUTES:g})')
+        default_help=f'(default: a time budget chosen from the training pixels, '
+                     f'{DEFAULT_MINUTES_RANGE[0]:g} to {DEFAULT_MINUTES_RANGE[1]:g} minutes, '
+                     f'announced; the embedded default run: --minutes '
+                     f'{DEFAULT_JOB_MINUTES:g})')
     minutes: float | None = option(
         None, 'wall-time budget in minutes of training steps', type=float, exclusive='budget')
-    batch_rays: int = option(1024, 'rays per step')
+    batch_rays: int = option(4096, 'rays per step')
     seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
     freeze: bool = option(True, 'record the kernels of a training step once and replay them '
                           '(drjit.freeze) instead of tracing every step in Python; re-recorded '
@@ -344,9 +370,7 @@ class ScheduleOptions(_Options):
                                    'double in resolution (they start at RES / 2^n)', type=float,
                                    nargs='*', metavar='F', shapes_model=True)
 
-    def _validate(self):
-        if self.iterations is None and self.minutes is None:
-            self.iterations = DEFAULT_ITERATIONS
+    def _validate(self):        # neither iterations nor minutes: chosen from the capture
         if self.minutes is not None and not (_finite(self.minutes) and self.minutes > 0):
             self._bad('minutes', 'a positive number of minutes')
         if self.iterations is not None and self.iterations < 1:
@@ -608,12 +632,34 @@ class TrainConfig:
                 else (low, mid - 1)
         return low
 
+    def check_render_chunks(self):
+        """Refuse ``--samples`` whose renders the ``nerfpp`` integrator would refuse, so that a
+        run does not train and then fail to evaluate: renders of the model (evaluations,
+        previews, videos) take the samples of a volume for a chunk of
+        :data:`~mi_nerfpp.limits.RENDER_CHUNK_RAYS` rays at a time, within the integrator's
+        entries per array (:func:`mi_nerfpp.integrator.parameters.check_chunk_sizes`, the one
+        home of that rule)."""
+        from .integrator.parameters import MAX_CHUNK_ENTRIES, check_chunk_sizes
+        chunk = limits.RENDER_CHUNK_RAYS
+        try:
+            check_chunk_sizes(chunk, self.render_sampling, 1, 1)
+        except ValueError:
+            s, r = self.sampling, self.render_sampling
+            per_volume = max(r.fg_samples, r.bg_samples) + r.fine_samples
+            raise ValueError(
+                f'--samples {s.fg_samples} {s.bg_samples} {s.fine_samples} are too many: '
+                f'renders of the model take {per_volume:,} samples per ray of a volume (coarse '
+                f'and fine) for {chunk:,} rays at a time, more than the nerfpp integrator\'s '
+                f'{MAX_CHUNK_ENTRIES:,} entries per array; at most '
+                f'{MAX_CHUNK_ENTRIES // chunk:,} samples per ray of a volume fit') from None
+
     def check_limits(self, budget: int | None = None):
         """Refuse, before any work, option values whose arrays Dr.Jit cannot hold (2^32 - 1
         entries) or that do not fit in this machine's memory (``budget`` bytes; see
         :mod:`.limits`): a ValueError naming the option and the largest value that fits.
         Called before training (the ``optimize`` and ``sweep`` commands,
         :func:`mi_nerfpp.run.prepare`), not when a stored config is read."""
+        self.check_render_chunks()
         exceeded = self.limit_exceeded(budget)
         if exceeded is None:
             return

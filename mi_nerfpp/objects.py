@@ -42,21 +42,24 @@ class SceneParts:
     catchers: object
 
 
-def split_scene(scene, catcher_ids=()):
+def split_scene(scene, catcher_ids=(), proxy_ids=()):
     """Split ``scene`` into its objects and its shadow catchers (shapes named by id).
 
-    Refuses catcher ids the scene does not have and, in a scene with shapes, environment
-    emitters, saying what to do. The scene itself serves as ``objects`` when it has no
-    catchers.
+    ``proxy_ids`` name shapes that stand for the reconstruction and are never rendered, like
+    the catchers, but receive no shadows (a catcher listed in ``proxies`` only, e.g. with its
+    shadows turned off). Refuses ids the scene does not have and, in a scene with shapes,
+    environment emitters, saying what to do. The scene itself serves as ``objects`` when it
+    has neither catchers nor proxies.
     """
     shapes = list(scene.shapes())
     ids = [s.id() for s in shapes]
-    missing = [c for c in catcher_ids if c not in ids]
-    if missing:
-        raise ValueError(
-            f"nerfpp: shadow_catchers names {', '.join(missing)}, which the scene has no "
-            f"shape for; its shapes are {', '.join(ids) or 'none'} (give the catcher shape an "
-            f"id=\"...\" attribute and list that id)")
+    for what, wanted in (('shadow_catchers', catcher_ids), ('proxies', proxy_ids)):
+        missing = [c for c in wanted if c not in ids]
+        if missing:
+            raise ValueError(
+                f"nerfpp: {what} names {', '.join(missing)}, which the scene has no "
+                f"shape for; its shapes are {', '.join(ids) or 'none'} (give the shape an "
+                f"id=\"...\" attribute and list that id)")
     for emitter in scene.emitters() if shapes else ():     # (no shapes: emitters unused)
         flags = emitter.flags()
         if (mi.has_flag(flags, mi.EmitterFlags.Infinite)
@@ -66,17 +69,22 @@ def split_scene(scene, catcher_ids=()):
                 f"nerfpp: the scene has an environment emitter ({name}); the "
                 f"reconstruction's background volume is the environment of a nerfpp render: "
                 f"remove it (area, point, spot and directional emitters may light the objects)")
-    if not catcher_ids:
+    hidden = set(catcher_ids) | set(proxy_ids)
+    if not hidden:
         return SceneParts(scene if shapes else None, None)
     # Keyed by their own ids: load_dict gives every object its key as id.
     catchers = {_key(s, i): s for i, s in enumerate(shapes) if s.id() in catcher_ids}
-    objects = {_key(s, i): s for i, s in enumerate(shapes) if s.id() not in catcher_ids}
+    objects = {_key(s, i): s for i, s in enumerate(shapes) if s.id() not in hidden}
+    # Area emitters travel with their shapes; the others (point, spot, directional) are
+    # scene children of their own. (Only area emitters have a shape: Mitsuba's Python
+    # Emitter of a point light has no ``shape()`` at all.)
     emitters = {_key(e, f'emitter{i}'): e for i, e in enumerate(scene.emitters())
-                if e.shape() is None}
+                if not mi.has_flag(e.flags(), mi.EmitterFlags.Surface)}
     objects_scene = None
     if objects:
         objects_scene = mi.load_dict(dict({'type': 'scene'}, **objects, **emitters))
-    return SceneParts(objects_scene, mi.load_dict(dict({'type': 'scene'}, **catchers)))
+    catchers_scene = mi.load_dict(dict({'type': 'scene'}, **catchers)) if catchers else None
+    return SceneParts(objects_scene, catchers_scene)
 
 
 def _key(obj, fallback):

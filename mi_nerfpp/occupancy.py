@@ -27,7 +27,7 @@ import numpy as np
 
 from .arrays import owned
 from .geometry import grid_coordinates
-from .sampling import cdf_bin, flat_index
+from .sampling import flat_index
 
 # Weight of an empty bin's length in the occupied-length coordinate: small enough
 # that empty space absorbs nothing visible, non-zero so that a ray through empty
@@ -121,37 +121,66 @@ class OccupancyGrid:
 class OccupiedVolume:
     """A volume of :mod:`.render` re-parametrized by occupied length (see module docs): its
     sample coordinate is ``u``, and ``inputs`` and ``distance`` take the wrapped volume's own
-    parameter, ``parameter(ray, u)`` (the protocol of :class:`~.render.Volume`)."""
+    parameter, ``parameter(ray, u)`` (the protocol of :class:`~.render.Volume`).
+
+    A ray's ``K`` bins all have the same length, so its occupied-length coordinate is fixed by
+    which bins are occupied: one bit per bin (``K/32`` words per ray). The cumulative length
+    before bin ``b`` is ``width·(n_b + ε·(b − n_b))`` with ``n_b`` the occupied bins before it
+    (a population count), so sample placement reads a few words per ray instead of per-bin
+    arrays."""
 
     def __init__(self, volume, grid, bins):
         self.base, self.bins = volume, int(bins)
+        if self.bins % 32:
+            raise ValueError(f'occupancy bins per ray must be a multiple of 32, got {bins}')
         self.infinite_last, self.open = volume.infinite_last, volume.open
         self.d = volume.d
         n_rays = dr.width(volume.lo)
         ray, k = flat_index(n_rays, self.bins)
         lo, hi = dr.gather(mi.Float, volume.lo, ray), dr.gather(mi.Float, volume.hi, ray)
-        width = (hi - lo) * (1.0 / self.bins)
-        mid = dr.fma(mi.Float(k) + 0.5, width, lo)
-        mass = width * dr.select(grid.occupied(volume.inputs(ray, mid)), 1.0, EMPTY_WEIGHT)
-        self.mass = dr.maximum(mass, 1e-12)
-        self.cdf = dr.block_prefix_sum(self.mass, self.bins, exclusive=True)
-        self.total = dr.block_sum(self.mass, self.bins)
-        dr.eval(self.mass, self.cdf, self.total)
+        mid = dr.fma(mi.Float(k) + 0.5, (hi - lo) * (1.0 / self.bins), lo)
+        bit = dr.select(grid.occupied(volume.inputs(ray, mid)), mi.UInt32(1) << (k & 31), 0)
+        self.words = dr.block_sum(bit, 32)            # disjoint bits: the sum is their union
+        n_words = self.bins // 32
+        occupied = dr.block_sum(dr.popcnt(self.words), n_words)
+        # Bin length; a segment of zero length keeps a finite (tiny) coordinate.
+        self.width = dr.maximum((volume.hi - volume.lo) * (1.0 / self.bins), 1e-12)
+        self.total = self.width * (mi.Float(occupied)
+                                   + EMPTY_WEIGHT * mi.Float(self.bins - occupied))
+        dr.eval(self.words, self.width, self.total)
         self.lo = dr.zeros(mi.Float, n_rays)
         self.hi = dr.ones(mi.Float, n_rays)
 
     def parameter(self, ray, u):
         """The wrapped volume's parameter ``v`` at occupied-length fraction ``u`` (a binary
         search in the ray's bins: renders compute it once per sample)."""
-        K = self.bins
+        K, n_words = self.bins, self.bins // 32
+        words = [dr.gather(mi.UInt32, self.words, ray * n_words + w) for w in range(n_words)]
+        width = dr.gather(mi.Float, self.width, ray)
         target = u * dr.gather(mi.Float, self.total, ray)
-        base = ray * K
-        b = cdf_bin(self.cdf, base, K, target)
-        frac = dr.clip((target - dr.gather(mi.Float, self.cdf, b)) / dr.gather(mi.Float, self.mass, b),
-                       0.0, 1.0)
+
+        def before(b):
+            """Occupied bins before bin ``b`` (UInt32, 0 <= b <= K)."""
+            q, r = b >> 5, b & 31
+            count = mi.UInt32(0)
+            for w, word in enumerate(words):
+                low = dr.select(r == 0, 0, word & ((mi.UInt32(1) << r) - 1))
+                count += dr.select(q > w, dr.popcnt(word), dr.select(q == w, dr.popcnt(low), 0))
+            return count
+
+        def cdf(b):
+            n = before(b)
+            return width * (mi.Float(n) + EMPTY_WEIGHT * mi.Float(b - n))
+
+        # The last bin whose start lies at or before the target (the searches probe b = K).
+        b = mi.UInt32(dr.maximum(mi.Int32(dr.binary_search(
+            0, K, lambda b: cdf(dr.minimum(b, K)) <= target)) - 1, 0))
+        occupied = ((words[0] if n_words == 1 else _word(words, b >> 5)) >> (b & 31)) & 1
+        mass = width * dr.select(occupied == 1, 1.0, EMPTY_WEIGHT)
+        frac = dr.clip((target - cdf(b)) / mass, 0.0, 1.0)
         lo = dr.gather(mi.Float, self.base.lo, ray)
         hi = dr.gather(mi.Float, self.base.hi, ray)
-        return dr.fma((mi.Float(b - base) + frac) * (1.0 / K), hi - lo, lo)
+        return dr.fma((mi.Float(b) + frac) * (1.0 / K), hi - lo, lo)
 
     def inputs(self, ray, v):
         return self.base.inputs(ray, v)
@@ -164,3 +193,11 @@ class OccupiedVolume:
 
     def normalized(self, ray, u):
         return u
+
+
+def _word(words, q):
+    """``words[q]`` for a per-lane index ``q`` into a short list of UInt32 arrays."""
+    out = words[0]
+    for w in range(1, len(words)):
+        out = dr.select(q == w, words[w], out)
+    return out

@@ -6,6 +6,8 @@
   background would otherwise compensate for (see the README's tuning table).
 * :func:`opacity_entropy` — binary entropy of a ray's foreground opacity, minimal at 0 and 1.
 * :func:`grid_tv` — total variation of a feature grid on random cells.
+* :func:`far_field_smoothness` — smoothness of the background's far slice (``s = 0``), which
+  directions no training view saw show.
 
 Each returns a scalar Float (a mean), differentiable in its inputs.
 """
@@ -46,6 +48,33 @@ def grid_tv(grid, cells):
                   at(dr.minimum(z + 1, Z - 1), y, x)):
             total += dr.mean(dr.square(n - v))
     return total / C
+
+
+def far_field_smoothness(grid):
+    """Mean squared difference of neighbouring cells (longitude, periodic, and colatitude) in
+    the far slice ``s = 0`` of a background grid tensor of shape (S, colatitude, longitude, C),
+    over its feature channels (1..C-1).
+
+    What a ray sees where the background holds no surface is the far slice: the infinite last
+    interval takes all the light left. Directions no training view saw leave their cells there
+    as they were initialized, and render as blocks of arbitrary colour; this prior diffuses the
+    neighbours' features into them (a smooth continuation). Adam rescales each cell's gradient,
+    so a small weight moves unconstrained cells as fast as any, while the cells the photos
+    constrain hardly notice it."""
+    S, Y, X, C = grid.shape
+    i = dr.arange(mi.UInt32, Y * X)
+    y, x = i // X, i % X
+
+    def at(yy, xx, c):
+        return dr.gather(mi.Float, grid.array, (yy * X + xx) * C + c)
+
+    total = mi.Float(0.0)
+    for c in range(1, C):
+        v = at(y, x, c)
+        east = at(y, dr.select(x + 1 == X, 0, x + 1), c)
+        south = at(dr.minimum(y + 1, Y - 1), x, c)
+        total += dr.mean(dr.square(east - v)) + dr.mean(dr.square(south - v))
+    return total / (C - 1)
 
 
 def random_points(domain, u):

@@ -37,6 +37,13 @@ def stage(name):
         profile._leave()
 
 
+def settle(*values):
+    """Evaluate ``values`` now when a profile is active (so that their kernels count in the stage
+    that computes them, not in a later one that happens to need them); nothing otherwise."""
+    if _active is not None:
+        dr.eval(*values)
+
+
 def kernel_kind(kernel):
     """What a kernel of Dr.Jit's history does, from its type and its code."""
     kind = str(kernel.get('type', '')).rsplit('.', 1)[-1]

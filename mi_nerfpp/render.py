@@ -55,7 +55,7 @@ import mitsuba as mi
 
 from . import geometry as geo
 from .occupancy import DEFAULT_BINS, OccupiedVolume
-from .profiling import stage
+from .profiling import settle, stage
 from .sampling import flat_index, gather_merged, inverse_cdf, merge_order, stratified, uniforms
 
 MAX_DEPTH_RADIUS = 1000.0
@@ -70,8 +70,6 @@ HIDDEN_WEIGHT = 1e-4
 # Deferred colour: composited features are divided by the opacity, at least this much (a ray
 # that sees nothing has no colour to speak of; its premultiplied colour is ~0 either way).
 FEATURE_OPACITY_FLOOR = 1e-4
-import os
-COARSE_LOSS = bool(int(os.environ.get('MI_NERFPP_COARSE', '0')))
 
 
 @dataclass
@@ -92,7 +90,6 @@ class VolumeRender:
     n: int
     distance: mi.Float = None  # distance along the ray of each sample (same layout as weights)
     rays: mi.UInt32 = None     # the rays the per-sample arrays belong to (None: every ray)
-    coarse: Shading = None     # the coarse samples' own composite (differentiable renders)
 
 
 @dataclass
@@ -101,7 +98,6 @@ class RenderResult:
     fg: VolumeRender
     bg: VolumeRender | None
     fine: Shading            # Eq. 4 composite of the volumes (the image)
-    coarse: Shading = None   # Eq. 4 composite of the coarse passes (differentiable renders)
 
 
 # ----------------------------------------------------------------------------- volumes
@@ -320,24 +316,23 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
             dr.eval(v_f, t_f)
         with stage('field'):
             sigma_f, values_f = evaluate(ray_f, t_f)
-        order = merge_order(v_c, n_coarse, v_f, n_fine)
-        v, t = gather_merged(order, v_c, v_f), gather_merged(order, t_c, t_f)
-        sigma = gather_merged(order, sigma_c, sigma_f)
-        values = [gather_merged(order, a, b) for a, b in zip(values_c, values_f)]
+        with stage('merge'):
+            order = merge_order(v_c, n_coarse, v_f, n_fine)
+            v, t = gather_merged(order, v_c, v_f), gather_merged(order, t_c, t_f)
+            sigma = gather_merged(order, sigma_c, sigma_f)
+            values = [gather_merged(order, a, b) for a, b in zip(values_c, values_f)]
+            settle(v, t, sigma, values)
         n = n_coarse + n_fine
     ray, _ = flat_index(n_rays, n)
-    w, transmittance = weights(volume, v, sigma, n)
-    if lazy:
-        rgb = _shade_visible(volume, field, t, w, transmittance, n)
-        values = [rgb.x, rgb.y, rgb.z]
-    distance = volume.distance(ray, t)
-    coarse = None
-    if COARSE_LOSS and not visible_only and n_fine > 0:
-        w_c, _ = weights(volume, v_c, sigma_c, n_coarse)
-        coarse = _shading(field, deferred, w_c, values_c, volume.distance(ray_c, t_c), n_coarse,
-                          volume.d)
-    return VolumeRender(_shading(field, deferred, w, values, distance, n, volume.d), w,
-                        volume.normalized(ray, v), n, distance, coarse=coarse)
+    with stage('quadrature'):
+        w, transmittance = weights(volume, v, sigma, n)
+        if lazy:
+            rgb = _shade_visible(volume, field, t, w, transmittance, n)
+            values = [rgb.x, rgb.y, rgb.z]
+        distance = volume.distance(ray, t)
+        shading = _shading(field, deferred, w, values, distance, n, volume.d)
+        settle(shading.rgb, shading.opacity, shading.depth, w, distance)
+    return VolumeRender(shading, w, volume.normalized(ray, v), n, distance)
 
 
 def _shading(field, deferred, w, values, distance, n, d):
@@ -506,11 +501,7 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
         bg = render_volume(volume(Background(o, d, far), 'bg'), bg_field,
                            sampling.bg_samples, sampling.fine_samples, seed, stream=2,
                            near_gradient=near_gradient)
-    coarse = None
-    if fg.coarse is not None:
-        coarse = composite(fg.coarse, bg.coarse if bg else None)
-    return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None),
-                        coarse=coarse)
+    return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None))
 
 
 def _crossing(weights, distance, n, level):

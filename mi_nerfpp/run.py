@@ -159,8 +159,11 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
     ``data``: a dataset folder (NeRF++ layout, transforms.json, LLFF or COLMAP) or a folder
     of photos without poses (structure from motion runs first, cached in ``OUT/sfm``).
     ``out``: the run folder (default ``runs/<dataset name>``); one that holds a trained run
-    is only continued (``resume``) or replaced (``overwrite``). The config's automatic
-    downscale (``downscale=None``) is resolved from the image size (a copy of ``config``).
+    is only continued (``resume``) or replaced (``overwrite``). What the config leaves to the
+    capture is chosen and announced (in a copy of ``config``): the resolution
+    (``downscale=None``: the photos' own unless they do not fit in memory,
+    :func:`resolution_line`; a resumed run keeps the one it was trained at) and the budget
+    (neither ``iterations`` nor ``minutes``: :func:`~mi_nerfpp.config.default_minutes`).
 
     The run folder is locked for this process (:func:`mi_nerfpp.files.lock_folder`) before
     anything is written to it: a second run into it is refused while this one lives
@@ -169,8 +172,10 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
     so the folder never holds parts of two runs. A run folder that this call created is
     removed again when the inputs are refused.
     """
-    from .data import DatasetError, load_dataset
+    from .config import default_minutes
+    from .data import AutoDownscale, DatasetError, load_dataset
     from .files import check_not_a_file, check_writable_folder, lock_folder
+    from .memory import available_bytes, image_budget, training_working_set
     observer = observer or RunObserver()
     config.check_limits()
     if not os.path.exists(data):
@@ -187,16 +192,33 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
         finish_replacement(out, observer)
         check_run_folder(out, resume=resume, overwrite=overwrite)
         data = photos_to_dataset(data, os.path.join(out, 'sfm'), observer)
-        dataset = load_dataset(data, downscale=config.data.downscale,
-                               background=config.data.background)
-        if config.data.downscale is None:   # chosen from the image size: announced when it shrinks
+        downscale = config.data.downscale
+        checkpoint = os.path.join(out, 'model.npz')
+        if downscale is None and resume and os.path.exists(checkpoint):
+            # A resumed run goes on at the resolution it was trained at, whatever memory is
+            # free.
+            from .checkpoint import read_meta
+            stored = TrainConfig.stored_options(read_meta(checkpoint).get('config', {}))
+            downscale = stored.get('downscale')
+            if downscale is not None:
+                config = dataclasses.replace(config, data=dataclasses.replace(
+                    config.data, downscale=downscale))
+        if downscale is None:    # the photos' own resolution, unless it does not fit in memory
+            available, step = available_bytes(), training_working_set(config)
+            downscale = AutoDownscale(image_budget(step, available))
+        dataset = load_dataset(data, downscale=downscale, background=config.data.background)
+        if isinstance(downscale, AutoDownscale):
             config = dataclasses.replace(config, data=dataclasses.replace(
                 config.data, downscale=dataset.downscale))
-            if dataset.downscale > 1:
-                train = dataset.train.cameras[0]
-                observer.notice(f'downscale {dataset.downscale} chosen from the image size: '
-                                f'{len(dataset.train)} train images of {train.width}x'
-                                f'{train.height} after it (pass --downscale to choose)')
+            observer.notice(resolution_line(dataset, downscale, step, available))
+        schedule = config.schedule
+        if schedule.iterations is None and schedule.minutes is None:
+            cam = dataset.train.cameras[0]
+            minutes = default_minutes(len(dataset.train) * cam.width * cam.height)
+            config = config.replace(minutes=minutes)
+            observer.notice(f'training for {minutes:g} minutes (chosen from '
+                            f'{len(dataset.train)} views of {cam.width}x{cam.height}; '
+                            f'--minutes to change)')
         if overwrite:
             replace_run(out)
     except BaseException:
@@ -268,6 +290,32 @@ def _remove_if_unused(out):
             os.rmdir(out)
     except OSError:
         pass
+
+
+def resolution_line(dataset, choice, step_bytes: int, available: int) -> str:
+    """The resolution :class:`~mi_nerfpp.data.AutoDownscale` ``choice`` chose for
+    ``dataset``, and why, in one line (``step_bytes``: the training step's working set,
+    ``available``: the memory available)."""
+    from .memory import USABLE_FRACTION
+
+    size = bytes_text
+    cam = dataset.train.cameras[0]
+    views = f'{len(dataset.train)} views of {cam.width}x{cam.height}'
+    usable = f'{size(USABLE_FRACTION * available)} usable of {size(available)} available'
+    if choice.factor == 1:
+        return (f"training at the images' own resolution, {views} (images {size(choice.used)} "
+                f'+ training ~{size(step_bytes)}; {usable}; --downscale to shrink)')
+    return (f'downscale {choice.factor} chosen: {views}, because at their own '
+            f'{choice.size[0]}x{choice.size[1]} the images would take {size(choice.needed)} + '
+            f'training ~{size(step_bytes)}, more than the {usable} (--downscale to choose)')
+
+
+def bytes_text(n: float) -> str:
+    """A number of bytes for people: ``'1.5 GiB'``, ``'340.2 MiB'``, ``'90.0 KiB'``."""
+    for unit, scale in (('GiB', 2 ** 30), ('MiB', 2 ** 20), ('KiB', 2 ** 10)):
+        if n >= scale:
+            return f'{n / scale:.1f} {unit}'
+    return f'{n:.0f} bytes'
 
 
 def check_run_folder(out, resume, overwrite):
@@ -406,7 +454,7 @@ def plot_training(history, metrics, color_loss, path):
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     ax[0].semilogy(t, loss)
     ax[0].set(xlabel='seconds of training',
-              ylabel=f'loss ({COLOR_LOSS_NAMES[color_loss]}, coarse + fine, + priors)')
+              ylabel=f'loss ({COLOR_LOSS_NAMES[color_loss]} + priors)')
     ax[1].plot(t, psnr, label='training batches')
     points = [(60 * p['minutes'], p['psnr']) for p in metrics.get('progress', [])]
     if 'test' in metrics:

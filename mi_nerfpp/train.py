@@ -38,18 +38,14 @@ import numpy as np
 from . import appearance as app, optim, poses, priors
 from .arrays import owned
 from .checkpoint import NonFiniteStateError, load_checkpoint, save_checkpoint
-from .config import TrainConfig, per_volume
-from .data import pixel_rays
+from .config import TrainConfig, default_minutes, per_volume
+from .data.storage import MAX_STORED_BYTES
 from .files import remove_stale_temporaries
 from .frame import reframe_cameras
 from .model import NeRFPPModel
 from .profiling import stage
 from .render import distortion, ray_distortion, render_rays
 
-# The colour loss's weight against the priors, whose weights were tuned when the loss had two
-# terms of about equal size (the coarse and the fine composite; the coarse pass now only places
-# samples).
-PHOTOMETRIC_WEIGHT = float(os.environ.get('MI_NERFPP_PW', 2.0))
 # Gradients scattered into arrays of up to this many entries are summed in one copy per thread
 # and added up after the kernel (Dr.Jit's "expand" reduction) instead of by atomic adds: the
 # 8.4 M-entry grid levels are above Dr.Jit's default threshold (1 M), and their atomics cost
@@ -62,51 +58,119 @@ class TrainingError(RuntimeError):
 
 
 class RayBank:
-    """Every pixel ray of a split (model frame), its colour and its image index, as Dr.Jit
-    arrays."""
+    """The training pixels of a split as rays, built per batch from the cameras (Dr.Jit arrays).
+
+    Ray ``index = (image · H + y) · W + x`` of a split of images of H x W pixels starts at the
+    centre of camera ``image`` and goes through the centre of pixel (x, y), as
+    :func:`~mi_nerfpp.data.pixel_rays` computes it (in Float64, then rounded to float32); its
+    colour is the pixel's stored value (:mod:`mi_nerfpp.data.storage`) converted to float32
+    as :attr:`Split.images <mi_nerfpp.data.dataset.Split.images>` converts it. The bank holds
+    per image its camera (``fx, s, cx, fy, cy`` of K, the rotation and the centre, Float64)
+    and the stored pixels: a training pixel costs the bytes its file stored (3 for 8 bits).
+    """
 
     def __init__(self, split):
         if len(split) == 0:
             raise TrainingError('the training split is empty')
-        o, d, c, image = [], [], [], []
-        for k, (cam, img) in enumerate(zip(split.cameras, split.images)):
-            h, w = img.shape[:2]
-            py, px = np.mgrid[0:h, 0:w] + 0.5
-            oi, di = pixel_rays(cam, px, py)
-            o.append(oi)
-            d.append(di)
-            c.append(img.reshape(-1, 3))
-            image.append(np.full(h * w, k, np.uint32))
-        o, d, c = (np.concatenate(a).astype(np.float32) for a in (o, d, c))
-        self.size = len(c)
+        images = split.images
+        if images.nbytes > MAX_STORED_BYTES:
+            raise TrainingError(f'the training images take {images.nbytes / 2 ** 30:.1f} GiB '
+                                f'as stored, more than the {MAX_STORED_BYTES / 2 ** 30:.0f} GiB '
+                                f'a training step can address: choose a --downscale')
+        h, w = images.stored[0].shape[:2]
+        n = len(split)
+        self.size = n * h * w
+        cams = split.cameras
+        K = np.array([[c.K[0, 0], c.K[0, 1], c.K[0, 2], c.K[1, 1], c.K[1, 2]] for c in cams])
+        R = np.array([c.c2w[:3, :3] for c in cams])
+        center = np.array([c.c2w[:3, 3] for c in cams])
         # Owned copies (:mod:`.arrays`): a frozen step of another Trainer may outlive this one.
-        self.o = mi.Point3f(*[owned(o[:, i], mi.Float) for i in range(3)])
-        self.d = mi.Vector3f(*[owned(d[:, i], mi.Float) for i in range(3)])
-        self.rgb = mi.Color3f(*[owned(c[:, i], mi.Float) for i in range(3)])
-        self.image = owned(np.concatenate(image), mi.UInt32)
-        dr.eval(self.o, self.d, self.rgb, self.image)
+        self.cameras = tuple(owned(a.ravel(), _Float64) for a in (K, R, center))
+        kind = images.dtype.name
+        stored = [a.astype('<u2').view(np.uint8) if kind == 'uint16' else a
+                  for a in images.stored]
+        self.pixels = _owned_concatenation(stored, _STORE_TYPES[kind])
+        self.layout = (n, h, w, kind, images.scale)
 
     def arrays(self):
-        """The bank's Dr.Jit arrays (a frozen step takes them as inputs)."""
-        return self.o, self.d, self.rgb, self.image
+        """The bank's Dr.Jit arrays and its layout as Python values (a frozen step takes them
+        as inputs; another layout records the step anew)."""
+        return {'cameras': self.cameras, 'pixels': self.pixels, 'layout': self.layout}
 
     @classmethod
-    def from_arrays(cls, o, d, rgb, image):
-        """A bank over the arrays of :meth:`arrays`."""
+    def from_arrays(cls, arrays):
+        """A bank over what :meth:`arrays` returned."""
         bank = cls.__new__(cls)
-        bank.o, bank.d, bank.rgb, bank.image = o, d, rgb, image
-        bank.size = dr.width(rgb)
+        bank.cameras, bank.pixels, bank.layout = (arrays['cameras'], arrays['pixels'],
+                                                  arrays['layout'])
+        n, h, w = bank.layout[:3]
+        bank.size = n * h * w
         return bank
 
     def batch(self, index):
         """``(origin, direction, colour)`` of the rays ``index``."""
         i = mi.UInt32(index)
-        return (dr.gather(mi.Point3f, self.o, i), dr.gather(mi.Vector3f, self.d, i),
-                dr.gather(mi.Color3f, self.rgb, i))
+        h, w = self.layout[1:3]
+        image = self.images(i)
+        within = i - image * (h * w)                  # the pixel (x, y) in its image
+        y = within // w
+        x = within - y * w
+        K, R, center = self.cameras
+
+        def k(j):
+            return dr.gather(_Float64, K, image * 5 + j)
+        # K⁻¹ [x + 0.5, y + 0.5, 1] by back substitution (K is upper triangular), then R.
+        v = (_Float64(y) + 0.5 - k(4)) / k(3)
+        u = (_Float64(x) + 0.5 - k(1) * v - k(2)) / k(0)
+        d = [dr.gather(_Float64, R, image * 9 + 3 * a) * u
+             + dr.gather(_Float64, R, image * 9 + 3 * a + 1) * v
+             + dr.gather(_Float64, R, image * 9 + 3 * a + 2) for a in range(3)]
+        norm = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        o = [dr.gather(_Float64, center, image * 3 + a) for a in range(3)]
+        return (mi.Point3f(*[mi.Float(c) for c in o]),
+                mi.Vector3f(*[mi.Float(c / norm) for c in d]),
+                mi.Color3f(*[self._channel(i, c) for c in range(3)]))
 
     def images(self, index):
         """The training-image index of the rays ``index`` (UInt32)."""
-        return dr.gather(mi.UInt32, self.image, mi.UInt32(index))
+        h, w = self.layout[1:3]
+        return mi.UInt32(index) // (h * w)
+
+    def _channel(self, i, c):
+        """Channel ``c`` of the stored colour of the rays ``i``, as float32."""
+        kind, scale = self.layout[3:]
+        at = 3 * i + c
+        if kind == 'uint8':
+            value = mi.UInt32(dr.gather(_UInt8, self.pixels, at))
+        elif kind == 'uint16':                    # little-endian byte pairs
+            value = (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at))
+                     | (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at + 1)) << 8))
+        else:
+            return mi.Float(dr.gather(_STORE_TYPES[kind], self.pixels, at))
+        # In Float64, then rounded: the float32 quotient value / scale, as NumPy's.
+        return mi.Float(_Float64(value) / scale)
+
+
+_Float64 = dr.float64_array_t(mi.Float)
+_UInt8 = dr.uint8_array_t(mi.Float)
+# The Dr.Jit array a split's stored dtype is kept in (16-bit integers as their bytes).
+_STORE_TYPES = {'uint8': _UInt8, 'uint16': _UInt8, 'float16': dr.float16_array_t(mi.Float),
+                'float32': mi.Float}
+
+
+def _owned_concatenation(arrays, tp):
+    """The NumPy ``arrays`` one after the other in one Dr.Jit array of type ``tp`` that owns its
+    memory (:func:`~mi_nerfpp.arrays.owned`), copied one array at a time: no concatenated
+    copy of them all is ever made."""
+    out = dr.empty(tp, sum(a.size for a in arrays))
+    offset = 0
+    for a in arrays:
+        src = tp(np.ascontiguousarray(a).ravel())
+        dr.scatter(out, src, dr.arange(mi.UInt32, a.size) + dr.opaque(mi.UInt32, offset))
+        dr.eval(out)
+        dr.sync_thread()      # the copy is done before NumPy may move on
+        offset += a.size
+    return out
 
 
 def in_model_frame(dataset, normalization):
@@ -139,6 +203,9 @@ class Trainer:
         self.train, self.validation, self.test = (splits[k] for k in ('train', 'validation',
                                                                       'test'))
         self.rays = RayBank(self.train)
+        if config.schedule.iterations is None and config.schedule.minutes is None:
+            # No budget given (:func:`mi_nerfpp.run.prepare` chooses and announces it first).
+            self.cfg = config = config.replace(minutes=default_minutes(self.rays.size))
         self.iteration, self.elapsed, self.history = 0, 0.0, []
 
         meta, state = {}, {}
@@ -304,7 +371,7 @@ class Trainer:
         MSE)`` as Dr.Jit arrays."""
         cfg, model = self.cfg.losses, self.model
         opt, draws, phase = inputs['opt'], inputs['draws'], inputs['phase']
-        rays = RayBank.from_arrays(*inputs['rays'])
+        rays = RayBank.from_arrays(inputs['rays'])
         index = draws['index']
         o, d, gt = rays.batch(index)
         occupancy = {}
@@ -326,11 +393,7 @@ class Trainer:
             image, params = rays.images(index), opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
         pred = encode(res.fine.rgb)
-        color_loss = optim.COLOR_LOSSES[cfg.color_loss]
-        if res.coarse is not None:
-            loss = color_loss(pred, gt) + color_loss(encode(res.coarse.rgb), gt)
-        else:
-            loss = PHOTOMETRIC_WEIGHT * color_loss(pred, gt)
+        loss = optim.COLOR_LOSS_WEIGHT * optim.COLOR_LOSSES[cfg.color_loss](pred, gt)
         fine = dr.detach(optim.mse(pred, gt))     # for the PSNR shown while training
         if model.appearance is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])
@@ -346,6 +409,10 @@ class Trainer:
         if cfg.tv > 0:
             loss += cfg.tv * sum((priors.grid_tv(opt[k], idx) for k, idx in draws['tv'].items()),
                                  mi.Float(0.0))
+        if cfg.far_smoothness > 0 and model.bg is not None and model.bg.kind == 'grid':
+            loss += cfg.far_smoothness * sum(
+                (priors.far_field_smoothness(opt[k]) for k in opt.keys()
+                 if k.startswith('bg.') and optim.is_grid(k)), mi.Float(0.0))
         with stage('losses and reverse pass'):
             dr.backward(loss)
         with stage('adam'):

@@ -14,47 +14,45 @@ from .data import Camera, mitsuba_sensor_dict
 from .exr import compositing_attributes, write_exr
 from .frame import VIEW_NEAR_CLIP
 from .integrator import NeRFPPIntegrator
-from .layers import BEAUTY, LAYERS
+from .layers import AOVS, BEAUTY, develop
 from .preview import write_linear_png
 from .render import Sampling
 
 
-def render_layers(image, integrator):
+def render_layers(image, integrator=None):
     """``mi.render``'s output (H, W, C) as the layer dict of :data:`~mi_nerfpp.layers.LAYERS`
     (channel name -> H x W), whatever the film's pixel format: the film's ``R G B [A]``, then
-    the channels that ``integrator.aov_names()`` names. ``A`` is 1 where the background volume
-    is rendered (it is opaque), else the foreground alpha over the scene's shapes' coverage,
-    ``fg.A + (1 - fg.A)·obj.A``."""
+    the sample channels that ``integrator.aov_names()`` names (None: a ``nerfpp`` integrator's,
+    :data:`~mi_nerfpp.layers.AOVS`), developed into layers by
+    :func:`mi_nerfpp.layers.develop` (so that they add up at any samples per pixel)."""
     image = np.asarray(image, dtype=np.float32)
-    aovs = list(integrator.aov_names())
+    aovs = list(AOVS if integrator is None else integrator.aov_names())
     base = image.shape[2] - len(aovs)
     if base not in (3, 4):
         raise ValueError(f"the film gives {base} colour channel(s): set its pixel_format to "
                          f"'rgb' or 'rgba'")
-    layers = {name: image[..., i] for i, name in enumerate(BEAUTY[:3])}
-    layers.update({name: image[..., base + i] for i, name in enumerate(aovs)})
-    background = getattr(integrator, 'background', True)
-    if background:
-        layers['A'] = np.ones_like(layers['R'])
-    else:
-        layers['A'] = layers['fg.A'] + (1.0 - layers['fg.A']) * layers['obj.A']
-    return {name: layers[name] for name in LAYERS}
+    rgb = {name: image[..., i] for i, name in enumerate(BEAUTY[:3])}
+    return develop(rgb, {name: image[..., base + i] for i, name in enumerate(aovs)})
 
 
 def camera_attributes(sensor) -> dict:
-    """Standard EXR camera attributes of a Mitsuba perspective sensor, in the world frame.
+    """Standard EXR camera attributes of a Mitsuba perspective sensor, in the world frame, as
+    OpenEXR's ``ImfStandardAttributes.h`` defines them.
 
-    ``worldToCamera``: world to a camera frame with x right, y up and the camera looking
-    down -z (the OpenGL/Nuke convention). ``worldToNDC``: world to normalized device
-    coordinates, x and y in [-1, 1] from the left/bottom to the right/top edge of the image
-    after the division by w (z: -1 at the near plane, 1 at the far plane). Both are stored as
-    Imath writes them, for row vectors (``p' = p·M``), i.e. transposed. Also ``fovX``/``fovY``
-    (degrees, through the image edges), ``clipNear``/``clipFar`` (world units).
+    ``worldToCamera``: world to the camera space of the standard (RenderMan's): left-handed,
+    origin at the camera, +x right and +y up in the image, **+z the viewing direction**
+    (points in front of the camera have positive z). ``worldToNDC``: world to normalized
+    device coordinates after the division by w: (0, 0) the upper-left and (1, 1) the
+    lower-right corner of the display window (the image edges), x right, y down; z (which
+    the standard discards) is 0 at the near and 1 at the far plane. Both are stored as Imath
+    writes them, for row vectors (``p' = p·M``), i.e. transposed. So a world point ``p``
+    lands on the continuous pixel position ``(ndc.x·width, ndc.y·height)`` (pixel centres at
+    ``+0.5``). Also ``fovX``/``fovY`` (degrees, through the image edges) and
+    ``clipNear``/``clipFar`` (world units).
     """
     to_world = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
     world_to_mitsuba = np.linalg.inv(to_world)   # Mitsuba camera: x left, y up, z forward
-    flip = np.diag([-1.0, 1.0, -1.0, 1.0])
-    world_to_camera = flip @ world_to_mitsuba
+    world_to_camera = np.diag([-1.0, 1.0, 1.0, 1.0]) @ world_to_mitsuba
 
     def slope(u, v):
         """(x/z, y/z) in Mitsuba camera space of the ray through film position (u, v)."""
@@ -65,10 +63,11 @@ def camera_attributes(sensor) -> dict:
     s0, s1 = slope(0.0, 0.5)[0], slope(1.0, 0.5)[0]
     t0, t1 = slope(0.5, 0.0)[1], slope(0.5, 1.0)[1]
     near, far = float(sensor.near_clip()), float(sensor.far_clip())
+    # u = (x/z - s0) / (s1 - s0), v = (y/z - t0) / (t1 - t0) in Mitsuba camera space.
     projection = np.array([
-        [2 / (s1 - s0), 0, -2 * s0 / (s1 - s0) - 1, 0],
-        [0, -2 / (t1 - t0), 1 + 2 * t0 / (t1 - t0), 0],
-        [0, 0, (far + near) / (far - near), -2 * far * near / (far - near)],
+        [1 / (s1 - s0), 0, -s0 / (s1 - s0), 0],
+        [0, 1 / (t1 - t0), -t0 / (t1 - t0), 0],
+        [0, 0, far / (far - near), -far * near / (far - near)],
         [0, 0, 1, 0]])
     world_to_ndc = projection @ world_to_mitsuba
 

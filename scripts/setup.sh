@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Idempotent set-up: libLLVM >= 17 (Dr.Jit's CPU backend), oiiotool (compositing tests),
-# a virtual environment in .venv,
-# and this package installed in it (editable, with the test and cluster extras: the Ray
-# tests run).
+# Blender (the export test builds its camera from the USD headless), a virtual environment in
+# .venv, and this package installed in it (editable, with the test, cluster and export extras:
+# the Ray and usd-core tests run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -35,7 +35,20 @@ if ! command -v oiiotool >/dev/null 2>&1; then
     fi
 fi
 
+# Blender (Debian's 3.4, ~50 s to install): the export test checks the USD camera in it.
+if ! command -v blender >/dev/null 2>&1; then
+    if command -v apt-get >/dev/null 2>&1; then
+        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        echo "setup: installing blender (used headless by the export test)"
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq blender >/dev/null
+    else
+        echo "setup: blender not found and no apt-get: install Blender, or set" \
+             "MI_NERFPP_NO_BLENDER=1 to skip the Blender camera check" >&2
+    fi
+fi
+
 if [ ! -x .venv/bin/python ]; then
     python3 -m venv .venv
 fi
-.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test,cluster]'
+.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test,cluster,export]'

@@ -12,7 +12,7 @@ from mi_nerfpp import appearance as app
 from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.evaluate import evaluate_split
-from mi_nerfpp.layers import LAYERS
+from mi_nerfpp.views import render_layers
 from mi_nerfpp.color import srgb_eotf
 from mi_nerfpp.synth import APPEARANCE_FILE, vary_exposure
 from mi_nerfpp.config import TrainConfig
@@ -131,8 +131,7 @@ def test_integrator_renders_a_training_image_appearance(tmp_path):
     neutral = np.array(mi.render(mi.load_dict(scene_dict(jitter=False, checkpoint=path))))
     image1 = np.array(mi.render(mi.load_dict(scene_dict(jitter=False, checkpoint=path,
                                                          appearance_image=1))))
-    c = {n: image1[..., i] for i, n in enumerate(LAYERS)}
-    n = {k: neutral[..., i] for i, k in enumerate(LAYERS)}
+    c, n = render_layers(image1), render_layers(neutral)
     for ch, g, b in (('R', 2.0, 0.05), ('G', 1.0, 0.0), ('B', 0.5, 0.1)):
         np.testing.assert_allclose(c[ch], g * n[ch] + b, rtol=1e-4)
         np.testing.assert_allclose(c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'],

@@ -171,7 +171,9 @@ def test_the_reference_documents_exactly_the_integrators_parameters(reference_pa
 # scripts; every other --option named in README.md and the guide pages must be one that a
 # command of the package accepts.
 FOREIGN_OPTIONS = {
-    'docs/compositing.md': {'--ch', '--over'},
+    'docs/compositing.md': {'--ch', '--over', '--add', '--tocolorspace', '--flatten',
+                            '--deepmerge'},
+    'docs/rendering.md': {'--tocolorspace', '--flatten', '--deepmerge'},
     'docs/videos-and-ray.md': {'--head', '--port', '--address', '--node-ip-address', '--num-cpus',
                                '--block', '--nodes', '--ntasks-per-node', '--cpus-per-task',
                                '--exclusive', '--run'},

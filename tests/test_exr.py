@@ -28,7 +28,7 @@ def layer_channels(seed=0):
 def test_layers_layout(tmp_path):
     assert LAYERS == ('R', 'G', 'B', 'A', 'fg.R', 'fg.G', 'fg.B', 'fg.A',
                           'bg.R', 'bg.G', 'bg.B', 'depth.Z', 'distance.Y',
-                          'obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj.Z',
+                          'obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj_depth.Z',
                           'shadow.R', 'shadow.G', 'shadow.B')
     # The names are what a nerfpp render writes, each on the channel that holds its content:
     # a wrong name or order breaks the compositing identity or the alpha/depth checks.
@@ -81,7 +81,7 @@ def test_half_stores_half_pixels_but_full_float_depth(tmp_path):
         types = {name: channel.type() for name, channel in f.channels().items()}
     assert types.pop('depth.Z') == OpenEXR.FLOAT
     assert types.pop('distance.Y') == OpenEXR.FLOAT
-    assert types.pop('obj.Z') == OpenEXR.FLOAT
+    assert types.pop('obj_depth.Z') == OpenEXR.FLOAT
     assert set(types.values()) == {OpenEXR.HALF}
 
 

@@ -4,15 +4,19 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.layers import LAYERS as CHANNELS
+from mi_nerfpp.layers import AOVS, BEAUTY
 from mi_nerfpp.frame import Normalization
 from mi_nerfpp.integrator import NeRFPPIntegrator
 from tests.helpers import scene_dict, tiny_model
 
 
+# The channels mi.render returns: the film's, then the integrator's sample channels.
+CHANNELS = BEAUTY + AOVS
+
+
 def layers(img):
-    a = np.array(img)
-    return {name: a[..., i] for i, name in enumerate(CHANNELS)}
+    from mi_nerfpp.views import render_layers
+    return render_layers(np.array(img))
 
 
 def test_import_registers_plugin_and_variant():
@@ -124,7 +128,7 @@ def test_gradients_match_central_finite_differences(key):
     w = rng.uniform(-1, 1, (6, 8, len(CHANNELS))).astype(np.float32)
     # Weight every output channel except the depth layers (large values; depth.Z is
     # piecewise constant in the parameters), which keeps FD well conditioned.
-    for name in ('depth.Z', 'distance.Y', 'obj.Z'):
+    for name in ('depth.Z', 'distance.Y', 'obj_depth_w.Z'):
         w[..., CHANNELS.index(name)] = 0.0
     weights = mi.TensorXf(w)
 

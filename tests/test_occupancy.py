@@ -153,3 +153,41 @@ def test_checkpoint_keeps_the_occupancy(tmp_path):
     a = render_rays(o, d, model.fg, model.bg, Sampling(8, 8, 8), occupancy=model.occupancy)
     b = render_rays(o, d, loaded.fg, loaded.bg, Sampling(8, 8, 8), occupancy=loaded.occupancy)
     np.testing.assert_allclose(npf(a.fine.rgb, 16), npf(b.fine.rgb, 16), atol=1e-6)
+
+
+@pytest.mark.parametrize('domain,bins', [('ball', 128), ('inverted_sphere', 64)])
+def test_occupied_length_coordinate_matches_a_float64_reference(domain, bins):
+    """``parameter(u)`` of random rays through a random occupancy grid equals the inverse of the
+    occupied-length CDF computed in float64 from the bins' occupancy (equal bins, empty ones
+    weighing EMPTY_WEIGHT), within float32 rounding of the ray parameter."""
+    from mi_nerfpp.render import Background
+    from mi_nerfpp.sampling import flat_index
+    rng = np.random.default_rng(4)
+    n, m = 300, 24
+    o = rng.normal(size=(n, 3))
+    o *= 0.9 * rng.uniform(size=(n, 1)) ** (1 / 3) / np.linalg.norm(o, axis=1, keepdims=True)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    O = mi.Point3f(*[F(o[:, i]) for i in range(3)])
+    D = mi.Vector3f(*[F(d[:, i]) for i in range(3)])
+    base = Foreground(O, D) if domain == 'ball' else Background(O, D)
+    grid = OccupancyGrid(domain, 32)
+    grid.density = F((rng.uniform(size=dr.width(grid.density)) < 0.3) * 10.0)
+    vol = OccupiedVolume(base, grid, bins)
+    # The reference's bins: occupied where the grid's cell of the bin's midpoint is.
+    lo, hi = npf(base.lo), npf(base.hi)
+    ray, k = flat_index(n, bins)
+    mid = F(((lo[:, None] + (np.arange(bins) + 0.5) / bins * (hi - lo)[:, None])).ravel())
+    occupied = npf(grid.occupied(base.inputs(ray, mid)), bins).astype(bool)
+    assert 0.05 < occupied.mean() < 0.95
+    width = np.maximum((hi - lo) / bins, 1e-12)
+    mass = width[:, None] * np.where(occupied, 1.0, EMPTY_WEIGHT)
+    cdf = np.concatenate([np.zeros((n, 1)), np.cumsum(mass, 1)], 1)
+    np.testing.assert_allclose(npf(vol.total), cdf[:, -1], rtol=1e-5)
+    u = rng.uniform(size=(n, m))
+    got = npf(vol.parameter(flat_index(n, m)[0], F(u)), m)
+    for r in range(n):
+        t = u[r] * cdf[r, -1]
+        b = np.clip(np.searchsorted(cdf[r], t, side='right') - 1, 0, bins - 1)
+        ref = lo[r] + (b + np.clip((t - cdf[r, b]) / mass[r, b], 0, 1)) / bins * (hi[r] - lo[r])
+        np.testing.assert_allclose(got[r], ref, atol=2e-4, rtol=0)

@@ -86,3 +86,23 @@ def test_random_points_cover_the_domain(domain):
         assert x.shape == (4, 4096)
         np.testing.assert_allclose(np.linalg.norm(x[:3], axis=0), 1, atol=1e-5)
         assert np.abs(x[:3].mean(1)).max() < 0.05 and 0 <= x[3].min() and x[3].max() < 1
+
+
+def test_far_field_smoothness_value_and_gradient():
+    """Squared differences of longitude (periodic) and colatitude neighbours in the s = 0 slice,
+    feature channels only: by hand on a 3 x 2 x 4 x 3 grid, and against central differences."""
+    rng = np.random.default_rng(7)
+    shape = (3, 2, 4, 3)                      # (s, colatitude, longitude, channels)
+    g = rng.normal(size=shape)
+    far = g[0]
+    expected = np.mean([np.mean((np.roll(far[..., c], -1, axis=1) - far[..., c]) ** 2)
+                        + np.mean((far[np.minimum(np.arange(2) + 1, 1)][..., c] - far[..., c]) ** 2)
+                        for c in (1, 2)])
+
+    def f(x):
+        return priors.far_field_smoothness(mi.TensorXf(x, shape))
+
+    assert f(mi.Float(g.ravel().astype(np.float32))).array[0] == pytest.approx(expected, rel=1e-5)
+    grad = fd_check(f, g.ravel(), eps=1e-2, rtol=1e-2, atol=1e-4).reshape(shape)
+    # Only the far slice's features feel it: not the density channel, not the slices behind.
+    assert np.all(grad[1:] == 0) and np.all(grad[..., 0] == 0) and np.abs(grad[0, ..., 1:]).max() > 0

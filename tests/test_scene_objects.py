@@ -90,9 +90,8 @@ def object_scene(fg, bg, shapes, width=16, height=12, origin=(0.0, 0.1, 0.9), ta
 
 
 def channels(scene, **kwargs):
-    from mi_nerfpp.layers import LAYERS
-    img = np.array(mi.render(scene, **kwargs))
-    return {name: img[..., i] for i, name in enumerate(LAYERS)}
+    from mi_nerfpp.views import render_layers
+    return render_layers(mi.render(scene, **kwargs), scene.integrator())
 
 
 def pixel_rays(scene):
@@ -135,8 +134,8 @@ def test_sphere_in_front_of_the_volume_has_its_analytic_depth():
     np.testing.assert_array_equal(c['obj.A'], hit.astype(np.float32))
     z = camera_z(scene, o, d, np.where(hit, t, 0.0))
     np.testing.assert_allclose(c['depth.Z'][hit], z[hit], rtol=1e-5)
-    np.testing.assert_allclose(c['obj.Z'][hit], z[hit], rtol=1e-5)
-    assert np.all(c['obj.Z'][~hit] == 0) and np.all(c['obj.R'][~hit] == 0)
+    np.testing.assert_allclose(c['obj_depth.Z'][hit], z[hit], rtol=1e-5)
+    assert np.all(c['obj_depth.Z'][~hit] == 0) and np.all(c['obj.R'][~hit] == 0)
     # The volume in front of the sphere is integrated up to the hit only: fg.A = 1 - exp(-σ t)
     # (64 + 32 samples from the near plane; the first half interval is not integrated).
     np.testing.assert_allclose(c['fg.A'][hit], 1 - np.exp(-0.2 * t[hit]), atol=3e-3)
@@ -324,8 +323,8 @@ def test_gradients_through_a_mirror_match_finite_differences():
     dr.enable_grad(params[key])
     params.update()
     img = mi.render(scene, params, seed=1)
-    from mi_nerfpp.layers import LAYERS
-    assert np.array(img)[..., LAYERS.index('obj.A')].max() == 1.0     # the mirror is in view
+    from mi_nerfpp.layers import AOVS
+    assert np.array(img)[..., 4 + AOVS.index('obj.A')].max() == 1.0     # the mirror is in view
     dr.backward(loss(img))
     grad = np.array(dr.grad(params[key])).ravel()
     base = np.array(params[key]).ravel().astype(np.float64)
@@ -437,6 +436,15 @@ def test_example_scene_renders_objects_into_a_checkpoint(tmp_path):
         np.testing.assert_allclose(
             c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'] + c[f'obj.{ch}']
             + c[f'shadow.{ch}'], atol=2e-5)
+        # The catcher only darkens (issue 35: it brightened 19 % of the pixels).
+        assert np.all(c[f'shadow.{ch}'] <= 0), ch
+    # -D catchers= renders no proxy (issue 35: an opaque grey quad over 45 % of the frame):
+    # the objects' coverage is the same as with the catcher, and nothing is shadowed.
+    plain = channels(mi.load_file(xml, checkpoint=str(tmp_path / 'model.npz'), width='32',
+                                  height='18', spp='1', catchers=''))
+    np.testing.assert_array_equal(plain['obj.A'], c['obj.A'])
+    assert not np.any(plain['shadow.R'])
+    np.testing.assert_allclose(plain['R'], c['R'] - c['shadow.R'], atol=1e-5)
 
 
 def test_shadow_catcher_ratio_under_a_black_disk_is_the_unblocked_cosine_fraction():
@@ -478,7 +486,7 @@ def test_scene_without_shapes_renders_the_volumes_alone():
     scene = mi.load_dict(scene_dict(jitter=False))      # rays through the pixel centres
     scene.integrator().set_model(tiny_model())
     c = channels(scene)
-    for name in ('obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj.Z', 'shadow.R', 'shadow.G', 'shadow.B'):
+    for name in ('obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj_depth.Z', 'shadow.R', 'shadow.G', 'shadow.B'):
         assert np.all(c[name] == 0), name
     o, d = pixel_rays(scene)
     L, _ = scene.integrator().render_layers(mi.Point3f(*[F(o[..., i]) for i in range(3)]),
@@ -486,3 +494,34 @@ def test_scene_without_shapes_renders_the_volumes_alone():
                                             None, primal=True)
     np.testing.assert_allclose(np.stack([c[ch] for ch in 'RGB'], -1).reshape(-1, 3),
                                npf(L, dr.width(L)).T, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize('emitter', ['point', 'spot', 'directional', 'area'])
+def test_shapes_catchers_and_each_emitter_type_render_together(emitter):
+    """Issue 37: shapes + shadow_catchers + a point or area light failed with "'Emitter'
+    object has no attribute 'shape'". Each emitter type with objects and a catcher: it lights
+    the ball (brighter than without it) and the layers still add up."""
+    lights = {
+        'point': {'type': 'point', 'position': [0.1, 0.5, 0.2],
+                  'intensity': {'type': 'rgb', 'value': 2.0}},
+        'spot': {'type': 'spot', 'to_world': mi.ScalarTransform4f().look_at(
+            origin=[0.1, 0.5, 0.3], target=[0, -0.1, 0], up=[0, 0, 1]), 'cutoff_angle': 40,
+            'intensity': {'type': 'rgb', 'value': 4.0}},
+        'directional': {'type': 'directional', 'direction': [0, -1, -0.3],
+                        'irradiance': {'type': 'rgb', 'value': 2.0}},
+        'area': {'type': 'rectangle', 'to_world': mi.ScalarTransform4f().translate(
+            [0, 0.5, 0.2]).rotate([1, 0, 0], 90).scale(0.1),
+            'emitter': {'type': 'area', 'radiance': {'type': 'rgb', 'value': 20.0}}},
+    }
+    ball = {'ball': {'type': 'sphere', 'center': [0, -0.1, 0], 'radius': 0.12,
+                     'bsdf': {'type': 'diffuse'}}}
+    dark = ground_scene(dict(ball, **CATCHER), shadow_catchers='catcher')
+    lit = ground_scene(dict(ball, light=lights[emitter], **CATCHER), shadow_catchers='catcher')
+    c, d = channels(lit), channels(dark)
+    on = c['obj.A'] == 1.0
+    assert on.sum() > 5
+    assert c['obj.R'][on].mean() > d['obj.R'][on].mean() + 0.01
+    for ch in 'RGB':
+        np.testing.assert_allclose(
+            c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'] + c[f'obj.{ch}']
+            + c[f'shadow.{ch}'], atol=1e-5)

@@ -98,13 +98,18 @@ def test_depth_matches_ray_intersection_at_image_centre(garden):
     K = np.loadtxt(out / 'train' / 'intrinsics' / '000001.txt')[:3, :3]
     camera = Camera(K, pose, 16, 12)
     layers = read_exr(out / 'train' / 'gt' / '000001.exr')
-    row, col = 6, 8                                    # the pixel whose centre is (8.5, 6.5)
-    origin, direction = pixel_rays(camera, col + 0.5, row + 0.5)
     scene = mi.load_file(GARDEN)
-    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(origin.T), mi.Vector3f(direction.T)))
-    assert bool(si.is_valid()[0])
-    t = float(si.t[0])
-    assert layers['depth.Z'][row, col] == pytest.approx(t, rel=1e-3)
+    # The pixel whose centre is (8.5, 6.5), and one off the axis in the lower corner (lawn).
+    for row, col in ((10, 1), (6, 8)):
+        origin, direction = pixel_rays(camera, col + 0.5, row + 0.5)
+        si = scene.ray_intersect(mi.Ray3f(mi.Point3f(origin.T), mi.Vector3f(direction.T)))
+        assert bool(si.is_valid()[0])
+        t = float(si.t[0])
+        # depth.Z is camera-space z, as in renders: the ray distance times the cosine to the
+        # view axis (0.9 for the corner pixel, so a ray distance would be off by 10 %).
+        cos = float(np.ravel(direction) @ pose[:3, 2]) / float(np.linalg.norm(direction))
+        assert cos < 0.95 if col == 1 else cos > 0.999
+        assert layers['depth.Z'][row, col] == pytest.approx(t * cos, rel=1e-3)
     hit = np.array(si.p).ravel()
     norm = info['normalization']
     inside = np.linalg.norm(hit - norm['center']) <= norm['world_radius']

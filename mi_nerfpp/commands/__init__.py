@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from . import colmap, evaluate, optimize, render, sweep, synth, video
+from . import colmap, evaluate, export, optimize, render, sweep, synth, video
 
-COMMANDS = (render, optimize, synth, evaluate, video, sweep, colmap)
+COMMANDS = (render, optimize, synth, evaluate, video, sweep, colmap, export)
 
 
 def resolution(value: str) -> tuple[int, int]:

@@ -11,6 +11,9 @@ def add_parser(sub):
     p.add_argument('-o', '--output', default='render.exr', help='EXR to write (default: render.exr)')
     p.add_argument('--spp', type=int, default=0, help="samples per pixel (default: the scene's)")
     p.add_argument('--preview', help='also write an sRGB PNG preview here')
+    p.add_argument('--deep', action='store_true',
+                   help='write a deep EXR (R G B A Z ZBack samples along each pixel) instead '
+                        'of the flat layers: docs/compositing.md')
     p.add_argument('--seed', type=int, default=0, help='sampler seed')
     p.add_argument('-D', '--define', action='append', metavar='NAME=VALUE',
                    help='set a <default> parameter of the scene (repeatable)')
@@ -48,7 +51,14 @@ def run(args):
     t0 = time.perf_counter()
     scene = mi.load_file(args.scene, **_defines(args.define))
     check_sensor(scene, args.scene)
-    render_to_files(scene, args.output, spp=args.spp, preview=args.preview, seed=args.seed)
+    if args.deep:
+        from ..deep import render_deep_to_file
+        from ..preview import write_linear_png
+        _, _, beauty = render_deep_to_file(scene, args.output, spp=args.spp, seed=args.seed)
+        if args.preview:
+            write_linear_png(args.preview, beauty)
+    else:
+        render_to_files(scene, args.output, spp=args.spp, preview=args.preview, seed=args.seed)
     print(f'wrote {args.output}' + (f' and {args.preview}' if args.preview else '')
           + f' in {time.perf_counter() - t0:.1f} s')
 

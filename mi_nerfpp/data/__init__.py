@@ -3,6 +3,7 @@
 Modules:
     cameras  -- :class:`Camera`, OpenCV/OpenGL/Mitsuba conventions, rays
     images   -- reading/writing images as float RGB
+    storage  -- how a split keeps its images in memory (compactly)
     dataset  -- :class:`Dataset` / :class:`Split`, shared validation, normalization applied
     nerfpp   -- the NeRF++ layout (read and write)
     blender  -- ``transforms.json`` (Blender / NeRF synthetic, instant-ngp, nerfstudio)
@@ -23,7 +24,7 @@ from .cameras import (
     project,
 )
 from .colmap import read_colmap
-from .dataset import Dataset, Split, auto_downscale
+from .dataset import AutoDownscale, Dataset, Split
 from .errors import DatasetError
 from .formats import detect_format, load_dataset
 from .images import downscale_image, image_size, read_image, write_encoded_png
@@ -31,7 +32,7 @@ from .llff import llff_to_opencv, read_llff
 from .nerfpp import read_nerfpp, write_nerfpp
 
 __all__ = [
-    'Camera', 'Dataset', 'DatasetError', 'Split', 'auto_downscale', 'detect_format',
+    'AutoDownscale', 'Camera', 'Dataset', 'DatasetError', 'Split', 'detect_format',
     'direction_coverage',
     'downscale_image', 'image_size', 'read_colmap',
     'llff_to_opencv', 'load_dataset', 'mitsuba_sensor_dict', 'mitsuba_to_opencv',

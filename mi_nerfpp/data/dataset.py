@@ -16,14 +16,14 @@ import numpy as np
 from ..frame import Normalization
 from .cameras import Camera
 from .errors import DatasetError
-from .images import downscale_image, image_size, read_image
+from .images import image_size, read_stored_image
+from .storage import MAX_STORED_BYTES, StoredImages, bytes_per_pixel, store, stored_depth
 
 SPLITS = ('train', 'validation', 'test')
 
-# The automatic downscale (``downscale=None``) keeps the training images under this many pixels
-# in all: the training ray bank holds ~40 bytes per pixel (origin, direction, colour in
-# float32, and the float64 arrays it is built from), so ~4 M rays stay well under 1 GB.
-AUTO_DOWNSCALE_PIXELS = 2 ** 22
+# The automatic downscale counts the training images twice: as loaded, and in the store that
+# the training step gathers its pixels from (:class:`mi_nerfpp.train.RayBank`).
+TRAIN_COPIES = 2
 # Camera positions a capture may have. Beyond this distance from the origin (world units) the
 # centres cannot be normalized in floating point (their spread is lost to rounding, squares
 # overflow); a camera farther than this many times the typical camera's distance from the
@@ -39,12 +39,18 @@ class Split:
     Attributes:
         cameras: one :class:`Camera` per image (OpenCV pose, normalized world).
         image_paths: the image files the images were read from.
-        images: float32 (H, W, 3) arrays, already downscaled and composited over the background.
+        images: the images, already downscaled and composited over the background, kept
+            compactly (:class:`~mi_nerfpp.data.storage.StoredImages`): ``images[i]`` is a
+            float32 (H, W, 3) array, ``images.stored`` the arrays as kept. Float arrays given
+            here are kept as float32.
     """
 
     cameras: list[Camera]
     image_paths: list[str]
-    images: list[np.ndarray]
+    images: StoredImages
+
+    def __post_init__(self):
+        self.images = StoredImages.of(self.images)
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -61,8 +67,8 @@ class Dataset:
         color_space: 'srgb' (PNG/JPEG pixel values) or 'linear' (EXR).
         normalization: the :class:`~mi_nerfpp.frame.Normalization` already applied to every
             camera; the identity when the cameras were inside the unit sphere as read.
-        downscale: the factor the images were shrunk by (chosen by :func:`auto_downscale`
-            when the reader was given ``downscale=None``).
+        downscale: the factor the images were shrunk by (chosen by :class:`AutoDownscale`
+            when the reader was given ``downscale=None`` or one).
     """
 
     train: Split
@@ -103,7 +109,8 @@ MIN_IMAGE_SIZE = 3    # the smallest SSIM window (mi_nerfpp.metrics.SSIM_MIN_WIN
 
 
 def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.0)) -> Split:
-    """Load and validate the images and cameras of one split.
+    """Load and validate the images and cameras of one split; the images are kept compactly
+    (:mod:`.storage`).
 
     Raises:
         DatasetError: unreadable images, images of different sizes, an image whose size differs
@@ -114,7 +121,7 @@ def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.
     for frame in frames:
         c2w = np.asarray(frame.c2w, dtype=np.float64)
         _check_pose(c2w, frame.source)
-        image = read_image(frame.image_path, background)
+        image = read_stored_image(frame.image_path, background)
         height, width = image.shape[:2]
         if frame.size is not None and tuple(frame.size) != (width, height):
             raise DatasetError(
@@ -130,11 +137,11 @@ def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.
         K = np.asarray(frame.intrinsics(width, height), dtype=np.float64)
         _check_intrinsics(K, frame.intrinsics_source or frame.source)
         camera = Camera(K=K, c2w=c2w, width=width, height=height, name=frame.name)
+        try:
+            image, scale = store(image, downscale)
+        except ValueError as e:
+            raise DatasetError(f'{frame.image_path}: {e}; use a smaller downscale') from e
         if downscale != 1:
-            try:
-                image = downscale_image(image, downscale)
-            except ValueError as e:
-                raise DatasetError(f'{frame.image_path}: {e}; use a smaller downscale') from e
             camera = camera.downscaled(downscale)
         if min(image.shape[:2]) < MIN_IMAGE_SIZE:
             raise DatasetError(
@@ -143,31 +150,93 @@ def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.
                 f'{MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE}: use larger images or a smaller --downscale')
         cameras.append(camera)
         paths.append(frame.image_path)
-        images.append(image)
-    return Split(cameras=cameras, image_paths=paths, images=images)
+        images.append((image, scale))
+    return Split(cameras=cameras, image_paths=paths, images=StoredImages.unify(images))
 
 
-def auto_downscale(sizes, budget: int = AUTO_DOWNSCALE_PIXELS) -> int:
-    """The smallest integer factor that brings images of ``sizes`` ((width, height) each)
-    under ``budget`` pixels in all; 1 if they already are (or there are none)."""
-    factor = 1
-    while sum((w // factor) * (h // factor) for w, h in sizes) > budget:
-        factor += 1
-    return factor
+def stored_bytes(images, factor: int) -> int:
+    """Bytes that images of ``(width, height, depth)`` (bits per channel, 8 or 16) take in
+    their store (:mod:`.storage`) when downscaled by ``factor``."""
+    return sum((w // factor) * (h // factor) * bytes_per_pixel(depth, factor)
+               for w, h, depth in images)
 
 
-def make_splits(frames: dict[str, list[Frame]], downscale: int | None = 1,
+@dataclass
+class AutoDownscale:
+    """``downscale=AutoDownscale(budget)``: the images are kept at their own resolution if
+    they fit ``budget`` bytes, else shrunk by the smallest factor at which they do.
+
+    The images counted are the training images :data:`TRAIN_COPIES` times and the held-out
+    ones once, as stored (:func:`stored_bytes`, sizes and bit depths read from the file
+    headers before any image is decoded); a training store must also stay under
+    :data:`~mi_nerfpp.data.storage.MAX_STORED_BYTES`. ``budget`` None: what
+    :func:`mi_nerfpp.memory.image_budget` leaves for images with the default training options.
+
+    After loading, ``factor`` is the factor chosen, ``needed`` the bytes the images take at
+    their own resolution, ``used`` at the factor chosen and ``size`` the (width, height) of
+    the first training image as read (what :func:`mi_nerfpp.run.prepare` announces).
+    """
+    budget: int | None = None
+    factor: int | None = None
+    needed: int | None = None
+    used: int | None = None
+    size: tuple[int, int] | None = None
+
+    def choose(self, frames: dict[str, list[Frame]]) -> int:
+        """The factor for the splits' ``frames`` (split name -> frames): :meth:`pick` of their
+        images' sizes and bit depths."""
+        info = {name: [(*image_size(f.image_path), stored_depth(f.image_path)) for f in fs]
+                for name, fs in frames.items()}
+        where = frames['train'][0].image_path if frames.get('train') else 'the images'
+        return self.pick(info.get('train', []),
+                         [i for name, images in info.items() if name != 'train' for i in images],
+                         where)
+
+    def pick(self, train, held_out, where='the images') -> int:
+        """The factor for training and held-out images of ``(width, height, depth)``, recorded
+        here. Raises :class:`DatasetError` (naming ``where``) when no factor makes them fit."""
+        if self.budget is None:
+            from ..memory import image_budget
+            self.budget = image_budget()
+
+        def cost(factor):
+            return TRAIN_COPIES * stored_bytes(train, factor) + stored_bytes(held_out, factor)
+
+        def fits(factor):
+            return (cost(factor) <= self.budget
+                    and stored_bytes(train, factor) <= MAX_STORED_BYTES)
+
+        # The largest factor that leaves images of at least MIN_IMAGE_SIZE pixels.
+        largest = max(1, min([min(w, h) for w, h, _ in train + held_out], default=1)
+                      // MIN_IMAGE_SIZE)
+        factor = 1
+        while factor < largest and not fits(factor):
+            factor += 1
+        self.factor, self.needed, self.used = factor, cost(1), cost(factor)
+        self.size = train[0][:2] if train else None
+        if not fits(factor):
+            raise DatasetError(
+                f'{where}: the {len(train) + len(held_out)} images need {self.used / 2**30:.1f} '
+                f'GiB of memory even downscaled by {factor}, and {self.budget / 2**30:.1f} GiB '
+                f'are left for them: use fewer images or free memory, or choose a --downscale '
+                f'to train anyway')
+        return factor
+
+
+def make_splits(frames: dict[str, list[Frame]], downscale: int | None | AutoDownscale = 1,
                 background=(1.0, 1.0, 1.0)) -> tuple[dict[str, Split], int]:
     """:func:`make_split` of each split of ``frames`` (split name -> frames), all shrunk by one
-    factor: ``downscale``, or when it is None :func:`auto_downscale` of the train images (their
-    sizes read from the file headers, before any image is decoded).
+    factor: ``downscale``, or the one :class:`AutoDownscale` chooses (None: with its default
+    budget).
 
     Returns:
         ``({split name: Split}, factor used)``.
     """
     check_camera_positions([f for name in SPLITS for f in frames.get(name, [])])
     if downscale is None:
-        downscale = auto_downscale([image_size(f.image_path) for f in frames.get('train', [])])
+        downscale = AutoDownscale()
+    if isinstance(downscale, AutoDownscale):
+        downscale = downscale.choose(frames)
     splits = {name: make_split(frames.get(name, []), downscale, background) for name in SPLITS}
     return splits, downscale
 

@@ -5,7 +5,7 @@ import os
 
 from .blender import is_transforms, read_transforms
 from .colmap import is_colmap, read_colmap
-from .dataset import Dataset
+from .dataset import AutoDownscale, Dataset
 from .errors import DatasetError
 from .llff import is_llff, read_llff
 from .nerfpp import is_nerfpp, read_nerfpp
@@ -42,7 +42,7 @@ def detect_format(path) -> str:
         f'poses, run python -m mi_nerfpp colmap PHOTOS --out DATA first')
 
 
-def load_dataset(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
+def load_dataset(path, downscale: int | None | AutoDownscale = 1, background=(1.0, 1.0, 1.0),
                  llff_hold: int = 8) -> Dataset:
     """Read the dataset at ``path`` in whichever supported format it is.
 
@@ -52,9 +52,9 @@ def load_dataset(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
     Args:
         path: dataset folder (or its transforms JSON / ``poses_bounds.npy``).
         downscale: integer factor to shrink images by (area averaging); intrinsics follow.
-            None: the smallest factor that keeps the train images under
-            :data:`~mi_nerfpp.data.dataset.AUTO_DOWNSCALE_PIXELS` pixels in all; the factor
-            used is ``Dataset.downscale``.
+            None or an :class:`~mi_nerfpp.data.dataset.AutoDownscale`: the images' own
+            resolution unless they do not fit in memory, else the smallest factor at which
+            they do; the factor used is ``Dataset.downscale``.
         background: RGB colour transparent pixels are composited over.
         llff_hold: for formats without explicit splits (LLFF, COLMAP, a single
             ``transforms.json``),
@@ -63,7 +63,7 @@ def load_dataset(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
     Raises:
         DatasetError: anything wrong with the data; the message names the file and the fix.
     """
-    if downscale is not None:
+    if downscale is not None and not isinstance(downscale, AutoDownscale):
         if int(downscale) != downscale or downscale < 1:
             raise ValueError(f'downscale must be a positive integer, got {downscale!r}')
         downscale = int(downscale)

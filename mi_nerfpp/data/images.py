@@ -1,6 +1,7 @@
 """Reading and writing dataset images as float RGB arrays.
 
-Every image is returned as ``float32`` of shape (H, W, 3):
+Every image is returned as ``float32`` of shape (H, W, 3) by :func:`read_image`, or at the
+file's own precision by :func:`read_stored_image` (what a dataset keeps, :mod:`.storage`):
 
 - PNG and JPEG (8 or 16 bit) are scaled to [0, 1] and stay in their stored (sRGB) encoding;
   16-bit PNGs go through ``mi.Bitmap`` because Pillow (behind imageio) truncates 16-bit colour
@@ -37,13 +38,34 @@ def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
     Raises:
         DatasetError: ``"{path}: cannot read image ({reason})"`` if the file cannot be decoded.
     """
+    return _read(path, background, keep_integers=False)
+
+
+def read_stored_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """Read an image as :func:`read_image` does, at the file's own precision: ``uint8`` (8-bit
+    PNG/JPEG, value / 255) or ``uint16`` (16-bit PNG, value / 65535), (H, W, 3); float32 for
+    EXR and for other integer types. Alpha is composited over ``background`` in float as by
+    :func:`read_image` and the result rounded to the file's integer levels (an error of at most
+    half a level, 0.5 / 255 for 8 bits; float32 if a --background outside [0, 1] takes it
+    outside them); opaque integer pixels come back exactly as stored.
+    """
+    return _read(path, background, keep_integers=True)
+
+
+def _read(path, background, keep_integers: bool) -> np.ndarray:
     path = os.fspath(path)
+    levels = None       # the integer levels of the file (255, 65535), for keep_integers
     try:
         if path.lower().endswith('.exr'):
             color, alpha = _read_exr(path)
             premultiplied = True
         else:
-            color, alpha = _split_alpha(_to_unit_range(_read_ldr(path)))
+            raw = _read_ldr(path)
+            if raw.dtype in (np.bool_, np.uint8):
+                levels = np.uint8
+            elif raw.dtype == np.uint16:
+                levels = np.uint16
+            color, alpha = _split_alpha(_to_unit_range(raw))
             premultiplied = False
     except DatasetError:
         raise
@@ -59,6 +81,9 @@ def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
     if alpha is not None:
         bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
         color = (color if premultiplied else color * alpha) + bg * (1.0 - alpha)
+    # A composite over a --background outside [0, 1] leaves the file's levels: kept in float.
+    if keep_integers and levels is not None and color.min() >= 0 and color.max() <= 1:
+        return np.round(color * np.float64(np.iinfo(levels).max)).astype(levels)
     return np.ascontiguousarray(color, dtype=np.float32)
 
 

@@ -36,7 +36,8 @@ def read_nerfpp(root, downscale: int | None = 1, background=(1.0, 1.0, 1.0)) -> 
     Args:
         root: the dataset folder.
         downscale: integer factor to shrink images by (area averaging); intrinsics follow.
-            None: chosen from the image size (:func:`~mi_nerfpp.data.dataset.auto_downscale`).
+            None: chosen from the image size and the memory available
+            (:class:`~mi_nerfpp.data.dataset.AutoDownscale`).
         background: RGB colour transparent pixels are composited over.
 
     Raises:

@@ -22,9 +22,11 @@ one ray per pixel through the pixel centre (Mitsuba's ``aov`` integrator with a 
 
 ==========  ===================================================================================
 ``R G B``   the beauty render, linear RGB, float32, not clipped (the PNG's ``spp`` samples)
-``depth.Z`` distance along the ray from the camera centre to the first surface hit, world units
-            (the ``depth`` AOV plus the near-clip offset that Mitsuba's perspective sensor
-            starts its rays at); 0 where the ray hits nothing (the environment at infinity)
+``depth.Z`` camera-space z of the first surface hit (distance along the view axis, world
+            units, as in every render's ``depth.Z``): the ``depth`` AOV (ray distance from
+            the near plane, where Mitsuba's perspective sensor starts its rays) times the
+            cosine to the axis, plus the near clip; 0 where the ray hits nothing (the
+            environment at infinity)
 ``fg.A``    1 where the first surface hit lies inside the sphere that NeRF++'s normalization
             maps to the unit sphere (the foreground volume; centre and world radius in
             ``capture.json``), else 0 (a background surface, or no hit)
@@ -156,7 +158,8 @@ def render_ground_truth(scene, camera: Camera, center, world_radius: float,
     px, py = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
     _, dirs = pixel_rays(camera, px, py)
     cos_axis = (dirs @ camera.c2w[:3, 2]).reshape(camera.height, camera.width)
-    depth = np.where(hit, depth + MITSUBA_NEAR_CLIP / cos_axis, 0.0)
+    # Camera-space z: the ray distance from the centre, depth + near/cos, times cos.
+    depth = np.where(hit, depth * cos_axis + MITSUBA_NEAR_CLIP, 0.0)
     inside = np.linalg.norm(position - np.asarray(center), axis=-1) <= world_radius
     return {'depth.Z': depth.astype(np.float32),
             'fg.A': (hit & inside).astype(np.float32)}
@@ -329,8 +332,8 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
             'rgb/*.png': '8-bit sRGB encoding of the linear render (clipped to [0, 1])',
             'gt/*.exr': {
                 'R G B': 'the linear render, float32',
-                'depth.Z': 'distance from the camera centre to the first surface hit by the '
-                           'ray through the pixel centre, world units (0: no hit)',
+                'depth.Z': 'camera-space z (along the view axis) of the first surface hit by '
+                           'the ray through the pixel centre, world units (0: no hit)',
                 'fg.A': '1 where that hit lies within normalization.world_radius of '
                         'normalization.center (the foreground sphere), else 0'}},
         'mitsuba': mi.__version__, 'drjit': dr.__version__, 'variant': mi.variant(),

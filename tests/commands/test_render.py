@@ -20,10 +20,10 @@ def test_render_command_writes_layered_exr_and_preview(tmp_path):
     assert str(out) in r.stdout
     names = set(OpenEXR.File(str(out)).channels().keys())
     # OpenEXR groups R,G,B,A and layers
-    assert names == {'RGBA', 'fg', 'bg', 'depth.Z', 'distance.Y', 'obj', 'obj.Z', 'shadow'}
+    assert names == {'RGBA', 'fg', 'bg', 'depth.Z', 'distance.Y', 'obj', 'obj_depth.Z', 'shadow'}
     c = read_exr(out)
     assert set(c) == {'R', 'G', 'B', 'A', 'fg.R', 'fg.G', 'fg.B', 'fg.A', 'bg.R', 'bg.G', 'bg.B',
-                      'depth.Z', 'distance.Y', 'obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj.Z',
+                      'depth.Z', 'distance.Y', 'obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj_depth.Z',
                       'shadow.R', 'shadow.G', 'shadow.B'}
     assert c['R'].shape == (8, 12)
     for ch in 'RGB':     # a scene without shapes: the objects' layers are 0

@@ -1,13 +1,13 @@
 """Photos as cameras store them: EXIF orientation, grayscale, 16 bits, and the automatic
-downscale of large image sets."""
+downscale of image sets too large for the memory."""
 import os
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from mi_nerfpp.data import auto_downscale, image_size, load_dataset, read_image, write_nerfpp
-from mi_nerfpp.data.dataset import AUTO_DOWNSCALE_PIXELS
+from mi_nerfpp.data import AutoDownscale, image_size, load_dataset, read_image, write_nerfpp
+from mi_nerfpp.data.dataset import DatasetError, stored_bytes
 from mi_nerfpp.sfm import _prepare_photo
 from tests.helpers import orbit_camera
 
@@ -65,23 +65,41 @@ def test_grayscale_jpeg_and_16bit_grayscale_photo(tmp_path):
 
 
 def test_auto_downscale_factor():
-    assert auto_downscale([]) == 1
-    assert auto_downscale([(800, 600)] * 8) == 1                 # 3.8 M pixels
-    # The issue's case: 135 photos of 1200x800 would be 130 M rays at full size.
-    factor = auto_downscale([(1200, 800)] * 135)
-    assert factor == 6 and 135 * 200 * 133 <= AUTO_DOWNSCALE_PIXELS
-    assert 135 * 240 * 160 > AUTO_DOWNSCALE_PIXELS             # 5 would be too large
+    # Nothing to fit, or everything fits: the images' own resolution.
+    assert AutoDownscale(0).pick([], []) == 1
+    # The issue's case: 135 photos of 1200x800, every 8th held out. Kept as 8-bit, the 118
+    # training photos (held twice) and the 17 held-out ones take 0.73 GB at full size.
+    train, held_out = [(1200, 800, 8)] * 118, [(1200, 800, 8)] * 17
+    full = 2 * 118 * 1200 * 800 * 3 + 17 * 1200 * 800 * 3
+    choice = AutoDownscale(2 ** 30)
+    assert choice.pick(train, held_out) == 1
+    assert (choice.factor, choice.needed, choice.used, choice.size) == (1, full, full,
+                                                                        (1200, 800))
+    # Downscaled 8-bit images keep exact box sums in 16 bits: 6 bytes per pixel.
+    assert stored_bytes([(1200, 800, 8)], 2) == 600 * 400 * 6
+    at = {f: 2 * stored_bytes(train, f) + stored_bytes(held_out, f) for f in (2, 3)}
+    choice = AutoDownscale(at[3])
+    assert choice.pick(train, held_out) == 3 and at[2] > at[3] == choice.used
+    assert choice.needed == full
+    # 16-bit photos take twice the 8-bit ones at full size.
+    assert AutoDownscale(full).pick([(1200, 800, 16)] * 118, held_out) == 2
+    # Nothing fits: refused, saying what to do.
+    with pytest.raises(DatasetError, match='choose a --downscale to train anyway'):
+        AutoDownscale(1000).pick(train, held_out)
 
 
-def test_load_dataset_picks_the_downscale_from_the_image_size(tmp_path):
-    width, height = 1200, 900                                     # 4 x 1.08 M > 4.19 M pixels
+def test_load_dataset_picks_the_downscale_from_the_memory(tmp_path):
+    width, height = 1200, 900
     cams = [orbit_camera(a, 0.2, 0.5, width, height) for a in (0.0, 1.5, 3.0, 4.5, 5.5)]
     rng = np.random.default_rng(0)
     images = [rng.uniform(0, 1, size=(height, width, 3)) for _ in cams]
     write_nerfpp(tmp_path, {'train': (cams[:4], images[:4]), 'test': (cams[4:], images[4:])})
-    ds = load_dataset(tmp_path, downscale=None)
-    assert ds.downscale == 2
+    full = (2 * 4 + 1) * width * height * 3                       # 8-bit, training twice
+    choice = AutoDownscale(full - 1)
+    ds = load_dataset(tmp_path, downscale=choice)
+    assert ds.downscale == choice.factor == 2 and choice.needed == full
     for split in (ds.train, ds.test):    # one factor for every split
         assert split.images[0].shape == (height // 2, width // 2, 3)
         np.testing.assert_allclose(split.cameras[0].K[0, 0], cams[0].K[0, 0] / 2)
     assert load_dataset(tmp_path).downscale == 1                  # explicit factors stay
+    assert load_dataset(tmp_path, downscale=AutoDownscale(full)).downscale == 1

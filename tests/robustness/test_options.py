@@ -78,17 +78,36 @@ def test_options_that_size_arrays_name_the_largest_value_that_fits(capsys, tmp_p
 
 def test_samples_beyond_what_a_render_holds_are_refused(capsys, tmp_path):
     """--samples 8 8 1000000 took 7.6 GB and then failed with 'unsupported operand': renders of
-    the model take the samples for a chunk of the integrator's rays at a time."""
+    the model take the samples of a volume for a chunk of the integrator's rays at a time,
+    within the integrator's entries per array - the same rule its render applies, so that a
+    run is not trained to fail at its evaluation."""
+    from mi_nerfpp.integrator.parameters import MAX_CHUNK_ENTRIES, check_chunk_sizes
     status, _, err = run_cli(capsys, 'optimize', tmp_path, '--out', tmp_path / 'run',
                              '--samples', '8', '8', '1000000', '--batch-rays', '32')
     line = one_clear_line(err)
-    best = limits.largest(limits.RENDER_CHUNK_RAYS,
-                          limits.RENDER_CHUNK_RAYS * limits.RENDER_BYTES_PER_SAMPLE)
+    per_volume = MAX_CHUNK_ENTRIES // limits.RENDER_CHUNK_RAYS
     assert status == 1 and line == (
         f'error: optimize: --samples 8 8 1000000 are too many: renders of the model take '
-        f'2,000,016 samples per ray for 32,768 rays at a time, more than Dr.Jit\'s arrays '
-        f'(2^32 - 1 entries) and {limits.memory_text()} of memory hold; at most {best:,} '
-        f'samples per ray (coarse and fine, every volume) fit with --batch-rays 32')
+        f'1,000,008 samples per ray of a volume (coarse and fine) for 32,768 rays at a time, '
+        f'more than the nerfpp integrator\'s {MAX_CHUNK_ENTRIES:,} entries per array; at most '
+        f'{per_volume:,} samples per ray of a volume fit')
+    assert not (tmp_path / 'run').exists()
+    # At the boundary the config and the integrator agree: what one accepts the other renders.
+    chunk = limits.RENDER_CHUNK_RAYS
+    for fg, bg, fine in ((per_volume - 8, 8, 8), (8, per_volume - 8, 8), (1, 1, per_volume - 1)):
+        config = TrainConfig.from_options(fg_samples=fg, bg_samples=bg, fine_samples=fine,
+                                          batch_rays=32)
+        config.check_render_chunks()
+        check_chunk_sizes(chunk, config.render_sampling, 1, 1)
+        for bigger in ((fg + 1, bg, fine), (fg, bg + 1, fine), (fg, bg, fine + 1)):
+            config = TrainConfig.from_options(fg_samples=bigger[0], bg_samples=bigger[1],
+                                              fine_samples=bigger[2], batch_rays=32)
+            if max(bigger[0], bigger[1]) + bigger[2] <= per_volume:
+                continue
+            with pytest.raises(ValueError, match=r'^--samples .* are too many: renders'):
+                config.check_render_chunks()
+            with pytest.raises(ValueError, match=r'^nerfpp: parameter'):
+                check_chunk_sizes(chunk, config.render_sampling, 1, 1)
 
 
 def test_limits_against_a_memory_budget_in_closed_form():
@@ -103,7 +122,8 @@ def test_limits_against_a_memory_budget_in_closed_form():
              + occupancy_cells * limits.OCCUPANCY_BYTES_PER_CELL)
     assert config.memory_estimate() == {'grids': grid_entries * limits.GRID_BYTES_PER_ENTRY,
                                         'occupancy': occupancy_cells * 16,
-                                        'step': 1024 * 48 * limits.TRAIN_BYTES_PER_SAMPLE}
+                                        'step': config.schedule.batch_rays * 48
+                                        * limits.TRAIN_BYTES_PER_SAMPLE}
     config.check_limits(budget)
     best = (budget - fixed) // (48 * limits.TRAIN_BYTES_PER_SAMPLE)
     assert config.largest_that_fits('batch_rays', budget) == best
@@ -116,9 +136,10 @@ def test_limits_against_a_memory_budget_in_closed_form():
         f'{limits.memory_text(fixed + step)} (grids {limits.memory_text(grid_entries * 64)}, '
         f'occupancy {limits.memory_text(occupancy_cells * 16)}, training step '
         f'{limits.memory_text(step)}), more than this machine\'s 4 GiB; at most {best:,} fits')
-    # More samples per ray with few rays: the samples are blamed, with the largest count.
-    many = config.replace(batch_rays=64, fine_samples=5000)
-    with pytest.raises(ValueError, match=r'^--samples 16 16 5000 are too many: .*at most '
+    # More samples per ray with few rays: the samples are blamed, with the largest count
+    # (within what the integrator's chunks hold: check_render_chunks).
+    many = config.replace(batch_rays=64, fine_samples=1000)
+    with pytest.raises(ValueError, match=r'^--samples 16 16 1000 are too many: .*at most '
                                          r'[\d,]+ samples per ray .* fit with --batch-rays 64'):
         many.check_limits(GIB // 4)
 

@@ -1,0 +1,36 @@
+"""``python -m mi_nerfpp export RUN --out DIR``: cameras and proxy geometry of a run for USD,
+Nuke and Blender (:mod:`mi_nerfpp.export`)."""
+from __future__ import annotations
+
+
+def add_parser(sub):
+    from . import positive_int
+    p = sub.add_parser('export', help='export a run\'s cameras (USD, Nuke .chan) and a proxy '
+                                      'mesh of its foreground (USD, PLY) for DCC tools')
+    p.add_argument('run', help='run folder written by optimize (holds model.npz)')
+    p.add_argument('--out', required=True, metavar='DIR', help='folder to write into')
+    p.add_argument('--resolution', type=positive_int, default=128,
+                   help='marching-cubes grid over the unit sphere (default 128)')
+    p.add_argument('--density', type=float,
+                   help='density of the proxy surface (default: opacity 1/2 over one grid '
+                        'step)')
+    p.set_defaults(func=run)
+    return p
+
+
+def subject(args):
+    return f'run folder {args.run}'
+
+
+def run(args):
+    try:
+        import pxr  # noqa: F401
+    except ImportError:
+        raise RuntimeError("usd-core is not installed: pip install -e '.[export]' "
+                           "(scripts/setup.sh installs it)") from None
+    from ..export import export_run
+    from ..run import open_run
+    opened = open_run(args.run)                # errors: reported by mi_nerfpp.cli
+    written = export_run(args.run, args.out, args.resolution, args.density, opened=opened)
+    for path in written:
+        print(f'wrote {path}')

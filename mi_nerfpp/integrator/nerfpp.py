@@ -1,0 +1,310 @@
+"""The Mitsuba integrator ``nerfpp``: NeRF++ rendering with compositing layers as AOVs.
+
+The class is put together from one module per concern: its XML parameters and limits
+(:mod:`.parameters`), the model it loads (:mod:`.loading`), the volumes' layers
+(:mod:`.volumes`) and the scene's shapes (:mod:`.shapes`).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+from mitsuba.ad.integrators.common import ADIntegrator
+
+from ..layers import AOVS, aov_list, rst_table
+from ..model import FIELD_KINDS, NeRFPPModel
+from ..objects import split_scene
+from ..render import Sampling
+from .loading import check_appearance, load_model
+from .parameters import check_chunk_sizes, check_film, check_sensor, read_parameters
+from .shapes import ShapeLayers
+from .volumes import VolumeLayers
+
+
+def _methods_of(*parts):
+    """Class decorator: the methods of the plain classes ``parts`` become the class's own
+    (a nanobind class, such as Mitsuba's integrators, takes a single base class)."""
+    def add(cls):
+        for part in parts:
+            for name, value in vars(part).items():
+                if not (name.startswith('__') and name.endswith('__')):
+                    setattr(cls, name, value)
+        return cls
+    return add
+
+
+@_methods_of(VolumeLayers, ShapeLayers)
+class NeRFPPIntegrator(ADIntegrator):
+    r"""
+    .. _integrator-nerfpp:
+
+    NeRF++ (``nerfpp``)
+    -------------------
+
+    Renders a NeRF++ scene representation: a foreground volume inside the unit
+    sphere and an inverted-sphere background volume, composited as in the
+    paper's Eq. 4, ``C = C_fg + λ·C_bg``. The model lives in a normalized frame; a
+    checkpoint carries the normalization, so sensors and shapes are placed in the
+    original world frame.
+
+    The scene's shapes are rendered inside the reconstruction
+    (:mod:`mi_nerfpp.objects`): a camera ray integrates the volumes up to the
+    first surface and sees the surface through the remaining transmittance; the
+    surface is path traced with its BSDF (``max_depth``, ``rr_depth`` as in
+    Mitsuba's ``path``), and every path segment that leaves a surface takes the
+    volumes' radiance along it, from its vertex to the next surface or to
+    infinity, so the reconstruction lights and is reflected by the objects with
+    parallax. Area, point, spot and directional emitters add next-event
+    estimation, their shadow rays attenuated by the volumes (``volume_shadows``;
+    the opaque end of the background at infinity excepted); environment maps
+    are refused (the background volume is the environment). Shapes listed in
+    ``shadow_catchers`` or ``proxies`` are not rendered: they stand for a
+    reconstructed surface (the ground). On a shadow catcher the volumes seen
+    through it are scaled by the ratio of its irradiance with and without the
+    objects (the occlusion part of differential rendering, against a map of the
+    reconstruction rendered once per frame), so objects cast shadows on the
+    reconstruction. A scene without shapes renders exactly as the volumes alone,
+    with no intersection work.
+
+    The model comes from ``checkpoint``, or from Python: :meth:`set_model` hands
+    the integrator a model already in memory (evaluation does this with the
+    model it trains). Only when neither is given and the integrator is asked
+    to render (or traversed) does it build seeded random fields.
+
+    .. pluginparameters::
+
+     * - checkpoint
+       - |string|
+       - Model file written by ``optimize.py`` (.npz), relative paths resolved
+         against the scene file's folder. Without it, seeded random fields are
+         rendered, unless a model is handed over with :meth:`set_model`.
+         (Default: none)
+     * - field
+       - |string|
+       - Field kind of a model without checkpoint: ``grid`` (grid + MLP),
+         ``nerf`` (NeRF-MLP) or ``vanilla`` (vanilla MLP). (Default: ``grid``)
+     * - seed
+       - |int|
+       - Seed of the random fields when there is no checkpoint. (Default: 0)
+     * - fg_samples
+       - |int|
+       - Coarse samples per ray in the foreground volume. (Default: the
+         model's, :class:`~mi_nerfpp.model.RenderSettings`: a checkpoint renders
+         with the counts it was trained with, older checkpoints with those of
+         their training config; random fields with 64)
+     * - bg_samples
+       - |int|
+       - Coarse samples per ray in the background volume. (Default: the
+         model's, as ``fg_samples``; random fields: 64)
+     * - fine_samples
+       - |int|
+       - Fine samples per ray and volume, drawn from the coarse weights by
+         inverse CDF; 0 disables hierarchical sampling. (Default: the model's,
+         as ``fg_samples``; random fields: 128)
+     * - near
+       - |float|
+       - Foreground samples of camera rays start at this ray distance (normalized
+         units); rays that leave a surface start at it. (Default: the model's, 0)
+     * - background
+       - |bool|
+       - Render the background volume (``false``: foreground over black).
+         (Default: whether the model has one, i.e. ``false`` for models trained
+         with ``--model nerf``)
+     * - stratified
+       - |bool|
+       - Jitter sample positions within their strata (using the sampler); off
+         gives deterministic midpoints, as NeRF does at test time; a ray's jitter
+         does not depend on ``chunk_rays``. (Default: false)
+     * - occluded_background
+       - |bool|
+       - Also render the background behind opaque foreground (transmittance
+         ``λ < 1e-4``), for a complete ``bg`` layer. Off: those pixels' ``bg``
+         layer is 0 and the render is faster; the beauty changes by at most
+         ``1e-4``. Differentiable renders always render it. (Default: false)
+     * - chunk_rays
+       - |int|
+       - Primal renders are evaluated in chunks of this many rays to bound
+         memory. (Default: 32768)
+     * - appearance_image
+       - |int|
+       - Render with the colour transform (exposure, white balance) learned for
+         this training image of a model trained with ``--appearance``; -1 renders
+         neutral (the model's own colour, that of training image 0). An index
+         the model has no transform for is refused. (Default: -1)
+     * - max_samples
+       - |int|
+       - Largest film (pixels times samples per pixel) a render accepts; larger
+         ones are refused before any memory is taken. (Default: 16777216,
+         :data:`~mi_nerfpp.integrator.parameters.MAX_FILM_SAMPLES`)
+     * - max_depth
+       - |int|
+       - Longest light path through the scene's shapes, in segments (1: the
+         surfaces show their emission only; 2: direct light from the volumes
+         and the emitters; ...). -1 (unbounded) is refused. (Default: 6)
+     * - rr_depth
+       - |int|
+       - Depth from which Russian roulette may end a path. (Default: 5)
+     * - shadow_catchers
+       - |string|
+       - Comma-separated ids of shapes that are shadow catchers (Mitsuba
+         refuses unknown properties on shapes, so they are named here). (Default: none)
+     * - proxies
+       - |string|
+       - Comma-separated ids of shapes that stand for the reconstruction and
+         are never rendered, like the catchers, but receive no shadows (a
+         catcher whose shadows are turned off). (Default: none)
+     * - catcher_samples
+       - |int|
+       - Directions per camera sample over a catcher's hemisphere for its
+         irradiance ratio (ray tests against the objects; the reconstruction's
+         radiance along each comes from a map rendered once per frame). (Default: 16)
+     * - volume_shadows
+       - |bool|
+       - Attenuate the light of the scene's emitters by the volumes'
+         transmittance along each shadow ray (the reconstruction shadows the
+         objects); off: shadow rays see shapes only, and are cheaper. (Default: true)
+
+    Unknown parameters, values of the wrong type and out-of-range values are
+    refused with a message naming the parameter; so are sizes beyond what a
+    render holds (sample counts, ``max_depth`` and ``catcher_samples`` times
+    ``chunk_rays``, the film, a sensor with a non-finite ``to_world`` or farther
+    than 1e4 unit-sphere radii from the model), with the largest value that
+    fits, before Dr.Jit sees them (:mod:`~mi_nerfpp.integrator.parameters`). The model carries how it is
+    rendered (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`: its sample
+    counts, ``near``, whether it has a background, where it composites); the
+    parameters above that say "the model's" override those settings one by one,
+    also for a model handed over with :meth:`set_model`.
+
+    Radiance is scene-linear (Rec.709 primaries), also for models fitted to
+    sRGB photos (:meth:`~mi_nerfpp.model.NeRFPPModel.radiance_fields`).
+    The AOVs are the *sample channels* of :data:`mi_nerfpp.layers.AOVS`, after
+    the film's ``R G B [A]``: per-sample values that the film averages, from
+    which :func:`mi_nerfpp.views.render_layers` develops the layers below
+    (ratios of averages, so that they add up at any samples per pixel:
+    :mod:`mi_nerfpp.layers`):
+
+    {layer_table}
+    """
+
+    def __init__(self, props):
+        super().__init__(props)
+        for name, value in read_parameters(props, FIELD_KINDS).items():
+            setattr(self, name, value)
+        self.show_progress = False
+        self._model, self.meta = None, {}
+        self._view = None
+        if self.checkpoint:
+            self._model, self.meta = load_model(self.checkpoint)
+            check_appearance(self._model, self.appearance_image)
+
+    @property
+    def model(self):
+        """The :class:`~mi_nerfpp.model.NeRFPPModel` rendered: the checkpoint's, the one
+        given to :meth:`set_model`, or (built on first use) seeded random fields."""
+        if self._model is None:
+            self._model = NeRFPPModel.create(field=self.random_field, seed=self.random_seed)
+        return self._model
+
+    @property
+    def sampling(self) -> Sampling:
+        """Samples per ray: the model's (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`)
+        with the ones the XML gives in their place."""
+        given = {k: v for k, v in self._sampling.items() if v is not None}
+        return dataclasses.replace(self.model.render_settings.sampling, **given)
+
+    @property
+    def background(self) -> bool:
+        """Whether the background volume is rendered: the XML's ``background``, else whether
+        the model has one."""
+        if self._background is not None:
+            return self._background
+        return self.model.render_settings.background
+
+    def set_model(self, model, meta=None):
+        """Render ``model`` (a :class:`~mi_nerfpp.model.NeRFPPModel`) from now on."""
+        check_appearance(model, self.appearance_image)
+        self._model, self.meta = model, meta or {}
+
+    def aov_names(self):
+        """The AOV channels, in :data:`mi_nerfpp.layers.AOVS` order."""
+        return list(AOVS)
+
+    def to_string(self):
+        given = {k: v for k, v in dict(self._sampling, background=self._background).items()
+                 if v is not None}
+        settings = ', '.join(f'{k}={v}' for k, v in given.items()) or "the model's settings"
+        return f'NeRFPPIntegrator[checkpoint="{self.checkpoint}", {settings}]'
+
+    def traverse(self, cb):
+        for k, v in self.model.parameters().items():
+            cb.put(k, v, mi.ParamFlags.Differentiable)
+
+    def parameters_changed(self, keys):
+        # Fields read their parameter dict on every evaluation: nothing to rebuild.
+        pass
+
+    def prepare(self, sensor, seed=0, spp=0, aovs=()):
+        """Refuses films beyond ``max_samples``, an empty film, a sample count of 0, sample
+        counts beyond what a chunk holds and a sensor with a non-finite or far-away
+        ``to_world`` before Mitsuba or Dr.Jit allocates anything
+        (:mod:`~mi_nerfpp.integrator.parameters`), and notes the camera frame for the depth
+        layer."""
+        check_film(sensor.film().crop_size(), spp or sensor.sampler().sample_count(),
+                   self.max_samples)
+        check_chunk_sizes(self.chunk_rays, self.sampling, self.max_depth, self.catcher_samples)
+        check_sensor(sensor.world_transform().matrix, self.model.normalization)
+        self._view = camera_axis(sensor)
+        return super().prepare(sensor, seed, spp, list(aovs))
+
+    def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
+        o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
+        seed = None
+        if self.stratified:
+            seed = mi.UInt32(sampler.next_1d() * 4294967040.0)
+        n = dr.width(o)
+        # (Split on every render, not cached: a cache would keep the scene alive.)
+        parts = split_scene(scene, self.shadow_catchers, self.proxies)
+        if parts.objects is None and parts.catchers is None:
+            # No shapes: the volumes alone, without any intersection.
+            if mode != dr.ADMode.Primal:
+                L, aovs = self.render_layers(o, d, seed)
+            elif n <= self.chunk_rays:
+                L, aovs = self.render_layers(o, d, seed, primal=True)
+            else:
+                L, aovs = self._chunked(lambda o, d, seed: self.render_layers(
+                    o, d, seed, primal=True), [o, d, seed], n)
+            # The objects' layers are 0.
+            return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
+        # One seed per camera sample: its index hashed with the sampler (which carries the
+        # render's seed), so no two samples share a path even where the sampler repeats.
+        path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n),
+                                        mi.UInt32(sampler.next_1d() * 4294967040.0))
+        environment = None
+        if parts.catchers is not None and parts.objects is not None:
+            environment = self._catcher_environment(parts, mode == dr.ADMode.Primal)
+        if mode != dr.ADMode.Primal:
+            L, aovs = self._render_scene(parts, o, d, seed, path_seed, primal=False,
+                                         environment=environment)
+        else:
+            L, aovs = self._chunked(lambda o, d, seed, path_seed: self._render_scene(
+                parts, o, d, seed, path_seed, primal=True, environment=environment),
+                [o, d, seed, path_seed], n)
+        return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
+
+
+if NeRFPPIntegrator.__doc__:     # (None under python -OO)
+    NeRFPPIntegrator.__doc__ = NeRFPPIntegrator.__doc__.replace(
+        '{layer_table}', rst_table('    ').lstrip())
+
+
+def camera_axis(sensor):
+    """``(centre, view axis)`` of a sensor in the world frame (Mitsuba cameras look along +z)."""
+    m = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    axis = m[:3, 2] / np.linalg.norm(m[:3, 2])
+    return mi.ScalarPoint3f(*m[:3, 3]), mi.ScalarVector3f(*axis)
+
+
+def register():
+    mi.register_integrator('nerfpp', lambda props: NeRFPPIntegrator(props))

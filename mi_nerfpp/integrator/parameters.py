@@ -1,0 +1,177 @@
+"""The ``nerfpp`` integrator's XML parameters: read once, each with its type and range, and the
+limits that keep a render within memory and Dr.Jit's arrays, checked before Dr.Jit sees them.
+
+Every size that a parameter, the film or the sensor sets is refused here with one line naming
+it and the largest value that fits (issue 37): sample counts per ray, path depth and catcher
+directions (arrays of ``chunk_rays`` times them per chunk), the film (pixels times samples per
+pixel) and the sensor (a finite ``to_world`` within :data:`MAX_CAMERA_RADIUS` of the model).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# Largest number of camera rays (film pixels x samples per pixel) one render may trace: memory
+# grows by roughly 100 bytes per ray, so this bounds a render to about 2 GB. Raise it with the
+# ``max_samples`` parameter on a machine with more memory.
+MAX_FILM_SAMPLES = 1 << 24
+# Largest number of entries of one per-sample array in a chunk of rays (``chunk_rays`` times
+# the samples per ray of a volume, the path segments or the catcher directions): a volume's
+# samples take about 200 bytes each, so a chunk stays below about 7 GB, and far below Dr.Jit's
+# 2^32 entries per array.
+MAX_CHUNK_ENTRIES = 1 << 25
+# Cameras farther than this from the model's centre, in unit-sphere radii, are refused: float32
+# ray origins there no longer resolve the reconstruction (1e4 radii leave steps of ~1e-3).
+MAX_CAMERA_RADIUS = 1e4
+
+_XML_TAGS = {int: 'integer', float: 'float', bool: 'boolean', str: 'string'}
+
+
+class ParameterReader:
+    """Reads the integrator's XML parameters once, each with its type and range checked."""
+
+    def __init__(self, props):
+        self.props, self.known = props, set()
+
+    def __call__(self, name, kind, default, minimum=None, choices=None):
+        self.known.add(name)
+        if name not in self.props:
+            return default
+        value = self.props.get(name)
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
+            raise ValueError(
+                f"nerfpp: parameter '{name}' must be given as <{_XML_TAGS[kind]} "
+                f"name=\"{name}\" value=\"...\"/>, got {type(value).__name__} {value!r}")
+        if kind in (int, float) and not value == value:
+            raise ValueError(f"nerfpp: parameter '{name}' is NaN")
+        if kind is float and math.isinf(value):
+            raise ValueError(f"nerfpp: parameter '{name}' is {value}: give a finite value")
+        if minimum is not None and value < minimum:
+            raise ValueError(f"nerfpp: parameter '{name}' must be >= {minimum}, got {value}")
+        if choices is not None and value not in choices:
+            raise ValueError(f"nerfpp: parameter '{name}' must be one of "
+                             f"{', '.join(choices)}, got {value!r}")
+        return value
+
+    def reject_unknown(self):
+        unknown = sorted(set(self.props.unqueried()) - self.known)
+        if unknown:
+            raise ValueError(f"nerfpp: unknown parameter(s) {', '.join(unknown)}; the nerfpp "
+                             f"integrator takes {', '.join(sorted(self.known))}")
+
+
+def read_parameters(props, field_kinds) -> dict:
+    """The integrator's attributes from its XML ``props`` (see the class docstring), the
+    overrides of the model's sampling under ``'_sampling'`` (None: the model's)."""
+    read = ParameterReader(props)
+    p = {'checkpoint': read('checkpoint', str, '')}
+    p['_sampling'] = {
+        'fg_samples': read('fg_samples', int, None, minimum=1),
+        'bg_samples': read('bg_samples', int, None, minimum=1),
+        'fine_samples': read('fine_samples', int, None, minimum=0),
+        'near': read('near', float, None, minimum=0.0)}
+    p['_background'] = read('background', bool, None)
+    p['stratified'] = read('stratified', bool, False)
+    p['occluded_background'] = read('occluded_background', bool, False)
+    p['chunk_rays'] = read('chunk_rays', int, 1 << 15, minimum=1)
+    p['max_samples'] = read('max_samples', int, MAX_FILM_SAMPLES, minimum=1)
+    p['random_field'] = read('field', str, 'grid', choices=field_kinds)
+    p['random_seed'] = read('seed', int, 0, minimum=0)
+    p['appearance_image'] = read('appearance_image', int, -1, minimum=-1)
+    p['max_depth'] = read('max_depth', int, 6, minimum=1)
+    p['rr_depth'] = read('rr_depth', int, 5, minimum=1)
+    catchers = read('shadow_catchers', str, '')
+    p['shadow_catchers'] = tuple(c.strip() for c in catchers.split(',') if c.strip())
+    proxies = read('proxies', str, '')
+    p['proxies'] = tuple(c.strip() for c in proxies.split(',') if c.strip())
+    p['catcher_samples'] = read('catcher_samples', int, 16, minimum=1)
+    p['volume_shadows'] = read('volume_shadows', bool, True)
+    read.reject_unknown()
+    if p['random_seed'] >= 2 ** 32:
+        raise ValueError(f"nerfpp: parameter 'seed' is {p['random_seed']}; the largest seed "
+                         f"is {2 ** 32 - 1}")
+    check_chunk_sizes(p['chunk_rays'], p['_sampling'], p['max_depth'], p['catcher_samples'])
+    return p
+
+
+def _largest(name, per_ray, chunk_rays, extra=0, also=''):
+    """The refusal of ``name`` when ``chunk_rays`` rays of ``per_ray`` entries are too many."""
+    fits = MAX_CHUNK_ENTRIES // chunk_rays - extra
+    what = f' (with {also})' if also else ''
+    if fits < 1:
+        return ValueError(
+            f"nerfpp: parameter 'chunk_rays' is {chunk_rays}: a chunk of that many rays cannot "
+            f"hold {name}{what} within {MAX_CHUNK_ENTRIES} entries per array; the largest "
+            f"chunk_rays that fits is {MAX_CHUNK_ENTRIES // max(per_ray, 1)}")
+    return ValueError(
+        f"nerfpp: parameter '{name}' is {per_ray - extra}: {chunk_rays} rays per chunk "
+        f"(chunk_rays) would hold {chunk_rays * per_ray:.3g} entries per array, more than "
+        f"{MAX_CHUNK_ENTRIES} (memory, Dr.Jit's 2^32-entry arrays); the largest {name} that "
+        f"fits{what} is {fits}")
+
+
+def check_chunk_sizes(chunk_rays, sampling, max_depth, catcher_samples):
+    """Refuse sample counts, path depth and catcher directions whose per-chunk arrays exceed
+    :data:`MAX_CHUNK_ENTRIES` (``sampling``: a dict or :class:`~mi_nerfpp.render.Sampling`;
+    None counts are not checked). Each count is first checked alone (the others at their
+    least), so the message names the one that is out of range."""
+    get = sampling.get if isinstance(sampling, dict) else (lambda k: getattr(sampling, k))
+    fine = get('fine_samples')
+    if fine is not None and chunk_rays * (1 + fine) > MAX_CHUNK_ENTRIES:
+        raise _largest('fine_samples', 1 + fine, chunk_rays, 1, 'one coarse sample')
+    fine = fine or 0
+    for name in ('fg_samples', 'bg_samples'):
+        n = get(name)
+        if n is not None and chunk_rays * (n + fine) > MAX_CHUNK_ENTRIES:
+            raise _largest(name, n + fine, chunk_rays, fine, f'fine_samples={fine}')
+    for name, n in (('max_depth', max_depth), ('catcher_samples', catcher_samples)):
+        if chunk_rays * n > MAX_CHUNK_ENTRIES:
+            raise _largest(name, n, chunk_rays)
+
+
+def check_film(size, count, max_samples):
+    """Refuse an empty film, a sample count of 0, and films beyond ``max_samples`` rays."""
+    if count < 1:
+        raise ValueError('nerfpp: the sampler has sample_count 0: give it at least 1 '
+                         '(<integer name="sample_count" value="1"/>) or pass spp >= 1')
+    width, height = int(size[0]), int(size[1])
+    if width < 1 or height < 1:
+        raise ValueError(f'nerfpp: the film is {width}x{height} pixels: give it a width and '
+                         f'a height of at least 1 (<integer name="width" value="..."/>)')
+    rays = width * height * int(count)
+    if rays > max_samples:
+        raise ValueError(
+            f'nerfpp: a {width}x{height} film at {count} samples per pixel traces '
+            f'{rays} rays, more than max_samples={max_samples} (about 100 bytes each): '
+            f'render a smaller film or crop (the largest at {count} spp is '
+            f'{max_samples // count} pixels), or raise the integrator\'s max_samples')
+
+
+def check_sensor(to_world, normalization):
+    """Refuse a sensor transform with NaN or infinite entries, a degenerate one, or a camera
+    farther than :data:`MAX_CAMERA_RADIUS` unit-sphere radii from the model (world-frame
+    ``to_world``, 4x4; ``normalization``: the model's
+    :class:`~mi_nerfpp.frame.Normalization`)."""
+    m = np.asarray(to_world, dtype=np.float64).reshape(4, 4)
+    centre, scale = normalization.center_array, float(normalization.scale)
+    # Distance first: a lookat that far away also fills its rotation with NaN (float32
+    # overflow), and the distance is what to fix.
+    if np.all(np.isfinite(m[:3, 3])):
+        radius = float(np.linalg.norm((m[:3, 3] - centre) * scale))
+        if not radius <= MAX_CAMERA_RADIUS:
+            largest = MAX_CAMERA_RADIUS / scale
+            raise ValueError(
+                f"nerfpp: the sensor is at {np.linalg.norm(m[:3, 3]):.3g} world units from the "
+                f"origin, {radius:.3g} unit-sphere radii from the model's centre; the largest "
+                f"distance that renders is {MAX_CAMERA_RADIUS:g} radii ({largest:.6g} world "
+                f"units from the centre {centre.tolist()}): move the sensor's to_world closer")
+    if not np.all(np.isfinite(m)):
+        raise ValueError("nerfpp: the sensor's to_world has NaN or infinite entries: give a "
+                         "finite <transform name=\"to_world\">")
+    if abs(np.linalg.det(m[:3, :3])) < 1e-30:
+        raise ValueError("nerfpp: the sensor's to_world is degenerate (a zero scale or a "
+                         "lookat with origin = target or up parallel to the view): fix its "
+                         "<transform name=\"to_world\">")

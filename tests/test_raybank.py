@@ -1,0 +1,174 @@
+"""The training ray bank (mi_nerfpp.train.RayBank): rays built per batch from the cameras and
+the compact image store equal the rays precomputed for every pixel before issue 34, exactly -
+origins, directions, colours and image indices - and training on them takes the same steps,
+with pose refinement on and off."""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_nerfpp import train
+from mi_nerfpp.arrays import owned
+from mi_nerfpp.config import TrainConfig
+from mi_nerfpp.data import Camera, Split, load_dataset, pixel_rays
+from mi_nerfpp.data.storage import StoredImages, store, to_float
+from mi_nerfpp.train import RayBank, Trainer
+from tests.helpers import one_thread, orbit_camera
+
+
+class PrecomputedRayBank:
+    """The ray bank before issue 34, as it was: every pixel's ray (float64 through
+    :func:`pixel_rays`, then float32), its colour (float32) and its image index, precomputed.
+    The interface is today's (``arrays``/``from_arrays`` of a dict), so a Trainer runs on it."""
+
+    def __init__(self, split):
+        o, d, c, image = [], [], [], []
+        for k, (cam, img) in enumerate(zip(split.cameras, split.images)):
+            h, w = img.shape[:2]
+            py, px = np.mgrid[0:h, 0:w] + 0.5
+            oi, di = pixel_rays(cam, px, py)
+            o.append(oi)
+            d.append(di)
+            c.append(img.reshape(-1, 3))
+            image.append(np.full(h * w, k, np.uint32))
+        o, d, c = (np.concatenate(a).astype(np.float32) for a in (o, d, c))
+        self.size = len(c)
+        self.o = mi.Point3f(*[owned(o[:, i], mi.Float) for i in range(3)])
+        self.d = mi.Vector3f(*[owned(d[:, i], mi.Float) for i in range(3)])
+        self.rgb = mi.Color3f(*[owned(c[:, i], mi.Float) for i in range(3)])
+        self.image = owned(np.concatenate(image), mi.UInt32)
+
+    def arrays(self):
+        return {'o': self.o, 'd': self.d, 'rgb': self.rgb, 'image': self.image}
+
+    @classmethod
+    def from_arrays(cls, arrays):
+        bank = cls.__new__(cls)
+        bank.o, bank.d, bank.rgb, bank.image = (arrays[k] for k in ('o', 'd', 'rgb', 'image'))
+        bank.size = dr.width(bank.rgb)
+        return bank
+
+    def batch(self, index):
+        i = mi.UInt32(index)
+        return (dr.gather(mi.Point3f, self.o, i), dr.gather(mi.Vector3f, self.d, i),
+                dr.gather(mi.Color3f, self.rgb, i))
+
+    def images(self, index):
+        return dr.gather(mi.UInt32, self.image, mi.UInt32(index))
+
+
+def cameras(n, width, height):
+    """Cameras with all that K may hold: skew, fx != fy, an off-centre principal point."""
+    result = []
+    for i in range(n):
+        cam = orbit_camera(0.7 * i, 0.1 + 0.05 * i, 2.0 + 0.1 * i, width, height)
+        cam.K[0, 1] = 0.4 * (i % 2)
+        cam.K[1, 1] *= 1.0 + 0.05 * i
+        cam.K[:2, 2] += (1.3 * i, -0.7 * i)
+        result.append(cam)
+    return result
+
+
+def split_of(raw, factor=1):
+    """A split of the images ``raw`` (as read_stored_image returns them) stored as a dataset
+    keeps them, downscaled by ``factor``, with :func:`cameras` to match."""
+    h, w = raw[0].shape[:2]
+    cams = [c.downscaled(factor) for c in cameras(len(raw), w, h)]
+    return Split(cams, [f'{i}.png' for i in range(len(raw))],
+                 StoredImages.unify([store(a, factor) for a in raw]))
+
+
+def assert_same_rays(bank, reference):
+    index = np.arange(reference.size, dtype=np.uint32)
+    assert bank.size == reference.size
+    for ours, theirs in zip(bank.batch(index), reference.batch(index)):
+        np.testing.assert_array_equal(np.array(ours), np.array(theirs))
+    np.testing.assert_array_equal(np.array(bank.images(index)), np.array(reference.images(index)))
+
+
+def random_levels(n, dtype, shape=(30, 40, 3), seed=0):
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, np.iinfo(dtype).max + 1, shape).astype(dtype) for _ in range(n)]
+
+
+STORES = {
+    '8-bit': lambda: split_of(random_levels(5, np.uint8)),
+    '16-bit': lambda: split_of(random_levels(4, np.uint16)),
+    '8-bit downscaled 2 (box sums in 16 bits)': lambda: split_of(random_levels(3, np.uint8), 2),
+    '16-bit downscaled 3': lambda: split_of(random_levels(3, np.uint16), 3),
+    'EXR in float16': lambda: split_of([np.random.default_rng(i).exponential(
+        2.0, (30, 40, 3)).astype(np.float32) for i in range(3)]),
+    'EXR beyond float16 (float32)': lambda: split_of([np.random.default_rng(i).exponential(
+        2.0, (30, 40, 3)).astype(np.float32) * 1e4 for i in range(3)]),
+}
+
+
+@pytest.mark.parametrize('name', list(STORES))
+def test_rays_built_per_batch_equal_the_precomputed_rays_for_every_pixel(name):
+    split = STORES[name]()
+    expected = {'8-bit': 'uint8', '16-bit': 'uint16', 'EXR in float16': 'float16',
+                'EXR beyond float16 (float32)': 'float32'}.get(name, 'uint16')
+    assert split.images.dtype.name == expected
+    assert_same_rays(RayBank(split), PrecomputedRayBank(split))
+
+
+def test_a_batch_in_any_order_is_the_same_rays():
+    split = STORES['8-bit']()
+    bank, reference = RayBank(split), PrecomputedRayBank(split)
+    index = np.random.default_rng(0).integers(0, bank.size, 5000).astype(np.uint32)
+    for ours, theirs in zip(bank.batch(index), reference.batch(index)):
+        np.testing.assert_array_equal(np.array(ours), np.array(theirs))
+
+
+def test_the_step_converts_every_stored_value_as_the_split_does():
+    """Every 8-bit and 16-bit level, and every box sum of 8-bit values downscaled by 2 and by
+    16, converted to float by the step (Dr.Jit) and by the split's accessor (NumPy): equal."""
+    cases = [(np.arange(256, dtype=np.uint8), 255.0), (np.arange(65536), 65535.0),
+             (np.arange(4 * 255 + 1), 255.0 * 4), (np.arange(256 * 255 + 1), 255.0 * 256)]
+    for values, scale in cases:
+        stored = values.astype(np.uint8 if values.dtype == np.uint8 else np.uint16)
+        pixels = np.resize(stored, 3 * 2 * ((len(values) + 5) // 6)).reshape(2, -1, 3)
+        split = Split([Camera(np.eye(3), np.eye(4), pixels.shape[1], 2)], ['x.png'],
+                      StoredImages([pixels], scale))
+        _, _, rgb = RayBank(split).batch(np.arange(pixels.shape[0] * pixels.shape[1]))
+        np.testing.assert_array_equal(np.array(rgb).T.reshape(pixels.shape),
+                                      to_float(pixels, scale))
+
+
+def test_the_bank_keeps_a_few_bytes_per_pixel():
+    split = STORES['8-bit']()
+    bank = RayBank(split)
+    pixels = bank.size
+    assert dr.width(bank.pixels) == 3 * pixels and type(bank.pixels).__name__ == 'UInt8'
+    assert sum(dr.width(a) for a in bank.cameras) == len(split) * (5 + 9 + 3)
+
+
+@pytest.mark.parametrize('refine', [False, True])
+def test_training_takes_the_same_steps_as_on_precomputed_rays(capture, tmp_path, monkeypatch,
+                                                              refine):
+    """Four steps from the same seed on the per-batch rays and on the precomputed ones (one
+    thread, so that both runs are deterministic): the same losses and parameters, bit for bit;
+    with pose refinement from the first step, the corrected rays too (and the appearance
+    transforms take the image index of each ray)."""
+    dataset = load_dataset(capture)
+    config = TrainConfig.from_options(
+        iterations=4, batch_rays=512, fg_samples=8, bg_samples=8, fine_samples=8,
+        checkpoint_every=0, preview_every=0, refine_poses=refine, poses_start=0.0,
+        appearance=refine)
+    runs = {}
+    for name, bank in (('per batch', RayBank), ('precomputed', PrecomputedRayBank)):
+        monkeypatch.setattr(train, 'RayBank', bank)
+        with one_thread():
+            trainer = Trainer(dataset, str(tmp_path / name.replace(' ', '_')), config)
+            trainer.run()
+        assert isinstance(trainer.rays, bank)
+        runs[name] = trainer
+    ours, theirs = runs['per batch'], runs['precomputed']
+    # The history without the seconds: (iteration, loss, batch PSNR).
+    assert [h[:1] + h[2:] for h in ours.history] == [h[:1] + h[2:] for h in theirs.history]
+    assert sorted(ours.opt.keys()) == sorted(theirs.opt.keys())
+    assert ('poses' in ours.opt.keys()) == refine
+    for key in ours.opt.keys():
+        np.testing.assert_array_equal(np.array(ours.opt[key]), np.array(theirs.opt[key]))
+    if refine:   # the refinement did move the cameras
+        assert np.any(np.array(ours.opt['poses'])[1:] != 0)

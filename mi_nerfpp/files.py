@@ -67,6 +67,10 @@ def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
 # ----------------------------------------------------------------------------- folder locks
 
 LOCK_NAME = '.mi-nerfpp.lock'
+# The folder locks this process holds: (process id, real path) -> [descriptor, holders]. A
+# process may lock a folder it holds again (a run prepared, then resumed in the same
+# process); the lock goes when its last holder releases it.
+_HELD: dict = {}
 
 
 class FolderInUseError(RuntimeError):
@@ -75,23 +79,28 @@ class FolderInUseError(RuntimeError):
 
 class FolderLock:
     """An exclusive lock on a folder, held by this process until :meth:`release` (or its
-    exit): ``fcntl.flock`` on the file :data:`LOCK_NAME` in the folder, which names the
+    exit; a process may take a lock it holds again, released with its last holder):
+    ``fcntl.flock`` on the file :data:`LOCK_NAME` in the folder, which names the
     holder (process id, host, command). The operating system releases the lock of a process
     that dies, however it dies, so a lock is never left stale by a killed run; the file
     stays. Where the file system has no ``flock`` the file itself is the lock: one naming a
     process of this host that is no longer running is stale and taken over."""
 
-    def __init__(self, folder, fd):
-        self.folder, self._fd = folder, fd
+    def __init__(self, folder, key):
+        self.folder, self._key = folder, key
 
     @property
     def path(self):
         return os.path.join(self.folder, LOCK_NAME)
 
     def release(self):
-        if self._fd is not None:
-            os.close(self._fd)        # closing the descriptor releases the flock
-            self._fd = None
+        key, self._key = self._key, None
+        held = _HELD.get(key) if key is not None else None
+        if held is not None:
+            held[1] -= 1
+            if held[1] <= 0:
+                del _HELD[key]
+                os.close(held[0])     # closing the descriptor releases the flock
 
     def __enter__(self):
         return self
@@ -124,6 +133,10 @@ def lock_folder(folder, what: str = 'folder') -> FolderLock:
     import socket
     folder = os.fspath(folder)
     os.makedirs(folder, exist_ok=True)
+    key = (os.getpid(), os.path.realpath(folder))
+    if key in _HELD:                     # held by this process already: one more holder
+        _HELD[key][1] += 1
+        return FolderLock(folder, key)
     path = os.path.join(folder, LOCK_NAME)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
@@ -147,7 +160,8 @@ def lock_folder(folder, what: str = 'folder') -> FolderLock:
     except BaseException:
         os.close(fd)
         raise
-    return FolderLock(folder, fd)
+    _HELD[key] = [fd, 1]
+    return FolderLock(folder, key)
 
 
 def _read_text(fd):

@@ -240,5 +240,14 @@ def test_lock_folder_refuses_a_second_holder(tmp_path, held):
             'except FolderInUseError as e:\n    print(e)\n')
     child = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
     assert 'is in use by another mi-nerfpp process (pid ' + str(os.getpid()) in child.stdout
+    # This process may take its own lock again (a run prepared, then resumed here); the lock
+    # stays until its last holder releases it.
+    again = lock_folder(tmp_path / 'f')
     lock.release()
+    child = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
+    assert 'is in use by another mi-nerfpp process (pid ' + str(os.getpid()) in child.stdout
+    again.release()
+    again.release()                                    # a second release does nothing
+    child = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
+    assert child.returncode == 0 and child.stdout == ''            # free for another process
     assert FolderInUseError.__mro__[1] is RuntimeError

@@ -55,8 +55,23 @@ class CheckpointError(ValueError):
     """A checkpoint file is missing, malformed or does not match its config."""
 
 
+class NonFiniteStateError(ValueError):
+    """A model or training state to be saved holds NaN or infinite values (nothing is
+    written)."""
+
+
+def _non_finite(arrays: dict) -> list[str]:
+    """The names of the float arrays that hold NaN or inf."""
+    return [k for k, v in arrays.items()
+            if np.asarray(v).dtype.kind == 'f' and not np.all(np.isfinite(v))]
+
+
 def save_checkpoint(path, model, meta=None, state=None):
-    """Write ``model`` (and optional training ``state``: name -> array) to ``path`` atomically."""
+    """Write ``model`` (and optional training ``state``: name -> array) to ``path`` atomically.
+
+    Only finite state is written: parameters, occupancy grids or state arrays holding NaN or
+    inf raise :class:`NonFiniteStateError` (naming them) before the file is touched, so a
+    diverged run never replaces a good checkpoint."""
     path = os.fspath(path)
     config = dict(model.config, meta=meta or {})
     arrays = {'format': np.array(FORMAT), 'version': np.array(VERSION),
@@ -67,6 +82,10 @@ def save_checkpoint(path, model, meta=None, state=None):
         arrays[f'occupancy/{k}'] = grid.numpy()
     for k, v in (state or {}).items():
         arrays[f'state/{k}'] = np.asarray(v)
+    bad = _non_finite(arrays)
+    if bad:
+        shown = ', '.join(bad[:4]) + (f' and {len(bad) - 4} more' if len(bad) > 4 else '')
+        raise NonFiniteStateError(f'{shown} hold NaN or infinite values')
     with atomic_write_path(path) as tmp, open(tmp, 'wb') as f:
         np.savez(f, **arrays)
         f.flush()
@@ -76,11 +95,18 @@ def save_checkpoint(path, model, meta=None, state=None):
 def _read(path):
     if not os.path.isfile(path):
         raise CheckpointError(f'{path}: checkpoint not found')
+    if os.path.getsize(path) == 0:
+        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint: the file is empty (0 bytes)')
     try:
-        with np.load(path, allow_pickle=False) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):     # a bare .npy array
+            raise ValueError('a NumPy array file, not an .npz archive')
+        with z:
             return {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError) as e:
-        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): {e}') from None
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, TypeError,
+            UnicodeDecodeError, NotImplementedError) as e:
+        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): '
+                              f'{e or type(e).__name__}') from None
 
 
 def read_meta(path) -> dict:
@@ -102,7 +128,11 @@ def load_checkpoint(path, seed=0):
     z = _read(path)
     if 'format' not in z or str(z['format']) != FORMAT:
         raise CheckpointError(f"{path}: not a mi-nerfpp checkpoint (no 'format' = '{FORMAT}' entry)")
-    version = int(z['version'])
+    try:
+        version = int(z['version'])
+    except (KeyError, TypeError, ValueError):
+        raise CheckpointError(f"{path}: not a mi-nerfpp checkpoint (no integer 'version' "
+                              f"entry)") from None
     if version not in READABLE_VERSIONS:
         raise CheckpointError(f'{path}: checkpoint version {version}, this mi-nerfpp reads '
                               f'{", ".join(map(str, READABLE_VERSIONS))}')

@@ -21,9 +21,16 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import tempfile
+import threading
 
 INSTALL_HINT = "pip install -e '.[cluster]'"
+# Seconds to wait for a cluster address to answer (--ray ADDRESS) before giving up, and for
+# joining the cluster there (the environment variable overrides the latter).
+CONNECT_TIMEOUT = 10.0
+INIT_TIMEOUT = 60.0
+INIT_TIMEOUT_ENV = 'MI_NERFPP_RAY_TIMEOUT'
 # Restarts of a frame worker whose process died, and retries of its chunk, before its chunks
 # go to the other workers.
 WORKER_RESTARTS = 3
@@ -39,24 +46,110 @@ def import_ray():
     return ray
 
 
+def check_address(address: str):
+    """Refuse, before any work, ``--ray ADDRESS`` when the ray package is missing or no Ray
+    cluster answers at the address within :data:`CONNECT_TIMEOUT` seconds: Ray's own client
+    retries an address for ever when nothing (or something else) answers there. A Ray head
+    (its GCS) and a Ray Client server speak gRPC: they answer the HTTP/2 preface with a
+    SETTINGS frame. ``auto`` is left to Ray (it joins this machine's cluster or starts one),
+    unless ``RAY_ADDRESS`` names a cluster for it. Raises RuntimeError with one line saying
+    what to do."""
+    import socket
+    import_ray()
+    given = address
+    if address in (None, 'auto', 'local'):
+        address = os.environ.get('RAY_ADDRESS', '')
+        if address in ('', 'auto', 'local'):
+            return
+    shown = f'--ray {given}' + (f' (RAY_ADDRESS={address})' if address != given else '')
+    host, _, port = address.split('://', 1)[-1].rpartition(':')
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise RuntimeError(f'{shown}: not a cluster address: give HOST:PORT (the head node\'s '
+                           f'address, as `ray start --head` prints it) or auto')
+    try:
+        with socket.create_connection((host.strip('[]'), int(port)),
+                                      timeout=CONNECT_TIMEOUT) as s:
+            s.settimeout(CONNECT_TIMEOUT)
+            s.sendall(_HTTP2_PREFACE)
+            reply = b''
+            while len(reply) < 9:
+                chunk = s.recv(9 - len(reply))
+                if not chunk:
+                    break
+                reply += chunk
+    except OSError as e:
+        reason = (f'no answer within {CONNECT_TIMEOUT:g} s' if isinstance(e, socket.timeout)
+                  else (e.strerror or str(e)).lower())
+        raise RuntimeError(f'{shown}: no Ray cluster answers there ({reason}): start one with '
+                           f'`ray start --head` and give the address it prints, or use '
+                           f'--ray auto') from None
+    if len(reply) < 9 or reply[3] != _HTTP2_SETTINGS:
+        raise RuntimeError(f'{shown}: something answers there, but not a Ray cluster (no gRPC '
+                           f'reply): give the address `ray start --head` prints, or use '
+                           f'--ray auto')
+
+
+# The client's HTTP/2 connection preface and an empty SETTINGS frame; a gRPC server answers
+# with its SETTINGS frame (frame type 4, the fourth byte of the 9-byte frame header).
+_HTTP2_PREFACE = b'PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n' + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+_HTTP2_SETTINGS = 4
+
+
 @contextlib.contextmanager
-def session(address: str):
+def session(address: str, exit_line: str | None = None):
     """Ray connected for the block: ``'auto'`` joins this machine's running cluster or starts a
-    local one, else the cluster at ``address``. A connection made here is closed after."""
+    local one, else the cluster at ``address`` (:func:`check_address` first). A connection
+    made here is closed after.
+
+    ``exit_line`` (the command line's): when joining ``address`` has not finished after
+    :func:`init_timeout` seconds - something at the address speaks gRPC but is no Ray
+    cluster, and Ray's client retries for ever, out of reach of Python's signal handlers -
+    the process prints this line to stderr and exits with status 1 (nothing has been written
+    yet)."""
     ray = import_ray()
     if ray.is_initialized():
         yield ray
         return
+    check_address(address)
+    watchdog = None
+    if exit_line and address not in (None, 'auto', 'local'):
+        def give_up():                           # on a line of its own, under a progress bar
+            sys.stderr.write(f'\n{exit_line}\n')
+            sys.stderr.flush()
+            os._exit(1)
+        watchdog = threading.Timer(init_timeout(), give_up)
+        watchdog.daemon = True
+        watchdog.start()
     try:
         ray.init(address=None if address == 'auto' else address, include_dashboard=False,
                  log_to_driver=True, configure_logging=False)
     except ConnectionError as e:
         raise RuntimeError(f'--ray {address}: no Ray cluster there ({e}); start one with '
                            f'`ray start --head`, or use --ray auto') from None
+    finally:
+        if watchdog is not None:
+            watchdog.cancel()
     try:
         yield ray
     finally:
         ray.shutdown()
+
+
+def init_timeout() -> float:
+    """Seconds that joining a cluster may take (:func:`session`): ``MI_NERFPP_RAY_TIMEOUT``,
+    else :data:`INIT_TIMEOUT`."""
+    try:
+        value = float(os.environ.get(INIT_TIMEOUT_ENV, INIT_TIMEOUT))
+    except ValueError:
+        value = INIT_TIMEOUT
+    return value if value > 0 else INIT_TIMEOUT
+
+
+def timeout_line(command: str, address: str) -> str:
+    """The line a command ends with when joining the cluster at ``address`` times out."""
+    return (f'error: {command}: --ray {address}: no Ray cluster came up there within '
+            f'{init_timeout():g} s (something answers, but Ray cannot join it): check the '
+            f'address `ray start --head` printed, or use --ray auto')
 
 
 def cluster_cpus(ray) -> int:
@@ -172,16 +265,17 @@ class FramePool:
             self.ray.kill(actor)
 
 
-def run_tasks(function, items, failed, address=None, cpus=1):
+def run_tasks(function, items, failed, address=None, cpus=1, exit_line=None):
     """``function(item, threads)`` for each item, as Ray tasks of ``cpus`` CPUs on the
-    cluster at ``address`` (see :func:`session`; Ray retries a task whose worker died), else
-    one after the other here. Yields ``(item, result)`` as each finishes; a task that fails
-    anyway gives ``failed(item, error)`` as its result, and the others go on."""
+    cluster at ``address`` (see :func:`session`, also for ``exit_line``; Ray retries a task
+    whose worker died), else one after the other here. Yields ``(item, result)`` as each
+    finishes; a task that fails anyway gives ``failed(item, error)`` as its result, and the
+    others go on."""
     if address is None:
         for item in items:
             yield item, function(item, None)
         return
-    with session(address) as ray:
+    with session(address, exit_line) as ray:
         task = ray.remote(function).options(num_cpus=cpus)
         running = {task.remote(item, cpus): item for item in items}
         while running:

@@ -26,7 +26,7 @@ import json
 import math
 from dataclasses import dataclass
 
-from . import appearance as app, occupancy as occ, optim, poses
+from . import appearance as app, limits, occupancy as occ, optim, poses
 from .fields import GridField
 from .frame import NERF_CAMERA_RADIUS
 from .model import FIELD_KINDS, default_field_config
@@ -38,6 +38,14 @@ MODEL_KINDS = ('nerfpp', 'nerf')
 # the default capture trained for these minutes, evaluated after these minutes too.
 DEFAULT_JOB_MINUTES = 10.0
 DEFAULT_JOB_EVAL_AT = (2.0, 5.0)
+# The largest --seed: the background field is seeded with seed + 1, and Dr.Jit's generators
+# take 64-bit seeds.
+MAX_SEED = 2 ** 64 - 2
+# Options that shape the colour MLP are bounded by sense rather than memory: each layer is
+# traced into the step's kernels (thousands of layers compile for hours), and direction
+# frequencies 2^k beyond float32's 24-bit mantissa are noise.
+MAX_COLOR_LAYERS = 64
+MAX_DIR_OCTAVES = 24
 # The budget of a run given neither iterations nor minutes (:func:`default_minutes`): the
 # default capture's training pixels (48 views of 128x96) get DEFAULT_JOB_MINUTES, other
 # captures minutes in proportion to the square root of their training pixels, within these
@@ -86,6 +94,12 @@ def _as_tuple(value):
 
 def _finite(v):
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def per_level(values, levels):
+    """An option of one value for every grid level or one per level, as one per level."""
+    values = _as_tuple(values)
+    return values * levels if len(values) == 1 else values
 
 
 def per_volume(values):
@@ -199,7 +213,12 @@ class ModelOptions(_Options):
                 self._bad(name, ' or '.join(f"'{k}'" for k in FIELD_KINDS))
         self._check(('grid_channels', 'color_layers', 'color_width'),
                     lambda v: v >= 1, 'at least 1')
-        self._check(('dir_octaves',), lambda v: v >= 0, '0 or more')
+        self._check(('dir_octaves',), lambda v: 0 <= v <= MAX_DIR_OCTAVES,
+                    f'0 or more and at most {MAX_DIR_OCTAVES} (frequencies 2^k beyond '
+                    f'float32 precision are noise)')
+        self._check(('color_layers',), lambda v: v <= MAX_COLOR_LAYERS,
+                    f'at most {MAX_COLOR_LAYERS} (every layer is traced into the training '
+                    f'kernels)')
         self._check(('density_bias',), _finite, 'a finite number')
         if not self.grid_levels or min(self.grid_levels) < 2:
             self._bad('grid_levels', 'one or more resolutions of at least 2')
@@ -357,7 +376,8 @@ class ScheduleOptions(_Options):
         if self.iterations is not None and self.iterations < 1:
             self._bad('iterations', 'at least 1')
         self._check(('batch_rays',), lambda v: v >= 1, 'at least 1')
-        self._check(('seed',), lambda v: v >= 0, '0 or more')
+        self._check(('seed',), lambda v: 0 <= v <= MAX_SEED,
+                    f'a whole number from 0 to {MAX_SEED} (2^64 - 2)')
         if not all(_finite(f) and 0 < f < 1 for f in self.coarse_to_fine):
             self._bad('coarse_to_fine', 'fractions between 0 and 1')
 
@@ -475,6 +495,214 @@ class TrainConfig:
         s = self.render_sampling
         n = s.fg_samples + s.fine_samples
         return n if self.model.kind == 'nerf' else n + s.bg_samples + s.fine_samples
+
+    # ------------------------------------------------------------------ limits
+    def grid_levels_entries(self, domain, levels=None, channels=None) -> list[int]:
+        """Entries of each feature-grid level of one volume (:class:`GridField`'s shapes):
+        ``R³`` cells in the ball, ``max(⌊q·R⌋, 4) × R × 2R`` in the inverted sphere, times
+        ``--grid-channels``; empty for a volume without a grid field. ``levels``,
+        ``channels``: in place of the config's."""
+        m = self.model
+        kind = m.field if domain == 'ball' else m.bg_field
+        if kind != 'grid' or (domain == 'inverted_sphere' and m.kind != 'nerfpp'):
+            return []
+        levels = m.levels(domain) if levels is None else levels
+        channels = channels or m.grid_channels
+        if domain == 'ball':
+            return [r ** 3 * channels for r in levels]
+        ratios = per_level(m.bg_s_ratio, len(levels))
+        return [max(int(r * q), 4) * r * 2 * r * channels for r, q in zip(levels, ratios)]
+
+    def occupancy_cells(self, resolution=None) -> list[int]:
+        """Cells of each volume's occupancy grid (:class:`~.occupancy.OccupancyGrid`)."""
+        if not self.sampling.occupancy:
+            return []
+        r = self.sampling.occupancy_res if resolution is None else resolution
+        return [r ** 3] + ([max(r // 4, 4) * max(r // 2, 4) * r]
+                           if self.model.kind == 'nerfpp' else [])
+
+    def memory_estimate(self, **values) -> dict:
+        """Bytes a training run takes, by what takes them (:mod:`.limits`): ``grids`` (the
+        feature grids with their gradients and Adam moments), ``occupancy`` and ``step`` (the
+        field samples of a training step). ``values``: see :meth:`_sizes`."""
+        batch, spr, fg, bg, channels, occupancy = self._sizes(**values)
+        grids = sum(self.grid_levels_entries('ball', fg, channels)
+                    + self.grid_levels_entries('inverted_sphere', bg, channels))
+        return {'grids': grids * limits.GRID_BYTES_PER_ENTRY,
+                'occupancy': sum(self.occupancy_cells(occupancy))
+                * limits.OCCUPANCY_BYTES_PER_CELL,
+                'step': batch * spr * limits.TRAIN_BYTES_PER_SAMPLE}
+
+    def _sizes(self, batch_rays=None, samples_per_ray=None, grid_levels=None,
+               bg_grid_levels=None, grid_channels=None, occupancy_res=None):
+        """``(rays per step, samples per ray, foreground levels, background levels, grid
+        channels, occupancy resolution)``, with the values given in place of the config's
+        (the background grid follows ``grid_levels`` unless it has levels of its own)."""
+        m = self.model
+        fg = grid_levels or m.grid_levels
+        bg = bg_grid_levels or m.bg_grid_levels or fg
+        return (batch_rays or self.schedule.batch_rays, samples_per_ray or self.samples_per_ray,
+                fg, bg, grid_channels or m.grid_channels,
+                occupancy_res or self.sampling.occupancy_res)
+
+    def limit_exceeded(self, budget: int | None = None, **values):
+        """The first limit of :mod:`.limits` that the config (with ``values`` in place of its
+        own, see :meth:`_sizes`) exceeds, as ``(option, what)``, or None when it fits in
+        ``budget`` bytes (this machine's memory by default)."""
+        budget = limits.memory_bytes() if budget is None else budget
+        batch, spr, fg, bg, channels, occupancy = self._sizes(**values)
+        array = 'more than one Dr.Jit array holds (2^32 - 1 entries)'
+        # A render of the model (evaluation, previews, videos) takes its samples per ray for a
+        # chunk of the integrator's rays at a time, whatever --batch-rays.
+        chunk = limits.RENDER_CHUNK_RAYS
+        if not limits.fits(spr, chunk, chunk * limits.RENDER_BYTES_PER_SAMPLE, budget):
+            return 'samples', (f'renders of the model take {spr:,} samples per ray for '
+                               f'{chunk:,} rays at a time, more than Dr.Jit\'s arrays (2^32 - 1 '
+                               f'entries) and {limits.memory_text(budget)} of memory hold')
+        for domain, levels in (('ball', fg), ('inverted_sphere', bg)):
+            for r, entries in zip(levels, self.grid_levels_entries(domain, levels, channels)):
+                if entries > limits.MAX_ARRAY_ENTRIES:
+                    option = (self._levels_option(domain)
+                              if channels <= type(self.model)().grid_channels
+                              else 'grid_channels')
+                    return (option, f'a {"background " if domain != "ball" else ""}level of '
+                                    f'resolution {r} has {entries:,} entries (--grid-channels '
+                                    f'{channels}), {array}')
+        for cells in self.occupancy_cells(occupancy):
+            if cells > limits.MAX_ARRAY_ENTRIES:
+                return 'occupancy_res', f'a grid of {cells:,} cells is {array}'
+        if batch * spr > limits.MAX_ARRAY_ENTRIES:
+            return 'batch_rays', (f'{batch:,} rays x {spr} samples per ray are '
+                                  f'{batch * spr:,} field samples per step, {array}')
+        need = self.memory_estimate(**values)
+        if sum(need.values()) <= budget:
+            return None
+        what = (f'a run takes about {limits.memory_text(sum(need.values()))} (grids '
+                f'{limits.memory_text(need["grids"])}, occupancy '
+                f'{limits.memory_text(need["occupancy"])}, training step '
+                f'{limits.memory_text(need["step"])}), more than this machine\'s '
+                f'{limits.memory_text(budget)}')
+        heaviest = max(need, key=need.get)
+        if heaviest == 'grids':
+            if channels > type(self.model)().grid_channels:
+                return 'grid_channels', what
+            fg_entries = sum(self.grid_levels_entries('ball', fg, channels))
+            bg_entries = sum(self.grid_levels_entries('inverted_sphere', bg, channels))
+            return self._levels_option('ball' if fg_entries >= bg_entries
+                                       else 'inverted_sphere'), what
+        if heaviest == 'occupancy':
+            return 'occupancy_res', what
+        default_batch = type(self.schedule)().batch_rays
+        return ('batch_rays' if batch > default_batch else 'samples'), what
+
+    def _levels_option(self, domain):
+        """The option that sets the levels of ``domain``'s grid."""
+        if domain == 'inverted_sphere' and self.model.bg_grid_levels is not None:
+            return 'bg_grid_levels'
+        return 'grid_levels'
+
+    def largest_that_fits(self, option: str, budget: int | None = None):
+        """The largest value of ``option`` (``batch_rays``, ``samples`` - samples per ray -,
+        ``grid_levels`` / ``bg_grid_levels`` - the finest level's resolution, the others
+        kept -, ``grid_channels``, ``occupancy_res``) with which the config fits
+        (:meth:`limit_exceeded`); 0 when none does."""
+        m = self.model
+        if option in ('grid_levels', 'bg_grid_levels'):
+            levels = list(m.grid_levels if option == 'grid_levels' else m.bg_grid_levels)
+            i = levels.index(max(levels))
+            values = lambda r: {option: tuple(levels[:i] + [r] + levels[i + 1:])}  # noqa: E731
+            high = levels[i]
+        else:
+            key = {'samples': 'samples_per_ray'}.get(option, option)
+            values = lambda v: {key: v}  # noqa: E731
+            high = {'batch_rays': self.schedule.batch_rays, 'samples': self.samples_per_ray,
+                    'grid_channels': m.grid_channels,
+                    'occupancy_res': self.sampling.occupancy_res}[option]
+        low = {'grid_levels': 2, 'bg_grid_levels': 2, 'grid_channels': 2,
+               'occupancy_res': 4}.get(option, 1)
+        if self.limit_exceeded(budget, **values(low)) is not None:
+            return 0
+        while self.limit_exceeded(budget, **values(high)) is None:     # fits: look above
+            if high >= limits.MAX_ARRAY_ENTRIES:
+                return high
+            low, high = high, min(2 * high, limits.MAX_ARRAY_ENTRIES)
+        while low < high:              # the largest value that fits, by bisection
+            mid = (low + high + 1) // 2
+            low, high = (mid, high) if self.limit_exceeded(budget, **values(mid)) is None \
+                else (low, mid - 1)
+        return low
+
+    def check_render_chunks(self):
+        """Refuse ``--samples`` whose renders the ``nerfpp`` integrator would refuse, so that a
+        run does not train and then fail to evaluate: renders of the model (evaluations,
+        previews, videos) take the samples of a volume for a chunk of
+        :data:`~mi_nerfpp.limits.RENDER_CHUNK_RAYS` rays at a time, within the integrator's
+        entries per array (:func:`mi_nerfpp.integrator.parameters.check_chunk_sizes`, the one
+        home of that rule)."""
+        from .integrator.parameters import MAX_CHUNK_ENTRIES, check_chunk_sizes
+        chunk = limits.RENDER_CHUNK_RAYS
+        try:
+            check_chunk_sizes(chunk, self.render_sampling, 1, 1)
+        except ValueError:
+            s, r = self.sampling, self.render_sampling
+            per_volume = max(r.fg_samples, r.bg_samples) + r.fine_samples
+            raise ValueError(
+                f'--samples {s.fg_samples} {s.bg_samples} {s.fine_samples} are too many: '
+                f'renders of the model take {per_volume:,} samples per ray of a volume (coarse '
+                f'and fine) for {chunk:,} rays at a time, more than the nerfpp integrator\'s '
+                f'{MAX_CHUNK_ENTRIES:,} entries per array; at most '
+                f'{MAX_CHUNK_ENTRIES // chunk:,} samples per ray of a volume fit') from None
+
+    def check_limits(self, budget: int | None = None):
+        """Refuse, before any work, option values whose arrays Dr.Jit cannot hold (2^32 - 1
+        entries) or that do not fit in this machine's memory (``budget`` bytes; see
+        :mod:`.limits`): a ValueError naming the option and the largest value that fits.
+        Called before training (the ``optimize`` and ``sweep`` commands,
+        :func:`mi_nerfpp.run.prepare`), not when a stored config is read."""
+        self.check_render_chunks()
+        exceeded = self.limit_exceeded(budget)
+        if exceeded is None:
+            return
+        option, what = exceeded
+        best = self.largest_that_fits(option, budget)
+        s = self.sampling
+        if option == 'samples':
+            raise ValueError(f'--samples {s.fg_samples} {s.bg_samples} {s.fine_samples} are '
+                             f'too many: {what}; at most {best:,} samples per ray (coarse and '
+                             f'fine, every volume) fit with --batch-rays '
+                             f'{self.schedule.batch_rays}')
+        shown = getattr(self.sampling if option == 'occupancy_res' else
+                        self.schedule if option == 'batch_rays' else self.model, option)
+        shown = ' '.join(map(str, shown)) if isinstance(shown, tuple) else shown
+        largest = (f'the finest level fits at resolution {best:,} at most'
+                   if option.endswith('grid_levels') else f'at most {best:,} fits')
+        if best == 0:
+            largest = 'not even the smallest value fits: lower the other options'
+        raise ValueError(f'{flag(TrainConfig, option)} {shown} is too large: {what}; '
+                         f'{largest}')
+
+    # The options whose values, raised far enough, blow the parameters up (prior weights and
+    # learning rates): the suspects named when a run diverges.
+    STEP_SIZES = ('tv', 'sparsity', 'distortion', 'opacity_entropy', 'appearance_prior',
+                  'lr_grid', 'lr_mlp', 'lr_appearance', 'lr_poses')
+
+    def divergence_hint(self) -> str:
+        """What to change when the run's state stops being finite: the prior weights and
+        learning rates raised furthest above their defaults (the likely cause), else the
+        learning rates."""
+        defaults, now = type(self)().options(), self.options()
+        raised = []
+        for name in self.STEP_SIZES:
+            value, default = max(_as_tuple(now[name])), max(_as_tuple(defaults[name]))
+            if value > default:
+                raised.append((value / default if default > 0 else math.inf, name, now[name]))
+        if not raised:
+            return 'Lower the learning rates (--lr-grid, --lr-mlp)'
+        shown = [f'{flag(TrainConfig, name)} '
+                 f'{" ".join(f"{v:g}" for v in _as_tuple(value))}'
+                 for _, name, value in sorted(raised, key=lambda r: -r[0])[:3]]
+        return (f'Most likely {" or ".join(shown)} (above the default'
+                f'{"s" if len(shown) > 1 else ""}): lower {"them" if len(shown) > 1 else "it"}')
 
     def model_normalization(self, dataset_normalization):
         """The model frame: the dataset's, or for the NeRF baseline one shrunk into

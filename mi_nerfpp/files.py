@@ -62,3 +62,129 @@ def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
         raise
+
+
+# ----------------------------------------------------------------------------- folder locks
+
+LOCK_NAME = '.mi-nerfpp.lock'
+# The folder locks this process holds: (process id, real path) -> [descriptor, holders]. A
+# process may lock a folder it holds again (a run prepared, then resumed in the same
+# process); the lock goes when its last holder releases it.
+_HELD: dict = {}
+
+
+class FolderInUseError(RuntimeError):
+    """Another live process holds the folder's lock."""
+
+
+class FolderLock:
+    """An exclusive lock on a folder, held by this process until :meth:`release` (or its
+    exit; a process may take a lock it holds again, released with its last holder):
+    ``fcntl.flock`` on the file :data:`LOCK_NAME` in the folder, which names the
+    holder (process id, host, command). The operating system releases the lock of a process
+    that dies, however it dies, so a lock is never left stale by a killed run; the file
+    stays. Where the file system has no ``flock`` the file itself is the lock: one naming a
+    process of this host that is no longer running is stale and taken over."""
+
+    def __init__(self, folder, key):
+        self.folder, self._key = folder, key
+
+    @property
+    def path(self):
+        return os.path.join(self.folder, LOCK_NAME)
+
+    def release(self):
+        key, self._key = self._key, None
+        held = _HELD.get(key) if key is not None else None
+        if held is not None:
+            held[1] -= 1
+            if held[1] <= 0:
+                del _HELD[key]
+                os.close(held[0])     # closing the descriptor releases the flock
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
+
+
+def _holder_text():
+    import socket
+    import sys
+    import time
+    command = ' '.join(os.path.basename(a) if i == 0 else a for i, a in enumerate(sys.argv))
+    return (f'pid {os.getpid()} on {socket.gethostname()} since '
+            f'{time.strftime("%Y-%m-%d %H:%M:%S")}: {command}'[:500])
+
+
+def _holder_pid(text):
+    """(pid, host) of a lock file's text, or None."""
+    import re
+    m = re.match(r'pid (\d+) on (\S+) ', text)
+    return (int(m.group(1)), m.group(2)) if m else None
+
+
+def lock_folder(folder, what: str = 'folder') -> FolderLock:
+    """Take the exclusive lock of ``folder`` (created if needed), or raise
+    :class:`FolderInUseError` naming the process that holds it."""
+    import errno
+    import fcntl
+    import socket
+    folder = os.fspath(folder)
+    os.makedirs(folder, exist_ok=True)
+    key = (os.getpid(), os.path.realpath(folder))
+    if key in _HELD:                     # held by this process already: one more holder
+        _HELD[key][1] += 1
+        return FolderLock(folder, key)
+    path = os.path.join(folder, LOCK_NAME)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise FolderInUseError(f'{folder}: this {what} is in use by another mi-nerfpp '
+                                       f'process ({_read_text(fd) or "unknown"}); wait for it '
+                                       f'to end or stop it, or choose another one') from None
+            if e.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                raise
+            holder = _holder_pid(_read_text(fd))         # no flock here: the file is the lock
+            if holder and holder[1] == socket.gethostname() and holder[0] != os.getpid() \
+                    and _alive(holder[0]):
+                raise FolderInUseError(f'{folder}: this {what} is in use by another mi-nerfpp '
+                                       f'process ({_read_text(fd)}); wait for it to end or '
+                                       f'stop it, or choose another one') from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (_holder_text() + '\n').encode(), 0)
+    except BaseException:
+        os.close(fd)
+        raise
+    _HELD[key] = [fd, 1]
+    return FolderLock(folder, key)
+
+
+def _read_text(fd):
+    try:
+        return os.pread(fd, 1000, 0).decode(errors='replace').strip()
+    except OSError:
+        return ''
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def check_not_a_file(folder, option: str = '--out'):
+    """Refuse a ``folder`` to write into that is an existing file (ValueError naming the
+    option), before anything is written."""
+    folder = os.fspath(folder)
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise ValueError(f'{option} {folder} is an existing file, not a folder: choose '
+                         f'another {option}')

@@ -29,6 +29,7 @@ ValueError / :class:`~mi_nerfpp.data.DatasetError`, a diverged or mismatched run
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import time
@@ -102,11 +103,23 @@ class LogObserver(RunObserver):
 @dataclass
 class RunInputs:
     """What a run trains: ``data`` (the dataset folder; for photos, the one structure from
-    motion wrote), its ``dataset``, the ``config`` and the run folder ``out``."""
+    motion wrote), its ``dataset``, the ``config``, the run folder ``out`` and the ``lock``
+    this process holds on it (:func:`mi_nerfpp.files.lock_folder`)."""
     data: str
     dataset: object
     config: TrainConfig
     out: str
+    lock: object = None
+    created: bool = False
+
+    def release(self):
+        """Release the run folder's lock (:func:`prepare`) before this process ends; a run
+        folder that :func:`prepare` created and nothing was written to is removed."""
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
+        if self.created:
+            _remove_if_unused(self.out)
 
 
 @dataclass
@@ -151,42 +164,132 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
     (``downscale=None``: the photos' own unless they do not fit in memory,
     :func:`resolution_line`; a resumed run keeps the one it was trained at) and the budget
     (neither ``iterations`` nor ``minutes``: :func:`~mi_nerfpp.config.default_minutes`).
+
+    The run folder is locked for this process (:func:`mi_nerfpp.files.lock_folder`) before
+    anything is written to it: a second run into it is refused while this one lives
+    (``RunInputs.lock``, released by :func:`optimize` at the end, else at exit). With
+    ``overwrite`` the old run's outputs are removed once the new inputs are known to be good,
+    so the folder never holds parts of two runs. A run folder that this call created is
+    removed again when the inputs are refused.
     """
     from .config import default_minutes
     from .data import AutoDownscale, DatasetError, load_dataset
+    from .files import check_not_a_file, check_writable_folder, lock_folder
     from .memory import available_bytes, image_budget, training_working_set
     observer = observer or RunObserver()
+    config.check_limits()
     if not os.path.exists(data):
         raise DatasetError(f'{data}: dataset folder not found')
     out = out or os.path.join('runs', os.path.basename(os.path.normpath(data)))
-    check_run_folder(out, resume=resume, overwrite=overwrite)
-    data = photos_to_dataset(data, os.path.join(out, 'sfm'), observer)
-    downscale = config.data.downscale
-    checkpoint = os.path.join(out, 'model.npz')
-    if downscale is None and resume and os.path.exists(checkpoint):
-        # A resumed run goes on at the resolution it was trained at, whatever memory is free.
-        from .checkpoint import read_meta
-        stored = TrainConfig.stored_options(read_meta(checkpoint).get('config', {}))
-        downscale = stored.get('downscale')
-        if downscale is not None:
+    if resume and overwrite:
+        raise ValueError('--resume and --overwrite exclude each other')
+    check_not_a_file(out)
+    created = not os.path.exists(out)
+    check_writable_folder(out, what='run folder (--out)')
+    lock = None
+    try:
+        lock = lock_folder(out, what='run folder (--out)')
+        finish_replacement(out, observer)
+        check_run_folder(out, resume=resume, overwrite=overwrite)
+        data = photos_to_dataset(data, os.path.join(out, 'sfm'), observer)
+        downscale = config.data.downscale
+        checkpoint = os.path.join(out, 'model.npz')
+        if downscale is None and resume and os.path.exists(checkpoint):
+            # A resumed run goes on at the resolution it was trained at, whatever memory is
+            # free.
+            from .checkpoint import read_meta
+            stored = TrainConfig.stored_options(read_meta(checkpoint).get('config', {}))
+            downscale = stored.get('downscale')
+            if downscale is not None:
+                config = dataclasses.replace(config, data=dataclasses.replace(
+                    config.data, downscale=downscale))
+        if downscale is None:    # the photos' own resolution, unless it does not fit in memory
+            available, step = available_bytes(), training_working_set(config)
+            downscale = AutoDownscale(image_budget(step, available))
+        dataset = load_dataset(data, downscale=downscale, background=config.data.background)
+        if isinstance(downscale, AutoDownscale):
             config = dataclasses.replace(config, data=dataclasses.replace(
-                config.data, downscale=downscale))
-    if downscale is None:        # the photos' own resolution, unless it does not fit in memory
-        available, step = available_bytes(), training_working_set(config)
-        downscale = AutoDownscale(image_budget(step, available))
-    dataset = load_dataset(data, downscale=downscale, background=config.data.background)
-    if isinstance(downscale, AutoDownscale):
-        config = dataclasses.replace(config, data=dataclasses.replace(
-            config.data, downscale=dataset.downscale))
-        observer.notice(resolution_line(dataset, downscale, step, available))
-    schedule = config.schedule
-    if schedule.iterations is None and schedule.minutes is None:
-        cam = dataset.train.cameras[0]
-        minutes = default_minutes(len(dataset.train) * cam.width * cam.height)
-        config = config.replace(minutes=minutes)
-        observer.notice(f'training for {minutes:g} minutes (chosen from {len(dataset.train)} '
-                        f'views of {cam.width}x{cam.height}; --minutes to change)')
-    return RunInputs(data, dataset, config, out)
+                config.data, downscale=dataset.downscale))
+            observer.notice(resolution_line(dataset, downscale, step, available))
+        schedule = config.schedule
+        if schedule.iterations is None and schedule.minutes is None:
+            cam = dataset.train.cameras[0]
+            minutes = default_minutes(len(dataset.train) * cam.width * cam.height)
+            config = config.replace(minutes=minutes)
+            observer.notice(f'training for {minutes:g} minutes (chosen from '
+                            f'{len(dataset.train)} views of {cam.width}x{cam.height}; '
+                            f'--minutes to change)')
+        if overwrite:
+            replace_run(out)
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        if created:
+            _remove_if_unused(out)
+        raise
+    return RunInputs(data, dataset, config, out, lock, created)
+
+
+# The files and folders of a trained run in its folder (``test_at_<m>min/`` too): what
+# ``--overwrite`` replaces. The folder's ``sfm/`` (structure from motion of its photos, an
+# input) and a sweep's ``optimize.log`` stay.
+RUN_OUTPUTS = ('model.npz', 'metrics.json', 'render.xml', 'training.png', 'test', 'preview',
+               'video.mp4', 'video.gif', 'video_frames')
+EVALUATION_PREFIX = 'test_at_'
+# Where --overwrite moves the old run's outputs before deleting them (see replace_run).
+REPLACED = '.replaced'
+
+
+def run_outputs(out) -> list[str]:
+    """The outputs of a run that ``out`` holds (names, ``model.npz`` first)."""
+    if not os.path.isdir(out):
+        return []
+    names = set(os.listdir(out))
+    found = [n for n in RUN_OUTPUTS if n in names]
+    return found + sorted(n for n in names if n.startswith(EVALUATION_PREFIX))
+
+
+def replace_run(out):
+    """Remove the run in ``out`` so that a new one can be trained there: its outputs are
+    moved into ``OUT/.replaced/`` (each move atomic, ``model.npz`` first), then that folder
+    is deleted. A replacement cut short is finished by :func:`finish_replacement`, so the
+    folder never holds outputs of the old run beside a new model."""
+    import shutil
+    aside = os.path.join(out, REPLACED)
+    os.makedirs(aside, exist_ok=True)
+    for name in run_outputs(out):
+        target = os.path.join(aside, name)
+        if os.path.lexists(target):                # from a replacement cut short before
+            shutil.rmtree(target) if os.path.isdir(target) else os.remove(target)
+        os.rename(os.path.join(out, name), target)
+    shutil.rmtree(aside)
+
+
+def finish_replacement(out, observer: RunObserver | None = None):
+    """Finish a replacement (:func:`replace_run`) that was cut short: without the old
+    ``model.npz`` the outputs left are orphans of a replaced run and are removed too."""
+    import shutil
+    aside = os.path.join(out, REPLACED)
+    if not os.path.isdir(aside):
+        return
+    if not os.path.exists(os.path.join(out, 'model.npz')) and run_outputs(out):
+        (observer or RunObserver()).notice(
+            f'{out}: finishing the replacement of an earlier run that was cut short (removing '
+            f'{", ".join(run_outputs(out))})')
+        replace_run(out)
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def _remove_if_unused(out):
+    """Remove a run folder this process created and wrote nothing to but its lock file."""
+    from .files import LOCK_NAME
+    try:
+        if set(os.listdir(out)) <= {LOCK_NAME}:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(out, LOCK_NAME))
+            os.rmdir(out)
+    except OSError:
+        pass
 
 
 def resolution_line(dataset, choice, step_bytes: int, available: int) -> str:
@@ -216,22 +319,23 @@ def bytes_text(n: float) -> str:
 
 
 def check_run_folder(out, resume, overwrite):
-    """Refuse, before any work, a run folder that cannot hold the run or would lose one.
+    """Refuse, before any work, a run folder that would mix two runs or lose one.
 
-    ``out`` must be a folder (or not exist yet) that can be written; a folder that holds a
-    trained run (``model.npz``) is only continued (``--resume``) or replaced (``--overwrite``).
-    Raises ValueError / OSError with what to do.
+    A folder that holds a trained run (``model.npz``) is only continued (``--resume``) or
+    replaced (``--overwrite``); one that holds outputs of a run (``metrics.json``,
+    ``test/``, ...) without its model only replaced. Raises ValueError with what to do.
     """
-    from .files import check_writable_folder
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise ValueError(f'--out {out} is an existing file, not a folder: choose another --out')
     checkpoint = os.path.join(out, 'model.npz')
+    if resume and overwrite:
+        raise ValueError('--resume and --overwrite exclude each other')
     if os.path.exists(checkpoint) and not (resume or overwrite):
         raise ValueError(f'{out} already holds a trained run ({checkpoint}): continue it with '
                          f'--resume, replace it with --overwrite, or choose another --out')
-    if resume and overwrite:
-        raise ValueError('--resume and --overwrite exclude each other')
-    check_writable_folder(out, what='run folder (--out)')
+    orphans = run_outputs(out)
+    if orphans and not os.path.exists(checkpoint) and not overwrite:
+        raise ValueError(f'{out} holds outputs of an earlier run ({", ".join(orphans)}) '
+                         f'without its model.npz: remove them with --overwrite, or choose '
+                         f'another --out')
 
 
 def photos_to_dataset(data: str, sfm_out: str, observer: RunObserver | None = None) -> str:
@@ -374,13 +478,16 @@ def optimize(data: str, config: TrainConfig, out: str | None = None, resume: boo
     finished (not interrupted), :func:`report`."""
     observer = observer or RunObserver()
     inputs = prepare(data, config, out, resume=resume, overwrite=overwrite, observer=observer)
-    trainer = start(inputs, resume=resume, observer=observer)
-    t0 = time.perf_counter()
-    training = train(trainer, observer)
-    result = RunResult(inputs, trainer, training.finished, training.progress,
-                       wall_seconds=time.perf_counter() - t0)
-    if training.finished:
-        result.metrics = report(trainer, training.progress, observer)
+    try:
+        trainer = start(inputs, resume=resume, observer=observer)
+        t0 = time.perf_counter()
+        training = train(trainer, observer)
+        result = RunResult(inputs, trainer, training.finished, training.progress,
+                           wall_seconds=time.perf_counter() - t0)
+        if training.finished:
+            result.metrics = report(trainer, training.progress, observer)
+    finally:
+        inputs.release()
     return result
 
 
@@ -453,14 +560,18 @@ def open_run(run_dir):
 
 def evaluate_run(run_dir, observer: RunObserver | None = None) -> dict:
     """Evaluate a run folder's model on its held-out views again (test, else validation):
-    ``test/``, ``metrics.json`` and ``render.xml`` are written anew. Returns the metrics."""
+    ``test/``, ``metrics.json`` and ``render.xml`` are written anew, with the run folder
+    locked (refused while a run trains there). Returns the metrics."""
     from .evaluate import finish_run
     from .train import samples_per_second
+    from .files import lock_folder
     observer = observer or RunObserver()
     model, meta, cfg, dataset = open_run(run_dir)
     held_out = dataset.test if len(dataset.test) else dataset.validation
-    return finish_run(run_dir, model, held_out, cfg, os.path.join(run_dir, 'model.npz'), {
-        'dataset': dataset.root, 'iterations': meta['iteration'],
-        'train_seconds': round(meta['elapsed'], 2),
-        'train_samples_per_second': samples_per_second(cfg, meta['iteration'], meta['elapsed'])},
-        progress=observer.track)
+    with lock_folder(run_dir, what='run folder'):     # not while a run trains there
+        return finish_run(run_dir, model, held_out, cfg, os.path.join(run_dir, 'model.npz'), {
+            'dataset': dataset.root, 'iterations': meta['iteration'],
+            'train_seconds': round(meta['elapsed'], 2),
+            'train_samples_per_second': samples_per_second(cfg, meta['iteration'],
+                                                           meta['elapsed'])},
+            progress=observer.track)

@@ -40,20 +40,25 @@ def slug(text):
 def make_jobs(datasets, option_sets, out, overwrite=False) -> list[SweepJob]:
     """One job per dataset folder and option set. ``option_sets``: ``[(text, options)]``, the
     option set as given and its options by name (all of them, see
-    :meth:`~mi_nerfpp.config.TrainConfig.from_options`); every config is checked here, so
-    bad options stop the sweep before any run (ValueError naming the flag)."""
+    :meth:`~mi_nerfpp.config.TrainConfig.from_options`); every config is checked here, its
+    limits too (:meth:`~mi_nerfpp.config.TrainConfig.check_limits`), so bad options stop the
+    sweep before any run (ValueError naming the flag)."""
     names = [os.path.basename(os.path.normpath(d)) for d in datasets]
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
         raise ValueError(f'several datasets are named {", ".join(twice)}: their run folders '
                          f'would collide; sweep folders with distinct names')
+    configs = []
+    for text, options in option_sets:
+        config = TrainConfig.from_options(**options)
+        config.check_limits()
+        configs.append((text, config))
     jobs = []
     for data, name in zip(datasets, names):
-        for text, options in option_sets:
+        for text, config in configs:
             label = f'{name}_{slug(text)}' if text else name
             jobs.append(SweepJob(label, text, os.path.abspath(data),
-                                 os.path.abspath(os.path.join(out, label)),
-                                 TrainConfig.from_options(**options), overwrite))
+                                 os.path.abspath(os.path.join(out, label)), config, overwrite))
     return jobs
 
 
@@ -70,7 +75,7 @@ def run_job(job: SweepJob, threads=None) -> dict:
             from .cluster import set_threads
             set_threads(threads)
         os.makedirs(job.out, exist_ok=True)
-        done = os.path.exists(metrics_path) and not job.overwrite
+        done = finished(job.out) and not job.overwrite
         if not done:
             _train(job)
         with open(metrics_path) as f:
@@ -83,6 +88,12 @@ def run_job(job: SweepJob, threads=None) -> dict:
         row.update(status='failed', error=error_line(e))
     row['wall_seconds'] = round(time.perf_counter() - start, 2)
     return row
+
+
+def finished(out) -> bool:
+    """Whether the run folder ``out`` holds a finished run: its model and the metrics of its
+    evaluation (:mod:`mi_nerfpp.run` never leaves metrics beside another run's model)."""
+    return all(os.path.isfile(os.path.join(out, name)) for name in ('model.npz', 'metrics.json'))
 
 
 def _train(job):

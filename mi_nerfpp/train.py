@@ -37,7 +37,7 @@ import numpy as np
 
 from . import appearance as app, optim, poses, priors
 from .arrays import owned
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import NonFiniteStateError, load_checkpoint, save_checkpoint
 from .config import TrainConfig, default_minutes, per_volume
 from .data.storage import MAX_STORED_BYTES
 from .files import remove_stale_temporaries
@@ -325,6 +325,7 @@ class Trainer:
             dr.set_expand_threshold(threshold)
             if collecting:
                 gc.enable()
+        self._non_finite = inputs['non_finite']   # the step's guard (see parameters_finite)
         # The model's fields read the parameters after the update (previews, evaluations);
         # a replayed frozen step runs no Python, so the step itself cannot set them.
         self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
@@ -357,7 +358,8 @@ class Trainer:
                      entropy=cfg.opacity_entropy > 0 and p >= cfg.entropy_start,
                      shapes=tuple(tuple(self.opt[k].shape) for k in self.opt.keys()))
         return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': self.rays.arrays(),
-                'occupancy': {k: g.density for k, g in self.model.occupancy.items()}}
+                'occupancy': {k: g.density for k, g in self.model.occupancy.items()},
+                'non_finite': dr.opaque(mi.UInt32, 0, 1)}     # set by the step's guard
 
     def _cells(self, key):
         shape = self.opt[key].shape
@@ -414,7 +416,9 @@ class Trainer:
         with stage('losses and reverse pass'):
             dr.backward(loss)
         with stage('adam'):
-            opt.step()
+            opt.step(eval=False)
+            flag_non_finite(opt, inputs['non_finite'])
+            dr.eval()
         return loss, fine
 
     def _coarse_to_fine(self):
@@ -449,9 +453,33 @@ class Trainer:
         return {'dataset': os.path.abspath(self.dataset.root), 'train_views': len(self.train),
                 'training_rays': self.rays.size}
 
+    def parameters_finite(self) -> bool:
+        """Whether every parameter (and its Adam moments) stayed finite in the last step: a
+        flag the step sets in the kernel of its Adam update (:func:`flag_non_finite`), so the
+        guard costs no pass over the parameters."""
+        flag = getattr(self, '_non_finite', None)
+        return flag is None or int(flag.array[0]) == 0
+
+    def _kept(self):
+        """What is on disk of this run, in words (for the messages of a stopped run)."""
+        if self.saved_iteration is None:
+            return 'nothing was saved before'
+        return (f'the last good checkpoint ({self.checkpoint_path}, iteration '
+                f'{self.saved_iteration}) is kept')
+
+    def _diverged(self, what):
+        """The :class:`TrainingError` of a run whose state stopped being finite."""
+        again = ('train again' if self.saved_iteration is None else
+                 'resume with --resume')
+        return TrainingError(f'{what} at iteration {self.iteration}; stopping before it is '
+                             f'used or saved: {self._kept()}. {self.cfg.divergence_hint()}, '
+                             f'then {again}')
+
     def save(self):
         """Write the checkpoint atomically. A failed write (disk full, read-only) raises
-        :class:`TrainingError` at once; the previous checkpoint stays as it was."""
+        :class:`TrainingError` at once, and so does state that is not finite (NaN or inf
+        parameters or optimizer moments, which :func:`save_checkpoint` refuses): the previous
+        checkpoint stays as it was."""
         self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
         meta = {'iteration': self.iteration, 'elapsed': self.elapsed,
                 'rng': self.rng.bit_generator.state, 'history': self.history,
@@ -460,6 +488,8 @@ class Trainer:
         try:
             save_checkpoint(self.checkpoint_path, self.model, meta=meta,
                             state=self._optimizer_state())
+        except NonFiniteStateError as e:
+            raise self._diverged(f'{e}, so the checkpoint was not written') from None
         except OSError as e:
             kept = ('nothing was saved before' if self.saved_iteration is None else
                     f'the previous checkpoint (iteration {self.saved_iteration}) is intact')
@@ -478,23 +508,26 @@ class Trainer:
 
         ``on_step(trainer, loss, psnr)`` is called after every step; ``on_preview(trainer)``
         every ``preview_every`` iterations. Raises :class:`TrainingError` on a non-finite
-        loss, leaving the last good checkpoint in place. Returns False if interrupted.
+        loss or parameters (checked after every step, before they are used or saved),
+        leaving the last good checkpoint in place. Returns False if interrupted: SIGINT
+        (Ctrl-C) and SIGTERM (a scheduler's) stop training and save the checkpoint, also in a
+        process that was started with SIGINT ignored (a background job of a script, which
+        Python leaves deaf to SIGINT), since their handlers are set here.
         """
-        last_good = self.iteration
-        # A scheduler's SIGTERM stops training like Ctrl-C: the checkpoint is saved.
-        terminate = _raise_interrupt if _in_main_thread() else None
-        previous = signal.signal(signal.SIGTERM, terminate) if terminate else None
+        with _stop_signals(_in_main_thread()):
+            return self._run(on_step, on_preview)
+
+    def _run(self, on_step, on_preview):
         try:
             while not self.done():
                 t0 = time.perf_counter()
                 loss, fine = self.step()
                 self.elapsed += time.perf_counter() - t0
                 if not math.isfinite(loss):
-                    raise TrainingError(
-                        f'the loss became {loss} at iteration {self.iteration}; stopping. '
-                        f'The last good checkpoint ({self.checkpoint_path}, iteration '
-                        f'{last_good}) is kept. Lower the learning rates (--lr-grid, --lr-mlp) '
-                        f'and resume with --resume.')
+                    raise self._diverged(f'the loss became {loss}')
+                if not self.parameters_finite():
+                    raise self._diverged('the parameters became NaN or infinite (the loss '
+                                         'was still finite)')
                 p = psnr_from_mse(fine)
                 if self.iteration % 10 == 0 or self.iteration == 1:
                     self.history.append([self.iteration, round(self.elapsed, 3), loss, p])
@@ -503,17 +536,13 @@ class Trainer:
                 output = self.cfg.output
                 if output.checkpoint_every and self.iteration % output.checkpoint_every == 0:
                     self.save()
-                    last_good = self.iteration
                 if on_preview and output.preview_every and \
                         self.iteration % output.preview_every == 0:
                     on_preview(self)
         except KeyboardInterrupt:
-            with _signals_deferred(terminate is not None):    # a second Ctrl-C must not
-                self.save()                                   # break the save
+            with _signals_deferred(_in_main_thread()):    # a second Ctrl-C must not
+                self.save()                               # break the save
             return False
-        finally:
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
         self.save()
         return True
 
@@ -525,6 +554,37 @@ class Trainer:
 def _in_main_thread():
     import threading
     return threading.current_thread() is threading.main_thread()
+
+
+def flag_non_finite(opt, flag):
+    """Set ``flag`` (UInt32 of one entry) to 1 where a parameter of ``opt`` or one of its
+    Adam moments is NaN or infinite after a step taken with ``opt.step(eval=False)``: a
+    masked scatter that never runs in a healthy step, fused into the kernel of the update
+    (the next ``dr.eval()``), so the guard reads no parameter again."""
+    for value, _, _, extra in opt.state.values():
+        finite = dr.isfinite(dr.detach(value).array)
+        for moment in (extra[1], extra[2]) if isinstance(extra, tuple) and len(extra) > 2 \
+                else ():
+            finite &= dr.isfinite(moment)
+        dr.scatter(flag, mi.UInt32(1), mi.UInt32(0), active=~finite)
+
+
+@contextlib.contextmanager
+def _stop_signals(enabled):
+    """SIGINT and SIGTERM raise :class:`KeyboardInterrupt` inside (main thread only), their
+    previous handlers restored after. Set here rather than inherited: Python installs no
+    SIGINT handler in a process started with SIGINT ignored (``cmd &`` in a script), where
+    a SIGINT would otherwise go unanswered."""
+    if not enabled:
+        yield
+        return
+    saved = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT,
+                                                                    signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
 
 
 @contextlib.contextmanager

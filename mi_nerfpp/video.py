@@ -62,20 +62,31 @@ def resized(camera: Camera, width, height):
     return Camera(K, camera.c2w, width, height, camera.name)
 
 
+VIDEO_FORMATS = ('.mp4', '.gif')
+
+
+def check_video_path(path):
+    """Refuse, before any frame is rendered, a video path whose format cannot be written: an
+    extension other than ``.mp4`` / ``.gif``, a folder, ``.mp4`` without imageio-ffmpeg."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in VIDEO_FORMATS:
+        raise ValueError(f'{path}: video must be .mp4 or .gif')
+    if os.path.isdir(path):
+        raise ValueError(f'{path} is a folder: give a file name to write')
+    if ext == '.mp4' and importlib.util.find_spec('imageio_ffmpeg') is None:
+        raise RuntimeError(f'{path}: writing MP4 needs the imageio-ffmpeg package '
+                           f'(pip install imageio-ffmpeg), or ask for a .gif')
+
+
 def write_video(path, frames, fps=24):
     """Write uint8 frames to ``.mp4`` (needs imageio-ffmpeg) or ``.gif``."""
     import imageio.v3 as iio
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in ('.mp4', '.gif'):
-        raise ValueError(f'{path}: video must be .mp4 or .gif')
+    check_video_path(path)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    if ext == '.gif':
+    if os.path.splitext(path)[1].lower() == '.gif':
         iio.imwrite(path, np.stack(frames), duration=1000 / fps, loop=0)
         return
     import imageio.v2 as iio2
-    if importlib.util.find_spec('imageio_ffmpeg') is None:
-        raise RuntimeError(f'{path}: writing MP4 needs the imageio-ffmpeg package '
-                           f'(pip install imageio-ffmpeg), or ask for a .gif')
     with iio2.get_writer(path, fps=fps, codec='libx264', quality=8,
                          macro_block_size=1) as writer:
         for f in frames:

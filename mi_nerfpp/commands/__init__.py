@@ -28,12 +28,3 @@ def positive_int(value: str) -> int:
         raise argparse.ArgumentTypeError(f"expects a whole number of at least 1, got '{value}'")
     return number
 
-
-def open_run_or_exit(run_dir):
-    """:func:`mi_nerfpp.run.open_run`, with problems reported as a command-line error."""
-    from ..run import open_run
-    from ..train import TrainingError
-    try:
-        return open_run(run_dir)
-    except (TrainingError, ValueError) as e:
-        raise SystemExit(f'error: {e}') from None

@@ -5,14 +5,18 @@ import argparse
 
 
 def run(args) -> int:
-    from ..sfm import SfmError, run_sfm
-    try:
-        run_sfm(args.photos, args.out, matching=args.matching, camera=args.camera,
-                hold=args.hold, max_image_size=args.max_image_size, overlap=args.overlap,
-                num_threads=args.threads)
-    except (SfmError, FileExistsError, ValueError) as e:
-        raise SystemExit(f'colmap: {e}') from None
+    from ..files import check_not_a_file
+    from ..sfm import run_sfm
+    check_not_a_file(args.out)
+    # Errors (SfmError, OSError, ...) end the command at its boundary (mi_nerfpp.cli).
+    run_sfm(args.photos, args.out, matching=args.matching, camera=args.camera,
+            hold=args.hold, max_image_size=args.max_image_size, overlap=args.overlap,
+            num_threads=args.threads)
     return 0
+
+
+def subject(args):
+    return f'the photos in {args.photos}'
 
 
 def add_parser(sub) -> argparse.ArgumentParser:

@@ -9,6 +9,10 @@ def add_parser(sub):
     return p
 
 
+def subject(args):
+    return f'run folder {args.run}'
+
+
 def run(args):
     import sys
 

@@ -18,18 +18,19 @@ def add_parser(sub):
     return p
 
 
+def subject(args):
+    return f'run folder {args.run}'
+
+
 def run(args):
     try:
         import pxr  # noqa: F401
     except ImportError:
-        raise SystemExit("error: export: usd-core is not installed: pip install -e '.[export]' "
-                         "(scripts/setup.sh installs it)")
+        raise RuntimeError("usd-core is not installed: pip install -e '.[export]' "
+                           "(scripts/setup.sh installs it)") from None
     from ..export import export_run
-    from . import open_run_or_exit
-    opened = open_run_or_exit(args.run)
-    try:
-        written = export_run(args.run, args.out, args.resolution, args.density, opened=opened)
-    except ValueError as e:
-        raise SystemExit(f'error: export: {e}') from None
+    from ..run import open_run
+    opened = open_run(args.run)                # errors: reported by mi_nerfpp.cli
+    written = export_run(args.run, args.out, args.resolution, args.density, opened=opened)
     for path in written:
         print(f'wrote {path}')

@@ -31,6 +31,10 @@ def add_parser(sub):
     return p
 
 
+def subject(args):
+    return f'dataset {args.data}' if args.data else 'the default capture'
+
+
 def run(args):
     from .. import run as runs
     from ..config import TrainConfig
@@ -40,7 +44,8 @@ def run(args):
     observer = ConsoleObserver()
     options, data = values(args, TrainConfig), args.data
     config = TrainConfig.from_options(**options)    # checks every option (ValueError: the flag)
-    if data is None:        # after the check: the default capture may take minutes to render
+    config.check_limits()                           # and what they size (memory, Dr.Jit)
+    if data is None:        # after the checks: the default capture may take minutes to render
         data, options = runs.default_job(options, progress=True)
         config = TrainConfig.from_options(**options)
     # Errors (TrainingError and the others) end the command at its boundary (mi_nerfpp.cli).

@@ -25,7 +25,7 @@ def _defines(pairs):
     out = {}
     for pair in pairs or []:
         if '=' not in pair:
-            raise SystemExit(f"-D expects name=value, got '{pair}'")
+            raise ValueError(f"-D expects name=value, got '{pair}'")
         k, v = pair.split('=', 1)
         out[k] = v
     return out
@@ -39,15 +39,18 @@ def run(args):
     from ..files import check_writable_folder
 
     if not os.path.isfile(args.scene):
-        raise SystemExit(f'error: render: {args.scene}: scene file not found')
+        raise ValueError(f'{args.scene}: scene file not found')
     if args.spp < 0:
         raise ValueError(f'--spp must be 0 (the scene\'s sampler) or more, got {args.spp}')
     for path in filter(None, (args.output, args.preview)):
         if os.path.isdir(path):
             raise ValueError(f'{path} is a folder: give a file name to write')
+    check_arguments(args)
+    for path in filter(None, (args.output, args.preview)):
         check_writable_folder(os.path.dirname(os.path.abspath(path)), 'output folder')
     t0 = time.perf_counter()
     scene = mi.load_file(args.scene, **_defines(args.define))
+    check_sensor(scene, args.scene)
     if args.deep:
         from ..deep import render_deep_to_file
         from ..preview import write_linear_png
@@ -58,3 +61,47 @@ def run(args):
         render_to_files(scene, args.output, spp=args.spp, preview=args.preview, seed=args.seed)
     print(f'wrote {args.output}' + (f' and {args.preview}' if args.preview else '')
           + f' in {time.perf_counter() - t0:.1f} s')
+
+
+# ----------------------------------------------------------------------------- checks
+# What the render command writes, by file extension: -o is a multi-layer OpenEXR file,
+# --preview an 8-bit sRGB PNG; any other extension is refused rather than written in the
+# wrong format under its name.
+OUTPUT_EXTENSIONS = {'output': ('-o', '.exr', 'a multi-layer OpenEXR file'),
+                     'preview': ('--preview', '.png', 'an sRGB PNG')}
+# Sensors whose camera the EXR header describes (views.camera_attributes): the projective
+# cameras with a pinhole model. Mitsuba's class name -> plugin name.
+CAMERA_SENSORS = {'PerspectiveCamera': 'perspective', 'ThinLensCamera': 'thinlens'}
+MAX_SEED = 2 ** 32 - 1       # mi.render takes a 32-bit seed
+
+
+def subject(args):
+    return f'scene {args.scene}'
+
+
+def check_arguments(args):
+    """Refuse output names whose extension is not the format written, and a seed that
+    Mitsuba's 32-bit seed cannot hold, before the scene is loaded (ValueError)."""
+    for name, (flag, ext, what) in OUTPUT_EXTENSIONS.items():
+        path = getattr(args, name)
+        if path and os.path.splitext(path)[1].lower() != ext:
+            hint = ' (a PNG preview: --preview NAME.png)' if name == 'output' else ''
+            raise ValueError(f'{flag} {path}: the render writes {what} here: give a name '
+                             f'ending in {ext}{hint}')
+    if not 0 <= args.seed <= MAX_SEED:
+        raise ValueError(f'--seed must be a whole number from 0 to {MAX_SEED}, got {args.seed}')
+
+
+def check_sensor(scene, path):
+    """Refuse a scene without a sensor, or whose first sensor is not a camera with a film
+    image (``perspective`` or ``thinlens``), naming the scene file (ValueError)."""
+    sensors = scene.sensors()
+    if not sensors:
+        raise ValueError(f'{path}: the scene has no sensor: add a <sensor type="perspective"> '
+                         f'with a film (see scenes/render_random.xml)')
+    kind = str(sensors[0]).split('[', 1)[0].strip()
+    if kind not in CAMERA_SENSORS:
+        name = kind.removesuffix('Camera').lower() or 'unknown'
+        raise ValueError(f"{path}: the scene's sensor is '{name}': render takes a "
+                         f"{' or '.join(CAMERA_SENSORS.values())} sensor (a camera with a film "
+                         f"image, which the EXR header describes)")

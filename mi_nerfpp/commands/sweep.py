@@ -75,20 +75,28 @@ def table(rows):
                      for line in [head] + lines)
 
 
+def subject(args):
+    return 'datasets ' + ' '.join(args.data)
+
+
 def run(args):
     from tqdm import tqdm
 
-    from ..cluster import run_tasks
+    from ..cluster import run_tasks, timeout_line
     from ..evaluate import write_json
+    from ..files import check_not_a_file, check_writable_folder
     from ..sweep import failed, make_jobs, run_job
 
-    if args.ray:
-        from ..cluster import import_ray
-        import_ray()                # not installed: say how, before any work
+    check_not_a_file(args.out)
     jobs = make_jobs(args.data, option_sets(args), args.out, args.overwrite)
+    if args.ray:
+        from ..cluster import check_address
+        check_address(args.ray)     # ray not installed, or no cluster there: before any work
+    check_writable_folder(args.out, what='sweep folder (--out)')
     rows = {}
     with tqdm(total=len(jobs), desc='sweep', unit='run', dynamic_ncols=True) as bar:
-        for job, row in run_tasks(run_job, jobs, failed, args.ray, args.task_cpus):
+        for job, row in run_tasks(run_job, jobs, failed, args.ray, args.task_cpus,
+                                  exit_line=timeout_line('sweep', args.ray)):
             rows[job.name] = row
             bar.write(f"{row['name']}: {row['status']}")
             bar.update(1)

@@ -5,12 +5,16 @@ import argparse
 
 
 def run(args) -> None:
+    from ..files import check_not_a_file
     from ..synth import synthesize
-    try:
-        synthesize(args.scene, args.out, views=args.views, res=args.res, spp=args.spp,
-                   trajectory=args.trajectory, seed=args.seed, fov=args.fov, radius=args.radius)
-    except (FileNotFoundError, FileExistsError, ValueError, RuntimeError) as e:
-        raise SystemExit(f'synth: {e}') from e
+    check_not_a_file(args.out)
+    # Errors end the command at its boundary (mi_nerfpp.cli).
+    synthesize(args.scene, args.out, views=args.views, res=args.res, spp=args.spp,
+               trajectory=args.trajectory, seed=args.seed, fov=args.fov, radius=args.radius)
+
+
+def subject(args):
+    return f'scene {args.scene}'
 
 
 def add_parser(sub) -> argparse.ArgumentParser:

@@ -44,10 +44,10 @@ def add_ray_options(p, what):
 
 def cameras_of(args):
     """The run's checkpoint path, the video's cameras and the description of the job."""
+    from ..run import open_run
     from ..video import orbit_cameras, resized
-    from . import open_run_or_exit
 
-    _, meta, _, dataset = open_run_or_exit(args.run)
+    _, meta, _, dataset = open_run(args.run)
     template = dataset.train.cameras[0]
     if args.res:
         template = resized(template, *args.res)
@@ -56,24 +56,30 @@ def cameras_of(args):
     else:
         cameras = [resized(c, template.width, template.height) for c in dataset.test.cameras]
         if not cameras:
-            raise SystemExit(f'{dataset.root} has no test cameras: use --path orbit')
+            raise ValueError(f'{dataset.root} has no test cameras: use --path orbit')
     checkpoint = os.path.join(args.run, 'model.npz')
     job = {'checkpoint': os.path.abspath(checkpoint), 'iteration': meta.get('iteration'),
            'path': args.path, 'frames': len(cameras), 'size': [template.width, template.height]}
     return checkpoint, cameras, job
 
 
+def subject(args):
+    return f'run folder {args.run}'
+
+
 def run(args):
     from tqdm import tqdm
 
     from ..files import remove_stale_temporaries
-    from ..video import pending_frames, prepare_frames_dir, read_frames, write_video
+    from ..video import (check_video_path, pending_frames, prepare_frames_dir, read_frames,
+                         write_video)
 
-    if args.ray:
-        from ..cluster import import_ray
-        import_ray()                # not installed: say how, before any work
-    checkpoint, cameras, job = cameras_of(args)
     out = args.output or os.path.join(args.run, 'video.mp4')
+    check_video_path(out)           # a format it cannot write: before any frame is rendered
+    if args.ray:
+        from ..cluster import check_address
+        check_address(args.ray)     # ray not installed, or no cluster there: before any work
+    checkpoint, cameras, job = cameras_of(args)
     frames_dir = args.frames_dir or os.path.splitext(out)[0] + '_frames'
     prepare_frames_dir(frames_dir, job)
     pending = pending_frames(frames_dir, len(cameras), args.exr)
@@ -84,10 +90,7 @@ def run(args):
         elif pending:
             render_here(checkpoint, cameras, pending, frames_dir, args.exr, bar)
     remove_stale_temporaries(frames_dir)
-    try:
-        write_video(out, read_frames(frames_dir, len(cameras)), fps=args.fps)
-    except (RuntimeError, ValueError) as e:
-        raise SystemExit(f'error: {e}') from None
+    write_video(out, read_frames(frames_dir, len(cameras)), fps=args.fps)
     print(f'wrote {out} ({len(cameras)} frames; frames in {frames_dir})')
 
 
@@ -98,8 +101,8 @@ def render_here(checkpoint, cameras, pending, frames_dir, exr, bar):
 
 
 def render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar):
-    from ..cluster import FramePool, cluster_cpus, session
-    with session(args.ray) as ray:
+    from ..cluster import FramePool, cluster_cpus, session, timeout_line
+    with session(args.ray, timeout_line('video', args.ray)) as ray:
         workers = args.workers or max(1, cluster_cpus(ray) // args.worker_cpus)
         workers = min(workers, len(pending))
         bar.write(f'rendering {len(pending)} frames on {workers} Ray workers of '

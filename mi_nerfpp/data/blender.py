@@ -274,6 +274,11 @@ def _pose_matrix(value, source: str) -> np.ndarray:
 
 def _intrinsics(params: dict, source: str, width: int, height: int) -> np.ndarray:
     """3x3 K from the intrinsics keys and the image size."""
+    for key in ('camera_angle_x', 'camera_angle_y'):
+        if key in params and not 0 < params[key] < math.pi:
+            raise DatasetError(f'{source}: "{key}" is {params[key]:g}: a field of view in '
+                               f'radians, more than 0 and less than pi (e.g. 0.69 for 40 '
+                               f'degrees)')
     if 'fl_x' in params:
         fx = params['fl_x']
     elif 'camera_angle_x' in params:

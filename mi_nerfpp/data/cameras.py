@@ -106,7 +106,8 @@ def _flip(c2w, flip: np.ndarray) -> np.ndarray:
     c2w = np.asarray(c2w, dtype=np.float64)
     if c2w.shape[-2:] != (4, 4):
         raise ValueError(f'expected (..., 4, 4) camera-to-world matrices, got shape {c2w.shape}')
-    return c2w @ flip
+    with np.errstate(invalid='ignore', over='ignore'):     # NaN/inf poses: refused by name later
+        return c2w @ flip
 
 
 def opengl_to_opencv(c2w) -> np.ndarray:

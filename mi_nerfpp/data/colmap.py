@@ -211,6 +211,10 @@ def _camera(camera_id, model, width, height, params, source) -> ColmapCamera:
     if model not in MODEL_IDS:
         raise DatasetError(f'{source}: camera {camera_id} has unsupported camera model '
                            f'{model!r}; supported: {", ".join(MODEL_IDS)}')
+    if not (0 < int(width) < 2 ** 31 and 0 < int(height) < 2 ** 31):
+        raise DatasetError(f'{source}: camera {camera_id} ({model}) is {width}x{height} pixels: '
+                           f'a camera needs a positive width and height; re-export the model '
+                           f'with COLMAP')
     params = np.asarray(params, dtype=np.float64)
     if len(params) != MODEL_IDS[model][1]:
         raise DatasetError(f'{source}: camera {camera_id} ({model}) has {len(params)} '

@@ -24,6 +24,12 @@ SPLITS = ('train', 'validation', 'test')
 # The automatic downscale counts the training images twice: as loaded, and in the store that
 # the training step gathers its pixels from (:class:`mi_nerfpp.train.RayBank`).
 TRAIN_COPIES = 2
+# Camera positions a capture may have. Beyond this distance from the origin (world units) the
+# centres cannot be normalized in floating point (their spread is lost to rounding, squares
+# overflow); a camera farther than this many times the typical camera's distance from the
+# capture's centre (a wrong pose) would squeeze the others into a speck of the unit sphere.
+MAX_CAMERA_DISTANCE = 1e12
+MAX_CAMERA_SPREAD = 1e3
 
 
 @dataclass
@@ -226,6 +232,7 @@ def make_splits(frames: dict[str, list[Frame]], downscale: int | None | AutoDown
     Returns:
         ``({split name: Split}, factor used)``.
     """
+    check_camera_positions([f for name in SPLITS for f in frames.get(name, [])])
     if downscale is None:
         downscale = AutoDownscale()
     if isinstance(downscale, AutoDownscale):
@@ -267,6 +274,38 @@ def make_dataset(format: str, root: str, train: Split, validation: Split, test: 
     return Dataset(**splits, format=format, root=os.fspath(root),
                    color_space='linear' if all(is_exr) else 'srgb', normalization=normalization,
                    downscale=int(downscale))
+
+
+def check_camera_positions(frames: list[Frame]) -> None:
+    """Refuse camera centres that cannot be normalized (see :data:`MAX_CAMERA_DISTANCE`) and
+    a camera far off the others (:data:`MAX_CAMERA_SPREAD` times the median distance from the
+    median centre), naming its pose's source. Poses that are not 4x4 and finite are left to
+    :func:`make_split`, which names what is wrong with them."""
+    placed = []
+    for frame in frames:
+        c2w = np.asarray(frame.c2w, dtype=np.float64)
+        if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
+            continue
+        largest = float(np.max(np.abs(c2w[:3, 3])))
+        distance = largest * float(np.linalg.norm(c2w[:3, 3] / largest)) if largest else 0.0
+        if not distance <= MAX_CAMERA_DISTANCE:
+            raise DatasetError(f'{frame.source}: the camera is {distance:.3g} world units from '
+                               f'the origin, beyond {MAX_CAMERA_DISTANCE:g}, where positions '
+                               f'cannot be normalized in floating point: fix this pose or '
+                               f'remove the camera')
+        placed.append((frame, c2w[:3, 3]))
+    if len(placed) < 3:
+        return
+    centres = np.stack([c for _, c in placed])
+    offsets = np.linalg.norm(centres - np.median(centres, axis=0), axis=1)
+    typical = float(np.median(offsets))
+    far = int(np.argmax(offsets))
+    if typical > 0 and offsets[far] > MAX_CAMERA_SPREAD * typical:
+        raise DatasetError(f'{placed[far][0].source}: the camera is {offsets[far]:.3g} world '
+                           f'units from the middle of the capture, {offsets[far] / typical:.3g} '
+                           f'times the typical camera ({typical:.3g}): a wrong pose? It would '
+                           f'squeeze the other cameras into a speck of the unit sphere; fix '
+                           f'this pose or remove the camera')
 
 
 def _check_pose(c2w: np.ndarray, source: str) -> None:

@@ -64,10 +64,14 @@ def read_llff(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
     expected = ('an N x 17 float array (3x5 pose + 2 bounds per image) saved with numpy.save, '
                 "as LLFF's imgs2poses.py writes it")
     try:
-        poses_bounds = np.load(poses_path, allow_pickle=False)
+        # Mapped, then copied: a header that declares more data than the file holds is
+        # refused (ValueError) instead of allocated.
+        poses_bounds = np.load(poses_path, allow_pickle=False, mmap_mode='r')
+        if isinstance(poses_bounds, np.ndarray):
+            poses_bounds = np.array(poses_bounds)
     except FileNotFoundError:
         raise DatasetError(f'{poses_path}: not found') from None
-    except (OSError, ValueError, EOFError) as e:
+    except (OSError, ValueError, EOFError, MemoryError) as e:
         raise DatasetError(f'{poses_path}: not a NumPy array file ({type(e).__name__}); expected '
                            f'{expected}') from None
     if not isinstance(poses_bounds, np.ndarray) or not np.issubdtype(poses_bounds.dtype,

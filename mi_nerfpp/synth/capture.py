@@ -69,6 +69,7 @@ import time
 
 import numpy as np
 
+from .. import limits
 from ..color import to_srgb8
 from ..data.cameras import Camera, mitsuba_sensor_dict, pixel_rays
 from ..data.dataset import SPLITS
@@ -213,6 +214,33 @@ def _prepare_output(out: str) -> None:
                               f'writes to an empty folder or over its own earlier capture')
 
 
+def check_capture_size(views: int, width: int, height: int, spp: int, budget=None):
+    """Refuse a capture whose renders Dr.Jit cannot hold (a view traces ``width x height x
+    spp`` rays in one wavefront of at most 2^32 - 1 entries) or whose images do not fit in
+    memory while they are written (:mod:`mi_nerfpp.limits`), naming the option and the
+    largest value that fits (ValueError)."""
+    budget = limits.memory_bytes() if budget is None else budget
+    pixels = width * height
+    per_pixel = limits.CAPTURE_BYTES_PER_PIXEL
+    if not limits.fits(1, pixels, pixels * per_pixel, budget):
+        raise ValueError(f'resolution {width}x{height} is too large: {pixels:,} pixels per '
+                         f'image, more than one Dr.Jit array or {limits.memory_text(budget)} '
+                         f'of memory hold; at most {limits.largest(1, per_pixel, budget):,} '
+                         f'pixels fit')
+    if pixels * spp > limits.MAX_ARRAY_ENTRIES:
+        raise ValueError(f'spp {spp} is too large at {width}x{height}: a view traces '
+                         f'{pixels * spp:,} rays, more than one Dr.Jit array holds (2^32 - 1); '
+                         f'at most spp {limits.MAX_ARRAY_ENTRIES // pixels:,} fits at this '
+                         f'resolution')
+    if views * pixels * per_pixel > budget:
+        raise ValueError(f'views {views} are too many at {width}x{height}: their images take '
+                         f'about {limits.memory_text(views * pixels * per_pixel)} while they '
+                         f'are written, more than this machine\'s '
+                         f'{limits.memory_text(budget)}; at most '
+                         f'{limits.largest(1, pixels * per_pixel, budget):,} views fit at this '
+                         f'resolution')
+
+
 def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
                spp: int = DEFAULT_SPP, trajectory: str = DEFAULT_TRAJECTORY,
                seed: int = DEFAULT_SEED,
@@ -261,6 +289,7 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
     if int(seed) != seed or not 0 <= seed < 2**31:
         raise ValueError(f'seed must be an integer in [0, 2^31), got {seed!r}')
     views, spp, seed = int(views), int(spp), int(seed)
+    check_capture_size(views, width, height, spp)
 
     params = {
         'scene_sha256': _file_sha256(scene_xml), 'trajectory': trajectory, 'views': views,

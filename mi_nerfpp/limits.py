@@ -1,0 +1,72 @@
+"""How large the arrays of a run, a render or a capture may be, checked before Dr.Jit sees them.
+
+Two limits bound every array: Dr.Jit's arrays hold at most :data:`MAX_ARRAY_ENTRIES`
+(2^32 - 1) entries, and all of them together must fit in this machine's memory
+(:func:`memory_bytes`). The options that size arrays (rays per step, samples per ray, grid and
+occupancy resolutions, image and film sizes) are checked against both where they are read
+(:mod:`mi_nerfpp.config`, :mod:`mi_nerfpp.synth`), and a refusal names the option and the
+largest value that fits (:func:`largest`), instead of Dr.Jit's ``jit_var_counter`` message or
+the kernel's out-of-memory kill.
+
+Memory is estimated from bytes per entry, measured with the peak resident memory of small
+runs on the CPU (``llvm_ad_rgb``) and rounded up; the measurements are noted at each
+constant. This module imports nothing of the package (every other module may use it).
+"""
+from __future__ import annotations
+
+import os
+
+# Dr.Jit 1.x: "jit_var_counter(): tried to create an array with N entries, which exceeds the
+# limit of 2^32 == 4294967296 entries".
+MAX_ARRAY_ENTRIES = 2 ** 32 - 1
+
+# One field sample of a training step (rays per step x samples per ray): the forward pass,
+# the AD graph and the gradients. Measured ~160 B (batches of 4k-65k rays, 48-160 samples).
+TRAIN_BYTES_PER_SAMPLE = 256
+# One field sample of a render (the integrator's chunk of rays x samples per ray, no AD).
+# Measured ~40 B (16k rays, 2k samples per ray).
+RENDER_BYTES_PER_SAMPLE = 64
+# One entry of a feature grid while training: the value, its gradient, Adam's two moments,
+# the checkpoint's copy. Measured ~45 B (grids of 2 M and 17 M entries).
+GRID_BYTES_PER_ENTRY = 64
+# One cell of an occupancy grid (its density, the refresh's copy). Measured ~4 B.
+OCCUPANCY_BYTES_PER_CELL = 16
+# One pixel of a synthetic capture while it is written (the 8-bit image kept until its split
+# is written, its float copy, the render and the ground-truth layers of the view).
+CAPTURE_BYTES_PER_PIXEL = 64
+# Rays per chunk of a primal render: the ``nerfpp`` integrator's default ``chunk_rays``, with
+# which evaluations, previews and videos render a trained model.
+RENDER_CHUNK_RAYS = 1 << 15
+
+GIB = 1 << 30
+
+
+def memory_bytes() -> int:
+    """This machine's physical memory in bytes (what every estimate must fit in)."""
+    try:
+        return os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES')
+    except (ValueError, OSError, AttributeError):      # not POSIX: assume 16 GiB
+        return 16 * GIB
+
+
+def memory_text(nbytes: int | None = None) -> str:
+    """``'23 GiB'``: memory as the messages show it (this machine's by default)."""
+    nbytes = memory_bytes() if nbytes is None else nbytes
+    return f'{nbytes / GIB:.0f} GiB' if nbytes >= GIB else f'{nbytes / (1 << 20):.0f} MiB'
+
+
+def largest(entries_per_unit: float, bytes_per_unit: float, budget: float | None = None,
+            max_entries: int = MAX_ARRAY_ENTRIES) -> int:
+    """The largest whole number of units whose largest array (``entries_per_unit`` entries
+    each) stays within Dr.Jit's limit and whose memory (``bytes_per_unit`` each) fits in
+    ``budget`` bytes (this machine's memory by default); 0 when not even one does."""
+    budget = memory_bytes() if budget is None else budget
+    by_entries = max_entries // max(int(entries_per_unit), 1)
+    by_memory = int(max(budget, 0) // max(bytes_per_unit, 1e-9))
+    return max(min(by_entries, by_memory), 0)
+
+
+def fits(units: float, entries_per_unit: float, bytes_per_unit: float,
+         budget: float | None = None) -> bool:
+    """Whether ``units`` units (see :func:`largest`) fit."""
+    return units <= largest(entries_per_unit, bytes_per_unit, budget)

@@ -1,0 +1,239 @@
+"""Options: every bad value is refused where it is read, with one line naming the option; the
+options that size arrays are checked against Dr.Jit's 2^32-entry arrays and the memory before
+Dr.Jit sees them, naming the largest value that fits; the command-line boundary turns any
+error into one line (the traceback only with --debug)."""
+import re
+
+import pytest
+
+from mi_nerfpp import limits
+from mi_nerfpp.config import MAX_SEED, TrainConfig
+from tests.robustness.common import TINY, one_clear_line, run_cli
+
+GIB = 1 << 30
+
+
+@pytest.mark.parametrize('option, message', [
+    (['--batch-rays', '0'], '--batch-rays must be at least 1, got 0'),
+    (['--downscale', '0'], '--downscale must be at least 1, got 0'),
+    (['--samples', '0', '0', '0'], '--samples must be at least 1, got 0'),
+    (['--grid-levels', '0'], '--grid-levels must be one or more resolutions of at least 2'),
+    (['--lr-grid', 'nan'], '--lr-grid must be a positive finite number, got nan'),
+    (['--lr-mlp', '-0.01'], '--lr-mlp must be a positive finite number, got -0.01'),
+    (['--checkpoint-every', '-5'], '--checkpoint-every must be 0 or more, got -5'),
+    (['--minutes', '-1'], '--minutes must be a positive number of minutes, got -1.0'),
+    (['--minutes', 'nan'], '--minutes must be a positive number of minutes, got nan'),
+    (['--adam-beta2', '1'], '--adam-beta2 must be a number in (0, 1), got 1.0'),
+    (['--fg-warp', '1'], '--fg-warp must be a radius in [0, 1), got 1.0'),
+    (['--bg-s-ratio', '0'], '--bg-s-ratio must be one number in (0, 1], or one per background grid level, got 0.0'),
+    (['--bg-s-ratio', '0.5', '0.5', '0.5'], 'one per background grid level, got 0.5 0.5 0.5'),
+    (['--bg-grid-levels', '1'], '--bg-grid-levels must be one or more resolutions of at least 2'),
+    # The seed seeds the background field with seed + 1, in Dr.Jit's 64-bit generators.
+    (['--seed', str(2 ** 64)], f'--seed must be a whole number from 0 to {2 ** 64 - 2} (2^64 - 2), '
+                               f'got {2 ** 64}'),
+    (['--seed', '-1'], '--seed must be a whole number from 0 to 18446744073709551614'),
+    (['--color-layers', '100000'], '--color-layers must be at most 64 (every layer is traced '
+                                   'into the training kernels), got 100000'),
+    (['--dir-octaves', '64'], '--dir-octaves must be 0 or more and at most 24 (frequencies 2^k '
+                              'beyond float32 precision are noise), got 64'),
+])
+def test_bad_optimize_options_are_refused(capsys, tmp_path, option, message):
+    status, _, err = run_cli(capsys, 'optimize', tmp_path, '--out', tmp_path / 'run', *option)
+    assert status == 1
+    assert message in one_clear_line(err)
+    assert not (tmp_path / 'run').exists()
+
+
+def test_largest_seed_trains(capture, tmp_path, capsys):
+    status, _, _ = run_cli(capsys, 'optimize', capture, '--out', tmp_path / 'run', *TINY,
+                           '--iterations', '1', '--seed', MAX_SEED)
+    assert status == 0
+
+
+@pytest.mark.parametrize('option, flag, values', [
+    (['--batch-rays', '200000000'], '--batch-rays 200000000', {'batch_rays': 200_000_000}),
+    (['--grid-levels', '2048'], '--grid-levels 2048', {'grid_levels': (2048,)}),
+    (['--occupancy-res', '4096'], '--occupancy-res 4096', {'occupancy_res': 4096}),
+    (['--grid-channels', '100000'], '--grid-channels 100000', {'grid_channels': 100_000}),
+    (['--bg-grid-levels', '4000'], '--bg-grid-levels 4000', {'bg_grid_levels': (4000,)}),
+])
+def test_options_that_size_arrays_name_the_largest_value_that_fits(capsys, tmp_path, option,
+                                                                   flag, values):
+    """Refused before Dr.Jit sees them (no jit_var_counter text), naming the option, why, and
+    the largest value that fits; that value does fit and the next one does not."""
+    status, _, err = run_cli(capsys, 'optimize', tmp_path, '--out', tmp_path / 'run', *option)
+    line = one_clear_line(err)
+    assert status == 1 and line.startswith(f'error: optimize: {flag} is too large: ')
+    assert 'more than one Dr.Jit array holds (2^32 - 1 entries)' in line
+    assert 'jit_var' not in line and 'invalid field config' not in line
+    best = int(re.search(r'(?:at most|at resolution) ([\d,]+)', line).group(1).replace(',', ''))
+    (name, value), = values.items()
+    config = TrainConfig.from_options(**values)
+    assert config.largest_that_fits(name) == best and best >= 2
+    size = (lambda v: (v,)) if isinstance(value, tuple) else (lambda v: v)
+    assert config.replace(**{name: size(best)}).limit_exceeded() is None
+    assert config.replace(**{name: size(best + 1)}).limit_exceeded() is not None
+    assert not (tmp_path / 'run').exists()
+
+
+def test_samples_beyond_what_a_render_holds_are_refused(capsys, tmp_path):
+    """--samples 8 8 1000000 took 7.6 GB and then failed with 'unsupported operand': renders of
+    the model take the samples of a volume for a chunk of the integrator's rays at a time,
+    within the integrator's entries per array - the same rule its render applies, so that a
+    run is not trained to fail at its evaluation."""
+    from mi_nerfpp.integrator.parameters import MAX_CHUNK_ENTRIES, check_chunk_sizes
+    status, _, err = run_cli(capsys, 'optimize', tmp_path, '--out', tmp_path / 'run',
+                             '--samples', '8', '8', '1000000', '--batch-rays', '32')
+    line = one_clear_line(err)
+    per_volume = MAX_CHUNK_ENTRIES // limits.RENDER_CHUNK_RAYS
+    assert status == 1 and line == (
+        f'error: optimize: --samples 8 8 1000000 are too many: renders of the model take '
+        f'1,000,008 samples per ray of a volume (coarse and fine) for 32,768 rays at a time, '
+        f'more than the nerfpp integrator\'s {MAX_CHUNK_ENTRIES:,} entries per array; at most '
+        f'{per_volume:,} samples per ray of a volume fit')
+    assert not (tmp_path / 'run').exists()
+    # At the boundary the config and the integrator agree: what one accepts the other renders.
+    chunk = limits.RENDER_CHUNK_RAYS
+    for fg, bg, fine in ((per_volume - 8, 8, 8), (8, per_volume - 8, 8), (1, 1, per_volume - 1)):
+        config = TrainConfig.from_options(fg_samples=fg, bg_samples=bg, fine_samples=fine,
+                                          batch_rays=32)
+        config.check_render_chunks()
+        check_chunk_sizes(chunk, config.render_sampling, 1, 1)
+        for bigger in ((fg + 1, bg, fine), (fg, bg + 1, fine), (fg, bg, fine + 1)):
+            config = TrainConfig.from_options(fg_samples=bigger[0], bg_samples=bigger[1],
+                                              fine_samples=bigger[2], batch_rays=32)
+            if max(bigger[0], bigger[1]) + bigger[2] <= per_volume:
+                continue
+            with pytest.raises(ValueError, match=r'^--samples .* are too many: renders'):
+                config.check_render_chunks()
+            with pytest.raises(ValueError, match=r'^nerfpp: parameter'):
+                check_chunk_sizes(chunk, config.render_sampling, 1, 1)
+
+
+def test_limits_against_a_memory_budget_in_closed_form():
+    """The estimates are sums of entries x bytes per entry: with a budget of 4 GiB the default
+    run fits, and the largest --batch-rays is what the budget leaves after the grids and the
+    occupancy grids, over 48 samples per ray x TRAIN_BYTES_PER_SAMPLE."""
+    budget = 4 * GIB
+    config = TrainConfig()
+    grid_entries = (32 ** 3 + 128 ** 3) * 4 + (16 * 32 * 64 + 64 * 128 * 256) * 4
+    occupancy_cells = 64 ** 3 + 16 * 32 * 64
+    fixed = (grid_entries * limits.GRID_BYTES_PER_ENTRY
+             + occupancy_cells * limits.OCCUPANCY_BYTES_PER_CELL)
+    assert config.memory_estimate() == {'grids': grid_entries * limits.GRID_BYTES_PER_ENTRY,
+                                        'occupancy': occupancy_cells * 16,
+                                        'step': config.schedule.batch_rays * 48
+                                        * limits.TRAIN_BYTES_PER_SAMPLE}
+    config.check_limits(budget)
+    best = (budget - fixed) // (48 * limits.TRAIN_BYTES_PER_SAMPLE)
+    assert config.largest_that_fits('batch_rays', budget) == best
+    big = config.replace(batch_rays=best + 1)
+    with pytest.raises(ValueError) as e:
+        big.check_limits(budget)
+    step = (best + 1) * 48 * limits.TRAIN_BYTES_PER_SAMPLE
+    assert str(e.value) == (
+        f'--batch-rays {best + 1} is too large: a run takes about '
+        f'{limits.memory_text(fixed + step)} (grids {limits.memory_text(grid_entries * 64)}, '
+        f'occupancy {limits.memory_text(occupancy_cells * 16)}, training step '
+        f'{limits.memory_text(step)}), more than this machine\'s 4 GiB; at most {best:,} fits')
+    # More samples per ray with few rays: the samples are blamed, with the largest count
+    # (within what the integrator's chunks hold: check_render_chunks).
+    many = config.replace(batch_rays=64, fine_samples=1000)
+    with pytest.raises(ValueError, match=r'^--samples 16 16 1000 are too many: .*at most '
+                                         r'[\d,]+ samples per ray .* fit with --batch-rays 64'):
+        many.check_limits(GIB // 4)
+
+
+def test_stored_configs_are_not_refused_for_this_machine(capsys):
+    """A checkpoint's config is read (evaluation, video) whatever this machine's memory: the
+    limits are checked before training only."""
+    stored = TrainConfig.from_options(batch_rays=200_000_000).to_dict()
+    assert TrainConfig.from_stored(stored).schedule.batch_rays == 200_000_000
+
+
+def test_sweep_refuses_options_beyond_the_limits_before_any_run(capture, tmp_path, capsys):
+    status, _, err = run_cli(capsys, 'sweep', capture, '--out', tmp_path / 'sweep',
+                             '--set', '--grid-levels 2048')
+    assert status == 1 and one_clear_line(err).startswith(
+        'error: sweep: --grid-levels 2048 is too large: ')
+    assert not (tmp_path / 'sweep').exists()
+
+
+@pytest.mark.parametrize('command', ['sweep', 'colmap'])
+def test_out_naming_a_file_is_refused_by_name(capsys, capture, tmp_path, command):
+    """Was the raw "[Errno 17] File exists"."""
+    (tmp_path / 'file').write_text('precious')
+    argv = ([capture] if command == 'sweep' else [f'{capture}/train/rgb'])
+    status, _, err = run_cli(capsys, command, *argv, '--out', tmp_path / 'file')
+    assert status == 1 and one_clear_line(err) == (
+        f'error: {command}: --out {tmp_path / "file"} is an existing file, not a folder: '
+        f'choose another --out')
+    assert (tmp_path / 'file').read_text() == 'precious'
+
+
+@pytest.mark.parametrize('option, message', [(['--frames', '0'], "--frames: expects a whole "
+                                              "number of at least 1, got '0'"),
+                                             (['--res', '0x0'], 'resolution must be positive')])
+def test_video_bad_counts(capsys, tmp_path, option, message):
+    status, _, err = run_cli(capsys, 'video', tmp_path, *option)
+    assert status == 2 and message in err
+
+
+def test_video_format_is_refused_before_rendering(capsys, tiny_run, tmp_path):
+    status, _, err = run_cli(capsys, 'video', tiny_run, '-o', tmp_path / 'v.avi')
+    assert status == 1 and one_clear_line(err) == (
+        f'error: video: {tmp_path / "v.avi"}: video must be .mp4 or .gif')
+    assert list(tmp_path.iterdir()) == []           # no frames were rendered
+
+
+@pytest.mark.parametrize('args, message', [
+    (['--res', '64x64', '--spp', '10000000'],
+     'spp 10000000 is too large at 64x64: a view traces 40,960,000,000 rays, more than one '
+     'Dr.Jit array holds (2^32 - 1); at most spp 1,048,575 fits at this resolution'),
+])
+def test_synth_sizes_are_checked_before_rendering(capsys, tmp_path, args, message):
+    from mi_nerfpp import synth
+    status, _, err = run_cli(capsys, 'synth', synth.scene_file('gt_plaza.xml'), '--out',
+                             tmp_path / 'capture', *args)
+    assert status == 1 and one_clear_line(err) == f'error: synth: {message}'
+    assert not (tmp_path / 'capture').exists()
+
+
+def test_synth_memory_limits_in_closed_form():
+    from mi_nerfpp.synth.capture import check_capture_size
+    per = limits.CAPTURE_BYTES_PER_PIXEL
+    check_capture_size(100, 64, 64, 4, budget=GIB)
+    with pytest.raises(ValueError) as e:
+        check_capture_size(10 ** 6, 64, 64, 4, budget=GIB)
+    assert str(e.value) == (f'views 1000000 are too many at 64x64: their images take about '
+                            f'{limits.memory_text(10 ** 6 * 4096 * per)} while they are written, '
+                            f'more than this machine\'s 1 GiB; at most {GIB // (4096 * per):,} '
+                            f'views fit at this resolution')
+    with pytest.raises(ValueError, match=r'^resolution 100000x100000 is too large: '
+                                         r'10,000,000,000 pixels per image'):
+        check_capture_size(1, 100000, 100000, 1, budget=GIB)
+
+
+# ----------------------------------------------------------------------------- the boundary
+
+def test_an_unexpected_error_is_one_line_naming_the_input(capsys, tmp_path, monkeypatch):
+    """A bug (any exception the command did not expect) still ends with one line, naming what
+    the command worked on; --debug (or MI_NERFPP_DEBUG=1) shows the traceback above it."""
+    from mi_nerfpp import run
+
+    def broken(*args, **kwargs):
+        return 1 / 0
+    monkeypatch.setattr(run, 'optimize', broken)
+    status, _, err = run_cli(capsys, 'optimize', tmp_path, *TINY)
+    assert status == 1 and one_clear_line(err) == (
+        f'error: optimize: unexpected ZeroDivisionError while working on dataset {tmp_path}: '
+        f'division by zero (a bug: rerun with --debug for the traceback and report it)')
+    for argv, env in ((['--debug', 'optimize', tmp_path, *TINY], None),
+                      (['optimize', tmp_path, *TINY, '--debug'], None),
+                      (['optimize', tmp_path, *TINY], '1')):
+        if env:
+            monkeypatch.setenv('MI_NERFPP_DEBUG', env)
+        status, _, err = run_cli(capsys, *argv)
+        assert status == 1 and 'Traceback (most recent call last)' in err
+        assert 'ZeroDivisionError: division by zero' in err
+        assert err.rstrip().splitlines()[-1].startswith('error: optimize: unexpected ')

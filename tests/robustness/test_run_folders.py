@@ -1,0 +1,253 @@
+"""Run folders: one writer at a time (a lock taken before anything is written, released by the
+operating system when its process dies), a run folder never mixes two runs (--overwrite moves
+the old run's outputs aside before the new one writes, and finishes a replacement cut short),
+and nothing that holds a result is lost."""
+import json
+import os
+import shutil
+import signal
+
+import numpy as np
+import pytest
+
+from mi_nerfpp.checkpoint import load_checkpoint
+from mi_nerfpp.files import LOCK_NAME
+from tests.robustness.common import TINY, Training, one_clear_line, run_cli
+
+
+def _train(capsys, capture, out, *extra):
+    return run_cli(capsys, 'optimize', capture, '--out', out, *TINY, *extra)
+
+
+def _in_use(line, out):
+    """Whether ``line`` is the refusal of a run folder that another process holds."""
+    return (line.startswith(f'error: optimize: {out}: this run folder (--out) is in use by '
+                            f'another mi-nerfpp process (pid ')
+            and line.endswith('); wait for it to end or stop it, or choose another one'))
+
+
+def test_a_second_run_into_a_folder_in_use_is_refused(capsys, capture, tmp_path):
+    """Two runs with the same --out both passed the run-folder check; the second removed the
+    first one's checkpoint temporary as "stale". Now the second is refused, whatever its
+    options, and the first trains on and saves."""
+    out = tmp_path / 'run'
+    first = Training(capture, out)
+    try:
+        first.wait_for_steps(1)
+        holder = (out / LOCK_NAME).read_text()
+        assert holder.startswith(f'pid {first.proc.pid} on ') and 'optimize' in holder
+        stray = out / '.model.0123456789abcdef.tmp.npz'     # as if the first were saving
+        stray.write_bytes(b'half a checkpoint')
+        for extra in ([], ['--resume'], ['--overwrite']):
+            status, _, err = _train(capsys, capture, out, *extra)
+            line = one_clear_line(err)
+            assert status == 1 and _in_use(line, out), line
+            assert f'pid {first.proc.pid} on ' in line
+        assert stray.exists()                 # the holder's files are left alone
+        stray.unlink()
+        status, err = first.stop(signal.SIGTERM)
+    finally:
+        first.kill()
+    assert status == 130 and 'checkpoint saved' in err
+    # The lock went with its process: the run can be continued.
+    assert _train(capsys, capture, out, '--resume', '--iterations',
+                  str(load_checkpoint(out / 'model.npz')[1]['iteration'] + 1))[0] == 0
+
+
+def test_the_lock_of_a_killed_process_is_not_stale(capsys, capture, tmp_path):
+    out = tmp_path / 'run'
+    first = Training(capture, out)
+    try:
+        first.wait_for_steps(1)
+        first.proc.send_signal(signal.SIGKILL)          # no chance to release anything
+        first.proc.wait(60)
+    finally:
+        first.kill()
+    assert (out / LOCK_NAME).exists()
+    assert _train(capsys, capture, out)[0] == 0         # nothing saved: a new run may start
+
+
+def test_evaluate_is_refused_while_a_run_trains_in_the_folder(capsys, capture, tmp_path):
+    """evaluate writes test/, metrics.json and render.xml: not while a run trains there."""
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out)[0] == 0
+    metrics = (out / 'metrics.json').read_bytes()
+    training = Training(capture, out, '--resume')
+    try:
+        training.wait_for_steps(3)
+        status, _, err = run_cli(capsys, 'evaluate', out)
+        line = one_clear_line(err)
+        assert status == 1 and line.startswith(f'error: evaluate: {out}: this run folder is in '
+                                               f'use by another mi-nerfpp process (pid ')
+    finally:
+        training.kill()
+    assert (out / 'metrics.json').read_bytes() == metrics
+
+
+def test_an_interrupted_overwrite_leaves_no_output_of_the_old_run(capsys, capture, tmp_path):
+    """--overwrite of a finished run, interrupted: the new model.npz sat beside the old run's
+    metrics.json, test/ and render.xml. Now the old outputs go before the new run writes."""
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out, '--preview-every', '1')[0] == 0
+    assert {'metrics.json', 'test', 'render.xml', 'training.png', 'preview'} <= set(
+        os.listdir(out))
+    (out / 'sfm').mkdir()                                # an input cache: kept
+    (out / 'optimize.log').write_text('a sweep log\n')   # a sweep's log: kept
+    second = Training(capture, out, '--overwrite', '--seed', '5')
+    try:
+        second.wait_for_steps(1)
+        status, err = second.stop(signal.SIGINT)
+    finally:
+        second.kill()
+    assert status == 130 and 'checkpoint saved' in err
+    assert sorted(os.listdir(out)) == [LOCK_NAME, 'model.npz', 'optimize.log', 'sfm']
+    assert load_checkpoint(out / 'model.npz')[1]['config']['schedule']['seed'] == 5
+
+
+def test_a_replacement_cut_short_is_finished_before_the_next_run(capsys, capture, tmp_path):
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out)[0] == 0
+    # As if killed half-way through --overwrite: model.npz moved aside, the rest not yet.
+    (out / '.replaced').mkdir()
+    os.rename(out / 'model.npz', out / '.replaced' / 'model.npz')
+    status, stdout, _ = _train(capsys, capture, out, '--seed', '7')
+    assert status == 0
+    assert (f'{out}: finishing the replacement of an earlier run that was cut short (removing '
+            f'metrics.json, render.xml, training.png, test)') in stdout
+    assert not (out / '.replaced').exists()
+    assert json.loads((out / 'metrics.json').read_text())['config']['schedule']['seed'] == 7
+
+
+def test_outputs_of_a_run_without_its_model_are_not_mixed_in(capsys, capture, tmp_path):
+    """A folder with metrics.json (or test/, ...) but no model.npz holds the remains of another
+    run: training there is refused unless --overwrite, and a sweep does not take it as
+    finished."""
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out)[0] == 0
+    os.remove(out / 'model.npz')
+    status, _, err = _train(capsys, capture, out)
+    assert status == 1 and one_clear_line(err) == (
+        f'error: optimize: {out} holds outputs of an earlier run (metrics.json, render.xml, '
+        f'training.png, test) without its model.npz: remove them with --overwrite, or choose '
+        f'another --out')
+    from mi_nerfpp.sweep import finished
+    assert not finished(out)
+    assert _train(capsys, capture, out, '--overwrite')[0] == 0 and finished(out)
+
+
+# ----------------------------------------------------------------------------- the folder
+
+def test_out_naming_an_existing_file_is_refused(capsys, capture, tmp_path):
+    (tmp_path / 'file').write_text('precious')
+    status, _, err = _train(capsys, capture, tmp_path / 'file')
+    assert status == 1 and 'is an existing file, not a folder' in one_clear_line(err)
+    assert (tmp_path / 'file').read_text() == 'precious'
+
+
+def test_out_in_a_place_that_cannot_be_written_is_refused_before_training(capsys, capture):
+    status, _, err = _train(capsys, capture, '/sys/mi-nerfpp-run')
+    line = one_clear_line(err)
+    assert status == 1 and '/sys/mi-nerfpp-run' in line and 'choose a writable place' in line
+
+
+def test_a_run_refused_for_its_data_writes_nothing(capsys, tmp_path):
+    (tmp_path / 'data').mkdir()
+    status, _, err = _train(capsys, tmp_path / 'data', tmp_path / 'run')
+    assert status == 1 and one_clear_line(err).startswith('error: optimize: ')
+    assert not (tmp_path / 'run').exists()
+
+
+def test_training_again_into_a_run_folder_keeps_the_run_unless_told(capsys, capture, tmp_path):
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out)[0] == 0
+    before = (out / 'model.npz').read_bytes(), (out / 'metrics.json').read_bytes()
+    status, _, err = _train(capsys, capture, out)
+    assert status == 1
+    assert 'already holds a trained run' in one_clear_line(err) and '--overwrite' in err
+    assert ((out / 'model.npz').read_bytes(), (out / 'metrics.json').read_bytes()) == before
+    assert _train(capsys, capture, out, '--overwrite', '--seed', '3')[0] == 0
+    assert json.loads((out / 'metrics.json').read_text())['config']['schedule']['seed'] == 3
+
+
+def test_resume_on_other_data_is_refused_naming_the_difference(capsys, capture, tmp_path):
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out)[0] == 0
+    status, _, err = _train(capsys, capture, out, '--resume', '--downscale', '2')
+    line = one_clear_line(err)
+    assert status == 1 and 'cannot be resumed' in line and 'training rays' in line
+
+
+def test_train_only_dataset_does_not_claim_test_outputs(capsys, capture, tmp_path):
+    data = tmp_path / 'data'
+    shutil.copytree(os.path.join(capture, 'train'), data / 'train')
+    status, out, _ = _train(capsys, data, tmp_path / 'run')
+    assert status == 0
+    written = [line for line in out.splitlines() if line.startswith('written to')]
+    assert written and 'test/' not in written[0] and 'render.xml' not in written[0]
+    assert 'preview/' not in written[0]
+    assert not (tmp_path / 'run' / 'test').exists()
+
+
+def test_stray_temporary_checkpoints_are_removed(capsys, capture, tmp_path):
+    out = tmp_path / 'run'
+    out.mkdir()
+    stray = out / '.model.0123456789abcdef.tmp.npz'
+    stray.write_bytes(b'half a checkpoint')
+    assert _train(capsys, capture, out)[0] == 0
+    assert not stray.exists() and (out / 'model.npz').exists()
+
+
+def test_resume_with_another_compositing_space_is_refused(capsys, capture, tmp_path):
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out, '--composite', 'srgb')[0] == 0
+    assert load_checkpoint(out / 'model.npz')[0].composite == 'srgb'
+    status, _, err = _train(capsys, capture, out, '--resume')
+    line = one_clear_line(err)
+    assert status == 1 and "--composite: the checkpoint has 'srgb', this run asks for " \
+        "'linear'" in line
+    assert _train(capsys, capture, out, '--resume', '--composite', 'srgb',
+                  '--iterations', '3')[0] == 0
+
+
+def test_resume_of_a_checkpoint_from_before_linear_compositing(capsys, capture, tmp_path):
+    """A pre-issue-11 sRGB checkpoint (no 'composite' entry) resumes only as 'srgb'."""
+    out = tmp_path / 'run'
+    assert _train(capsys, capture, out, '--composite', 'srgb')[0] == 0
+    path = out / 'model.npz'
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    config = json.loads(str(arrays['config']))
+    del config['composite'], config['meta']['config']['model']['composite']
+    arrays['config'] = np.array(json.dumps(config))
+    np.savez(path, **arrays)
+    status, _, err = _train(capsys, capture, out, '--resume')
+    line = one_clear_line(err)
+    assert status == 1 and "--composite: the checkpoint composites in 'srgb'" in line
+
+
+@pytest.mark.parametrize('held', [True, False])
+def test_lock_folder_refuses_a_second_holder(tmp_path, held):
+    from mi_nerfpp.files import FolderInUseError, lock_folder
+    lock = lock_folder(tmp_path / 'f', what='folder')
+    if not held:
+        lock.release()
+        lock_folder(tmp_path / 'f').release()          # free again
+        return
+    import subprocess
+    import sys
+    code = ('from mi_nerfpp.files import lock_folder, FolderInUseError\n'
+            f'try:\n    lock_folder({str(tmp_path / "f")!r})\n'
+            'except FolderInUseError as e:\n    print(e)\n')
+    child = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
+    assert 'is in use by another mi-nerfpp process (pid ' + str(os.getpid()) in child.stdout
+    # This process may take its own lock again (a run prepared, then resumed here); the lock
+    # stays until its last holder releases it.
+    again = lock_folder(tmp_path / 'f')
+    lock.release()
+    child = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
+    assert 'is in use by another mi-nerfpp process (pid ' + str(os.getpid()) in child.stdout
+    again.release()
+    again.release()                                    # a second release does nothing
+    child = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
+    assert child.returncode == 0 and child.stdout == ''            # free for another process
+    assert FolderInUseError.__mro__[1] is RuntimeError

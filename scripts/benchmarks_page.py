@@ -45,7 +45,7 @@ PAGE = ROOT / 'docs' / 'benchmarks.md'
 REGENERATE = 'python scripts/benchmarks_page.py'
 
 # Known benchmarks first, in this order (quality and speed of the default job, then the rest).
-ORDER = ('quality', 'train', 'render', 'compare', 'cluster', 'objects', 'appearance', 'poses',
+ORDER = ('versus', 'held_out', 'profile', 'quality', 'train', 'render', 'compare', 'cluster', 'objects', 'appearance', 'poses',
          'coverage', 'converged', 'noise_ceiling', 'render_samples', 'ablation',
          'photo_set_memory')
 REQUIRED = ('benchmark', 'title', 'command', 'date', 'machine', 'git', 'tables')

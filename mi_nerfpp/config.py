@@ -637,12 +637,11 @@ class TrainConfig:
         run does not train and then fail to evaluate: renders of the model (evaluations,
         previews, videos) take the samples of a volume for a chunk of
         :data:`~mi_nerfpp.limits.RENDER_CHUNK_RAYS` rays at a time, within the integrator's
-        entries per array (:func:`mi_nerfpp.integrator.parameters.check_chunk_sizes`, the one
-        home of that rule)."""
-        from .integrator.parameters import MAX_CHUNK_ENTRIES, check_chunk_sizes
+        entries per array (:func:`mi_nerfpp.limits.check_chunk_sizes`, the one home of that
+        rule)."""
         chunk = limits.RENDER_CHUNK_RAYS
         try:
-            check_chunk_sizes(chunk, self.render_sampling, 1, 1)
+            limits.check_chunk_sizes(chunk, self.render_sampling, 1, 1)
         except ValueError:
             s, r = self.sampling, self.render_sampling
             per_volume = max(r.fg_samples, r.bg_samples) + r.fine_samples
@@ -650,8 +649,8 @@ class TrainConfig:
                 f'--samples {s.fg_samples} {s.bg_samples} {s.fine_samples} are too many: '
                 f'renders of the model take {per_volume:,} samples per ray of a volume (coarse '
                 f'and fine) for {chunk:,} rays at a time, more than the nerfpp integrator\'s '
-                f'{MAX_CHUNK_ENTRIES:,} entries per array; at most '
-                f'{MAX_CHUNK_ENTRIES // chunk:,} samples per ray of a volume fit') from None
+                f'{limits.MAX_CHUNK_ENTRIES:,} entries per array; at most '
+                f'{limits.MAX_CHUNK_ENTRIES // chunk:,} samples per ray of a volume fit') from None
 
     def check_limits(self, budget: int | None = None):
         """Refuse, before any work, option values whose arrays Dr.Jit cannot hold (2^32 - 1

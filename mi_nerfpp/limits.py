@@ -38,6 +38,12 @@ CAPTURE_BYTES_PER_PIXEL = 64
 # which evaluations, previews and videos render a trained model.
 RENDER_CHUNK_RAYS = 1 << 15
 
+# Largest number of entries of one per-sample array in a chunk of rays (``chunk_rays`` times
+# the samples per ray of a volume, the path segments or the catcher directions): a volume's
+# samples take about 200 bytes each, so a chunk stays below about 7 GB, and far below Dr.Jit's
+# 2^32 entries per array.
+MAX_CHUNK_ENTRIES = 1 << 25
+
 GIB = 1 << 30
 
 
@@ -70,3 +76,43 @@ def fits(units: float, entries_per_unit: float, bytes_per_unit: float,
          budget: float | None = None) -> bool:
     """Whether ``units`` units (see :func:`largest`) fit."""
     return units <= largest(entries_per_unit, bytes_per_unit, budget)
+
+
+# ----------------------------------------------------------------------------- render chunks
+# The ``nerfpp`` integrator renders ``chunk_rays`` rays at a time; the same rule refuses its XML
+# parameters and, before training, sample counts whose renders it would refuse
+# (:meth:`mi_nerfpp.config.TrainConfig.check_render_chunks`).
+
+def _largest(name, per_ray, chunk_rays, extra=0, also=''):
+    """The refusal of ``name`` when ``chunk_rays`` rays of ``per_ray`` entries are too many."""
+    fits = MAX_CHUNK_ENTRIES // chunk_rays - extra
+    what = f' (with {also})' if also else ''
+    if fits < 1:
+        return ValueError(
+            f"nerfpp: parameter 'chunk_rays' is {chunk_rays}: a chunk of that many rays cannot "
+            f"hold {name}{what} within {MAX_CHUNK_ENTRIES} entries per array; the largest "
+            f"chunk_rays that fits is {MAX_CHUNK_ENTRIES // max(per_ray, 1)}")
+    return ValueError(
+        f"nerfpp: parameter '{name}' is {per_ray - extra}: {chunk_rays} rays per chunk "
+        f"(chunk_rays) would hold {chunk_rays * per_ray:.3g} entries per array, more than "
+        f"{MAX_CHUNK_ENTRIES} (memory, Dr.Jit's 2^32-entry arrays); the largest {name} that "
+        f"fits{what} is {fits}")
+
+
+def check_chunk_sizes(chunk_rays, sampling, max_depth, catcher_samples):
+    """Refuse sample counts, path depth and catcher directions whose per-chunk arrays exceed
+    :data:`MAX_CHUNK_ENTRIES` (``sampling``: a dict or :class:`~mi_nerfpp.render.Sampling`;
+    None counts are not checked). Each count is first checked alone (the others at their
+    least), so the message names the one that is out of range."""
+    get = sampling.get if isinstance(sampling, dict) else (lambda k: getattr(sampling, k))
+    fine = get('fine_samples')
+    if fine is not None and chunk_rays * (1 + fine) > MAX_CHUNK_ENTRIES:
+        raise _largest('fine_samples', 1 + fine, chunk_rays, 1, 'one coarse sample')
+    fine = fine or 0
+    for name in ('fg_samples', 'bg_samples'):
+        n = get(name)
+        if n is not None and chunk_rays * (n + fine) > MAX_CHUNK_ENTRIES:
+            raise _largest(name, n + fine, chunk_rays, fine, f'fine_samples={fine}')
+    for name, n in (('max_depth', max_depth), ('catcher_samples', catcher_samples)):
+        if chunk_rays * n > MAX_CHUNK_ENTRIES:
+            raise _largest(name, n, chunk_rays)

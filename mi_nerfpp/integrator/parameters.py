@@ -5,6 +5,8 @@ Every size that a parameter, the film or the sensor sets is refused here with on
 it and the largest value that fits (issue 37): sample counts per ray, path depth and catcher
 directions (arrays of ``chunk_rays`` times them per chunk), the film (pixels times samples per
 pixel) and the sensor (a finite ``to_world`` within :data:`MAX_CAMERA_RADIUS` of the model).
+The rule for a chunk's arrays lives in :mod:`mi_nerfpp.limits`, which the training options
+check too.
 """
 from __future__ import annotations
 
@@ -12,15 +14,12 @@ import math
 
 import numpy as np
 
+from ..limits import MAX_CHUNK_ENTRIES, RENDER_CHUNK_RAYS, check_chunk_sizes
+
 # Largest number of camera rays (film pixels x samples per pixel) one render may trace: memory
 # grows by roughly 100 bytes per ray, so this bounds a render to about 2 GB. Raise it with the
 # ``max_samples`` parameter on a machine with more memory.
 MAX_FILM_SAMPLES = 1 << 24
-# Largest number of entries of one per-sample array in a chunk of rays (``chunk_rays`` times
-# the samples per ray of a volume, the path segments or the catcher directions): a volume's
-# samples take about 200 bytes each, so a chunk stays below about 7 GB, and far below Dr.Jit's
-# 2^32 entries per array.
-MAX_CHUNK_ENTRIES = 1 << 25
 # Cameras farther than this from the model's centre, in unit-sphere radii, are refused: float32
 # ray origins there no longer resolve the reconstruction (1e4 radii leave steps of ~1e-3).
 MAX_CAMERA_RADIUS = 1e4
@@ -76,7 +75,7 @@ def read_parameters(props, field_kinds) -> dict:
     p['_background'] = read('background', bool, None)
     p['stratified'] = read('stratified', bool, False)
     p['occluded_background'] = read('occluded_background', bool, False)
-    p['chunk_rays'] = read('chunk_rays', int, 1 << 15, minimum=1)
+    p['chunk_rays'] = read('chunk_rays', int, RENDER_CHUNK_RAYS, minimum=1)
     p['max_samples'] = read('max_samples', int, MAX_FILM_SAMPLES, minimum=1)
     p['random_field'] = read('field', str, 'grid', choices=field_kinds)
     p['random_seed'] = read('seed', int, 0, minimum=0)
@@ -95,41 +94,6 @@ def read_parameters(props, field_kinds) -> dict:
                          f"is {2 ** 32 - 1}")
     check_chunk_sizes(p['chunk_rays'], p['_sampling'], p['max_depth'], p['catcher_samples'])
     return p
-
-
-def _largest(name, per_ray, chunk_rays, extra=0, also=''):
-    """The refusal of ``name`` when ``chunk_rays`` rays of ``per_ray`` entries are too many."""
-    fits = MAX_CHUNK_ENTRIES // chunk_rays - extra
-    what = f' (with {also})' if also else ''
-    if fits < 1:
-        return ValueError(
-            f"nerfpp: parameter 'chunk_rays' is {chunk_rays}: a chunk of that many rays cannot "
-            f"hold {name}{what} within {MAX_CHUNK_ENTRIES} entries per array; the largest "
-            f"chunk_rays that fits is {MAX_CHUNK_ENTRIES // max(per_ray, 1)}")
-    return ValueError(
-        f"nerfpp: parameter '{name}' is {per_ray - extra}: {chunk_rays} rays per chunk "
-        f"(chunk_rays) would hold {chunk_rays * per_ray:.3g} entries per array, more than "
-        f"{MAX_CHUNK_ENTRIES} (memory, Dr.Jit's 2^32-entry arrays); the largest {name} that "
-        f"fits{what} is {fits}")
-
-
-def check_chunk_sizes(chunk_rays, sampling, max_depth, catcher_samples):
-    """Refuse sample counts, path depth and catcher directions whose per-chunk arrays exceed
-    :data:`MAX_CHUNK_ENTRIES` (``sampling``: a dict or :class:`~mi_nerfpp.render.Sampling`;
-    None counts are not checked). Each count is first checked alone (the others at their
-    least), so the message names the one that is out of range."""
-    get = sampling.get if isinstance(sampling, dict) else (lambda k: getattr(sampling, k))
-    fine = get('fine_samples')
-    if fine is not None and chunk_rays * (1 + fine) > MAX_CHUNK_ENTRIES:
-        raise _largest('fine_samples', 1 + fine, chunk_rays, 1, 'one coarse sample')
-    fine = fine or 0
-    for name in ('fg_samples', 'bg_samples'):
-        n = get(name)
-        if n is not None and chunk_rays * (n + fine) > MAX_CHUNK_ENTRIES:
-            raise _largest(name, n + fine, chunk_rays, fine, f'fine_samples={fine}')
-    for name, n in (('max_depth', max_depth), ('catcher_samples', catcher_samples)):
-        if chunk_rays * n > MAX_CHUNK_ENTRIES:
-            raise _largest(name, n, chunk_rays)
 
 
 def check_film(size, count, max_samples):

@@ -21,8 +21,10 @@ import os
 MAX_ARRAY_ENTRIES = 2 ** 32 - 1
 
 # One field sample of a training step (rays per step x samples per ray): the forward pass,
-# the AD graph and the gradients. Measured ~160 B (batches of 4k-65k rays, 48-160 samples).
-TRAIN_BYTES_PER_SAMPLE = 256
+# the AD graph and the gradients. Measured ~160 B (batches of 4k-65k rays, 48-160 samples), and
+# 350 B with the process's growth included (benchmarks/photo_set_memory.py, 1,024-16,384 rays
+# of 48 samples; :mod:`mi_nerfpp.memory`, which plans the automatic downscale with it).
+TRAIN_BYTES_PER_SAMPLE = 350
 # One field sample of a render (the integrator's chunk of rays x samples per ray, no AD).
 # Measured ~40 B (16k rays, 2k samples per ray).
 RENDER_BYTES_PER_SAMPLE = 64

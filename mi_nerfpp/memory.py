@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import os
 
+from .limits import TRAIN_BYTES_PER_SAMPLE
+
 MIB = 2 ** 20
 BASE_BYTES = 680 * MIB
 PARAMETER_COPIES = 4
-SAMPLE_BYTES = 350
+SAMPLE_BYTES = TRAIN_BYTES_PER_SAMPLE     # one home: mi_nerfpp.limits
 USABLE_FRACTION = 0.8
 
 

@@ -42,7 +42,8 @@ def main(argv=None):
         if not sep or not run:
             raise SystemExit(f'error: held_out: {item!r} is not LABEL=RUN')
         metrics, test = read_run(run)
-        schedule = metrics['config']['schedule']
+        config = metrics['config']             # nested groups, or flat (runs before issue 36)
+        schedule = config.get('schedule', config)
         per_view = [v['psnr'] for v in test['views']]
         rows.append([label, os.path.basename(os.path.normpath(metrics['dataset'])),
                      metrics['iterations'], schedule['batch_rays'], round(test['psnr'], 2),

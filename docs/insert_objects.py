@@ -7,33 +7,17 @@ objects, with the objects and the shadow catcher), side by side in one PNG.
 """
 import argparse
 import os
-import xml.etree.ElementTree as ET
 
 import numpy as np
 
 import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
 import mitsuba as mi
 
+from mi_nerfpp.bench import object_variant_xml
 from mi_nerfpp.color import to_srgb8
 from mi_nerfpp.synth import scene_file
 
 SCENE = scene_file('insert_objects.xml')
-
-
-def variant(xml, objects, catchers):
-    root = ET.fromstring(xml)
-    for shape in root.findall('shape'):
-        if not objects:
-            root.remove(shape)
-    if not objects:             # no shapes left for the integrator's proxies to name
-        for proxies in root.iter('string'):
-            if proxies.get('name') == 'proxies':
-                proxies.set('value', '')
-    if not catchers or not objects:
-        for default in root.findall('default'):
-            if default.get('name') == 'catchers':
-                default.set('value', '')
-    return ET.tostring(root, encoding='unicode')
 
 
 # The three renders of the comparison: (label, with objects, with the shadow catcher).
@@ -57,7 +41,7 @@ def arguments(description, extra=()):
 
     def scenes():
         for label, objects, catchers in VARIANTS:
-            yield label, mi.load_string(variant(xml, objects, catchers), **defines)
+            yield label, mi.load_string(object_variant_xml(xml, objects, catchers), **defines)
     return args, scenes
 
 

@@ -21,6 +21,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+import xml.etree.ElementTree as ET
 
 
 # ---------------------------------------------------------------------------------- results
@@ -245,8 +246,6 @@ def object_scenes(checkpoint, defines=None, scene=None):
     """``(label, Mitsuba scene)`` of each of :data:`OBJECT_VARIANTS` of the objects example
     (``scenes/insert_objects.xml`` of the package, or ``scene``) rendering ``checkpoint``;
     ``defines``: values of the scene's ``<default>`` parameters."""
-    import xml.etree.ElementTree as ET
-
     import mitsuba as mi
     scene = scene or os.path.join(os.path.dirname(os.path.abspath(__file__)), 'scenes',
                                   'insert_objects.xml')
@@ -254,16 +253,22 @@ def object_scenes(checkpoint, defines=None, scene=None):
         xml = f.read()
     defines = dict(defines or {}, checkpoint=os.path.abspath(checkpoint))
     for label, objects, catchers in OBJECT_VARIANTS:
-        root = ET.fromstring(xml)
-        for shape in root.findall('shape'):
-            if not objects:
-                root.remove(shape)
-        if not objects:         # no shapes left for the integrator's proxies to name
-            for proxies in root.iter('string'):
-                if proxies.get('name') == 'proxies':
-                    proxies.set('value', '')
-        if not catchers or not objects:
-            for default in root.findall('default'):
-                if default.get('name') == 'catchers':
-                    default.set('value', '')
-        yield label, mi.load_string(ET.tostring(root, encoding='unicode'), **defines)
+        yield label, mi.load_string(object_variant_xml(xml, objects, catchers), **defines)
+
+
+def object_variant_xml(xml: str, objects: bool, catchers: bool) -> str:
+    """The objects example's scene XML without its shapes (``objects`` False) and/or without
+    its shadow catchers (``catchers`` False)."""
+    root = ET.fromstring(xml)
+    for shape in root.findall('shape'):
+        if not objects:
+            root.remove(shape)
+    if not objects:             # no shapes left for the integrator's proxies to name
+        for proxies in root.iter('string'):
+            if proxies.get('name') == 'proxies':
+                proxies.set('value', '')
+    if not catchers or not objects:
+        for default in root.findall('default'):
+            if default.get('name') == 'catchers':
+                default.set('value', '')
+    return ET.tostring(root, encoding='unicode')

@@ -525,3 +525,28 @@ def test_shapes_catchers_and_each_emitter_type_render_together(emitter):
         np.testing.assert_allclose(
             c[ch], c[f'fg.{ch}'] + (1 - c['fg.A']) * c[f'bg.{ch}'] + c[f'obj.{ch}']
             + c[f'shadow.{ch}'], atol=1e-5)
+
+
+def test_object_variants_of_the_example_drop_shapes_and_catchers():
+    """The three renders of the objects benchmark and docs figure: the example's XML without
+    its shapes (and then no proxies), with them, and with them and the shadow catchers."""
+    import xml.etree.ElementTree as ET
+    from mi_nerfpp.bench import OBJECT_VARIANTS, object_variant_xml
+    from mi_nerfpp.synth import scene_file
+    with open(scene_file('insert_objects.xml')) as f:
+        xml = f.read()
+    full = ET.fromstring(xml)
+    n_shapes = len(full.findall('shape'))
+    catchers = [d.get('value') for d in full.findall('default') if d.get('name') == 'catchers']
+    assert n_shapes > 0 and catchers and catchers[0]
+    seen = []
+    for label, objects, with_catchers in OBJECT_VARIANTS:
+        root = ET.fromstring(object_variant_xml(xml, objects, with_catchers))
+        value = [d.get('value') for d in root.findall('default') if d.get('name') == 'catchers']
+        proxies = [s.get('value') for s in root.iter('string') if s.get('name') == 'proxies']
+        assert len(root.findall('shape')) == (n_shapes if objects else 0), label
+        assert value == (catchers if objects and with_catchers else ['']), label
+        if not objects:
+            assert all(p == '' for p in proxies), label
+        seen.append((objects, with_catchers))
+    assert seen == [(False, False), (True, False), (True, True)]

@@ -361,7 +361,7 @@ class ScheduleOptions(_Options):
                      f'{DEFAULT_JOB_MINUTES:g})')
     minutes: float | None = option(
         None, 'wall-time budget in minutes of training steps', type=float, exclusive='budget')
-    batch_rays: int = option(4096, 'rays per step')
+    batch_rays: int = option(1024, 'rays per step')
     seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
     freeze: bool = option(True, 'record the kernels of a training step once and replay them '
                           '(drjit.freeze) instead of tracing every step in Python; re-recorded '

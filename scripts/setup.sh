@@ -6,17 +6,21 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# apt_install PACKAGE WHY: install a Debian package quietly (sudo when not root); 1 without apt-get.
+apt_install() {
+    command -v apt-get >/dev/null 2>&1 || return 1
+    local sudo=""; [ "$(id -u)" -ne 0 ] && sudo="sudo"
+    echo "setup: installing $1 ($2)"
+    $sudo apt-get update -qq || exit 1
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "$1" >/dev/null || exit 1
+}
+
 have_llvm() {
     python3 -c "import sys; sys.path.insert(0, 'mi_nerfpp'); import _llvm; sys.exit(0 if _llvm.find_libllvm() else 1)"
 }
 
 if [ -z "${DRJIT_LIBLLVM_PATH:-}" ] && ! have_llvm; then
-    if command -v apt-get >/dev/null 2>&1; then
-        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
-        echo "setup: installing libllvm19 (Dr.Jit needs libLLVM >= 17)"
-        $SUDO apt-get update -qq
-        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libllvm19 >/dev/null
-    else
+    if ! apt_install libllvm19 "Dr.Jit needs libLLVM >= 17"; then
         echo "setup: no libLLVM >= 17 found and no apt-get: install LLVM >= 17 and set DRJIT_LIBLLVM_PATH" >&2
         exit 1
     fi
@@ -24,12 +28,7 @@ fi
 
 # oiiotool (OpenImageIO): the tests composite the EXR layers with it, as a real client.
 if ! command -v oiiotool >/dev/null 2>&1; then
-    if command -v apt-get >/dev/null 2>&1; then
-        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
-        echo "setup: installing openimageio-tools (oiiotool, used by the compositing tests)"
-        $SUDO apt-get update -qq
-        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq openimageio-tools >/dev/null
-    else
+    if ! apt_install openimageio-tools "oiiotool, used by the compositing tests"; then
         echo "setup: oiiotool not found and no apt-get: install OpenImageIO's oiiotool, or set" \
              "MI_NERFPP_NO_OIIOTOOL=1 to skip the compositing checks that use it" >&2
     fi
@@ -37,12 +36,7 @@ fi
 
 # Blender (Debian's 3.4, ~50 s to install): the export test checks the USD camera in it.
 if ! command -v blender >/dev/null 2>&1; then
-    if command -v apt-get >/dev/null 2>&1; then
-        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
-        echo "setup: installing blender (used headless by the export test)"
-        $SUDO apt-get update -qq
-        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq blender >/dev/null
-    else
+    if ! apt_install blender "used headless by the export test"; then
         echo "setup: blender not found and no apt-get: install Blender, or set" \
              "MI_NERFPP_NO_BLENDER=1 to skip the Blender camera check" >&2
     fi

@@ -179,6 +179,10 @@ class ModelOptions(_Options):
                         'features along each ray and runs the colour MLP once per ray; '
                         "'sample' runs it at every sample", choices=('deferred', 'sample'),
                         shapes_model=True)
+    antialias: bool = option(True, "grid field: weigh each grid level by whether its cells "
+                             "resolve the pixel's footprint at the sample (levels finer than "
+                             'the footprint fade out), so renders at other resolutions than the '
+                             "training images' neither alias nor blur", shapes_model=True)
     dir_octaves: int = option(_grid_default('dir_octaves'),
                               'grid field: frequencies of the view-direction encoding',
                               shapes_model=True)
@@ -369,6 +373,11 @@ class ScheduleOptions(_Options):
     coarse_to_fine: tuple = option((), 'grid field: fractions of the run at which the grids '
                                    'double in resolution (they start at RES / 2^n)', type=float,
                                    nargs='*', metavar='F', shapes_model=True)
+    pyramid: tuple = option((), 'image pyramid: fractions of the run at which training moves to '
+                            'the next finer level of box-filtered images (it starts at 1/2^n '
+                            'of their size, the last fraction reaches full size); pair with '
+                            '--coarse-to-fine and --antialias', type=float, nargs='*',
+                            metavar='F')
 
     def _validate(self):        # neither iterations nor minutes: chosen from the capture
         if self.minutes is not None and not (_finite(self.minutes) and self.minutes > 0):
@@ -378,8 +387,14 @@ class ScheduleOptions(_Options):
         self._check(('batch_rays',), lambda v: v >= 1, 'at least 1')
         self._check(('seed',), lambda v: 0 <= v <= MAX_SEED,
                     f'a whole number from 0 to {MAX_SEED} (2^64 - 2)')
-        if not all(_finite(f) and 0 < f < 1 for f in self.coarse_to_fine):
-            self._bad('coarse_to_fine', 'fractions between 0 and 1')
+        for name in ('coarse_to_fine', 'pyramid'):
+            if not all(_finite(f) and 0 < f < 1 for f in getattr(self, name)):
+                self._bad(name, 'fractions between 0 and 1')
+
+    def pyramid_factor(self, progress):
+        """The image pyramid's factor at ``progress`` (fraction of the run): 2^(fractions of
+        ``pyramid`` not reached yet)."""
+        return 1 << sum(progress < f for f in self.pyramid)
 
 
 @dataclass
@@ -477,7 +492,7 @@ class TrainConfig:
         return dict(kind='grid', domain=domain, resolutions=start,
                     channels=m.grid_channels, dir_octaves=m.dir_octaves,
                     color_layers=m.color_layers, hidden=m.color_width, color=m.color,
-                    density_bias=m.density_bias, **extra)
+                    density_bias=m.density_bias, antialias=m.antialias, **extra)
 
     @property
     def render_sampling(self) -> Sampling:

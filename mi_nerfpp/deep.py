@@ -41,8 +41,11 @@ DEEP_CHANNELS = ('R', 'G', 'B', 'A', 'Z', 'ZBack')
 
 
 def _camera_rays(sensor, pixels, k):
-    """World rays of ``pixels`` (flat indices), ``k x k`` positions each, pixel-major."""
+    """World rays of ``pixels`` (flat indices), ``k x k`` positions each, pixel-major, and their
+    pixel footprints (:func:`~mi_nerfpp.geometry.pixel_footprint`)."""
     import mitsuba as mi
+
+    from .geometry import pixel_footprint
     width, height = (int(v) for v in sensor.film().crop_size())
     offset = (np.arange(k) + 0.5) / k
     sub_y, sub_x = np.meshgrid(offset, offset, indexing='ij')
@@ -50,11 +53,11 @@ def _camera_rays(sensor, pixels, k):
     py = (pixels // width)[:, None] + sub_y.ravel()[None, :]
     pos = mi.Point2f(mi.Float((px / width).ravel().astype(np.float32)),
                      mi.Float((py / height).ravel().astype(np.float32)))
-    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
-    return mi.Point3f(ray.o), mi.Vector3f(ray.d)
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, pos, mi.Point2f(0.5))
+    return mi.Point3f(ray.o), mi.Vector3f(ray.d), pixel_footprint(ray)
 
 
-def _events(integrator, parts, environment, o, d, seed):
+def _events(integrator, parts, environment, o, d, seed, footprint=None):
     """Per-ray events of camera rays ``o, d`` as NumPy arrays: ``ray``, ``kind``, ``z``
     (camera-space), ``w`` (absorbed fraction of the ray's light), ``rgb`` (n x 3), and the
     rays' beauty (n x 3) and opacity (n)."""
@@ -66,11 +69,11 @@ def _events(integrator, parts, environment, o, d, seed):
     integrator._deep = {}
     try:
         if parts.objects is None and parts.catchers is None:
-            L, _ = integrator.render_layers(o, d, None, primal=True)
+            L, _ = integrator.render_layers(o, d, None, primal=True, footprint=footprint)
         else:
             path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n), mi.UInt32(seed))
             L, _ = integrator._render_scene(parts, o, d, None, path_seed, True,
-                                            environment=environment)
+                                            environment=environment, footprint=footprint)
         deep = integrator._deep
     finally:
         integrator._deep = None
@@ -204,9 +207,9 @@ def render_deep(scene, spp=0, seed=0, chunk_pixels=4096, progress=False):
     with dr.suspend_grad():
         for start in chunks:
             pixels = np.arange(start, min(start + chunk_pixels, n_pixels))
-            o, d = _camera_rays(sensor, pixels, k)
+            o, d, footprint = _camera_rays(sensor, pixels, k)
             events, L = _events(integrator, parts, environment, o, d,
-                                (seed * 1_000_003 + start) % 2 ** 32)
+                                (seed * 1_000_003 + start) % 2 ** 32, footprint)
             c, s = merge_pixel_events(events['ray'] // (k * k), events['kind'], events['z'],
                                       events['w'] / (k * k), events['rgb'] / (k * k),
                                       len(pixels))

@@ -95,6 +95,13 @@ def mlp(widths, out):
 ACTIVATIONS = {'exp': trunc_exp, 'softplus': softplus}
 
 
+def level_weight(width, cell):
+    """The weight of a grid level of cells ``cell`` wide for a footprint ``width`` wide:
+    ``clip(2 − width/cell, 0, 1)`` — 1 while a cell spans the footprint, falling linearly to 0
+    at two cells, beyond which the level's detail is finer than the footprint resolves."""
+    return dr.clip(2.0 - width * (1.0 / cell), 0.0, 1.0)
+
+
 class Field:
     """Base class: config, parameters and the ``(x, d) -> (σ, rgb)`` interface."""
 
@@ -110,17 +117,20 @@ class Field:
     def config(self):
         raise NotImplementedError
 
-    def __call__(self, x, d, ray):
+    def __call__(self, x, d, ray, width=None):
         """Density and colour at sample points.
 
         ``x``: list of Floats, the domain's inputs per sample (``p`` for 'ball',
         ``(x̂, s)`` for 'inverted_sphere'); ``d``: unit view direction of each *ray*
-        (Vector3f); ``ray``: the ray of each sample (UInt32 index into ``d``).
+        (Vector3f); ``ray``: the ray of each sample (UInt32 index into ``d``); ``width``: the
+        pixel footprint of each sample in the domain's units
+        (:meth:`mi_nerfpp.render.Volume.footprint_at`), or None for points (only a grid
+        field with ``antialias`` uses it).
         Returns ``(sigma: Float >= 0, rgb: Color3f in [0, 1])`` per sample.
         """
         raise NotImplementedError
 
-    def density(self, x):
+    def density(self, x, width=None):
         """Density σ alone at sample points ``x`` (the domain's inputs, list of Floats)."""
         raise NotImplementedError
 
@@ -224,6 +234,14 @@ class GridField(Field):
     dir_octaves=10`` is the grid analogue of the paper's vanilla MLP (§3): grid
     features and ``γ^10(d)`` side by side at the input of a deep colour MLP.
 
+    ``antialias``: a level whose cells are smaller than a sample's pixel footprint (its
+    ``width``, :meth:`mi_nerfpp.render.Volume.footprint_at`) cannot be resolved at that
+    width and would alias; its contribution (density logit and features) is weighted by
+    ``clip(2 − width/cell, 0, 1)``: whole up to a footprint of one cell, gone from two cells on
+    (:func:`level_weight`), so coarse levels alone describe what a wide footprint sees. A
+    footprint within the finest cell, or none, is today's point lookup exactly. Fields built
+    without it (and checkpoints from before it) look up points.
+
     Ball domain: level ``R`` is an ``R³`` grid over ``[-1, 1]³``, indexed by the point itself or,
     with ``warp_radius > 0``, by :func:`~mi_nerfpp.geometry.ball_warp` of it (finer cells in the
     centre, where a 360° capture's cameras look).
@@ -239,8 +257,9 @@ class GridField(Field):
 
     def __init__(self, domain, resolutions=(32, 128), channels=4, hidden=32, dir_octaves=2,
                  density_bias=-3.0, density_activation='exp', color_layers=1, s_ratio=0.5,
-                 warp_radius=0.0, color='deferred', seed=0):
+                 warp_radius=0.0, color='deferred', antialias=False, seed=0):
         super().__init__(domain)
+        self.antialias = bool(antialias)
         if color not in COLOR_MODES:
             raise ValueError(f"GridField color must be one of {', '.join(COLOR_MODES)}, "
                              f"got {color!r}")
@@ -296,7 +315,8 @@ class GridField(Field):
                     channels=self.channels, hidden=self.hidden, dir_octaves=self.dir_octaves,
                     color_layers=self.color_layers, density_bias=self.density_bias,
                     density_activation=self.density_activation, s_ratio=self.s_ratio,
-                    warp_radius=self.warp_radius, color=self.color_mode)
+                    warp_radius=self.warp_radius, color=self.color_mode,
+                    antialias=self.antialias)
 
     @property
     def deferred(self):
@@ -323,10 +343,27 @@ class GridField(Field):
         self.params[f'grid{level}'] = mi.TensorXf(data, shape + (self.channels,))
         tex.set_tensor(self.params[f'grid{level}'])
 
-    def _lookup(self, x):
-        """Density logit and feature vector (all levels) at field inputs ``x``."""
+    def cell_size(self, level):
+        """The width of a cell of ``level`` in the units of :meth:`Volume.footprint_at
+        <mi_nerfpp.render.Volume.footprint_at>`: ``2/R`` of the (warped) ball, ``π/R`` radians of
+        the background's colatitude (and of its longitude at the equator)."""
+        r = self.resolutions[level]
+        return 2.0 / r if self.domain == 'ball' else dr.pi / r
+
+    def _lookup(self, x, width=None):
+        """Density logit and feature vector (all levels) at field inputs ``x``, each level
+        weighted by :func:`level_weight` of the footprint ``width`` (``antialias`` only)."""
+        if not self.antialias:
+            width = None
         if self.domain == 'ball':
-            x = ball_warp(x, self.warp_radius)
+            if width is not None and self.warp_radius > 0:
+                # The warp scales lengths about the centre by |warp(p)|/|p| (tangentially).
+                r = dr.norm(mi.Vector3f(*x))
+                warped = ball_warp(x, self.warp_radius)
+                width = width * dr.norm(mi.Vector3f(*warped)) / dr.maximum(r, 1e-12)
+                x = warped
+            else:
+                x = ball_warp(x, self.warp_radius)
         coords = grid_coordinates(self.domain, x)
         density = mi.Float(self.density_bias)
         features = []
@@ -340,17 +377,20 @@ class GridField(Field):
             else:
                 c = coords
             g = list(tex.eval(mi.Point3f(*c)))
+            if width is not None:
+                w = level_weight(width, self.cell_size(i))
+                g = [w * v for v in g]
             density += g[0]
             features += g[1:]
         return density, features
 
-    def density(self, x):
-        return ACTIVATIONS[self.density_activation](self._lookup(x)[0])
+    def density(self, x, width=None):
+        return ACTIVATIONS[self.density_activation](self._lookup(x, width)[0])
 
-    def features(self, x):
-        """Density and feature vector (list of Floats) at field inputs ``x``: what deferred
-        colour composites along a ray."""
-        density, features = self._lookup(x)
+    def features(self, x, width=None):
+        """Density and feature vector (list of Floats) at field inputs ``x`` (footprints
+        ``width``): what deferred colour composites along a ray."""
+        density, features = self._lookup(x, width)
         return ACTIVATIONS[self.density_activation](density), features
 
     def color(self, features, d):
@@ -359,9 +399,9 @@ class GridField(Field):
         out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves))
         return mi.Color3f(*[sigmoid(o) for o in out])
 
-    def __call__(self, x, d, ray):
+    def __call__(self, x, d, ray, width=None):
         """Per-sample colour (``color='sample'``): the colour MLP at every sample."""
-        density, features = self._lookup(x)
+        density, features = self._lookup(x, width)
         out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves), ray)
         return ACTIVATIONS[self.density_activation](density), mi.Color3f(*[sigmoid(o) for o in out])
 
@@ -379,7 +419,8 @@ class MLPField(Field):
     symmetrically, both at the first layer with the same encoding (``dir_octaves``
     is unused). About twice the network evaluations of ``'nerf'``.
     The paper's network is depth 8, width 256 with a skip connection; the
-    defaults here are smaller for the CPU and have no skip.
+    defaults here are smaller for the CPU and have no skip. Samples are points: a footprint
+    ``width`` is ignored.
     """
 
     def __init__(self, domain, structure='nerf', depth=4, width=64, pos_octaves=10,
@@ -408,11 +449,11 @@ class MLPField(Field):
                     pos_octaves=self.pos_octaves, dir_octaves=self.dir_octaves,
                     density_bias=self.density_bias)
 
-    def density(self, x):
+    def density(self, x, width=None):
         return softplus(self.trunk(positional_encoding(list(x), self.pos_octaves))[0]
                         + self.density_bias)
 
-    def __call__(self, x, d, ray):
+    def __call__(self, x, d, ray, width=None):
         gx = positional_encoding(list(x), self.pos_octaves)
         dirs = [d.x, d.y, d.z]
         if self.structure == 'nerf':

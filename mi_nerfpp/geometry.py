@@ -148,3 +148,17 @@ __all__ = [
     'inverted_sphere_direction_by_rotation', 'direction_to_equirect', 'grid_coordinates',
     'ball_warp', 'BALL_WARP_SHARE',
 ]
+
+
+def pixel_footprint(ray):
+    """The pixel footprint of camera rays (Mitsuba ``RayDifferential3f``): the width of a pixel
+    per unit distance, ``sqrt(|(d_x − d) × (d_y − d)|)`` with ``d_x, d_y`` the directions
+    through the neighbouring pixels (the square root of the pixel's solid angle); None for
+    rays without differentials. Per ray, whatever the samples per pixel: a pixel's samples
+    together cover the pixel."""
+    if not getattr(ray, 'has_differentials', False):
+        return None
+    d = dr.normalize(mi.Vector3f(dr.detach(ray.d)))
+    dx = dr.normalize(mi.Vector3f(dr.detach(ray.d_x))) - d
+    dy = dr.normalize(mi.Vector3f(dr.detach(ray.d_y))) - d
+    return dr.sqrt(dr.norm(dr.cross(dx, dy)))

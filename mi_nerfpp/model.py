@@ -52,11 +52,11 @@ class LinearRadiance:
         sigma, rgb = self.field(*args, **kwargs)
         return sigma, dr.srgb_to_linear(rgb)
 
-    def density(self, x):
-        return self.field.density(x)
+    def density(self, x, **kwargs):
+        return self.field.density(x, **kwargs)
 
-    def features(self, x):
-        return self.field.features(x)
+    def features(self, x, **kwargs):
+        return self.field.features(x, **kwargs)
 
     def color(self, features, d):
         return dr.srgb_to_linear(self.field.color(features, d))
@@ -125,6 +125,12 @@ class NeRFPPModel:
         if self.color_space == 'linear' or self.composite == 'srgb':
             return self.fg, self.bg
         return LinearRadiance(self.fg), None if self.bg is None else LinearRadiance(self.bg)
+
+    @property
+    def antialias(self) -> bool:
+        """Whether a field filters its lookups by the pixels' footprints (then renders and
+        training pass them)."""
+        return any(getattr(f, 'antialias', False) for f in (self.fg, self.bg))
 
     @property
     def render_settings(self) -> RenderSettings:

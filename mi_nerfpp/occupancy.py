@@ -134,7 +134,7 @@ class OccupiedVolume:
         if self.bins % 32:
             raise ValueError(f'occupancy bins per ray must be a multiple of 32, got {bins}')
         self.infinite_last, self.open = volume.infinite_last, volume.open
-        self.d = volume.d
+        self.d, self.footprint = volume.d, volume.footprint
         n_rays = dr.width(volume.lo)
         ray, k = flat_index(n_rays, self.bins)
         lo, hi = dr.gather(mi.Float, volume.lo, ray), dr.gather(mi.Float, volume.hi, ray)
@@ -190,6 +190,9 @@ class OccupiedVolume:
 
     def distance(self, ray, v):
         return self.base.distance(ray, v)
+
+    def footprint_at(self, ray, v):
+        return self.base.footprint_at(ray, v)
 
     def normalized(self, ray, u):
         return u

@@ -41,6 +41,14 @@ A field with per-sample colour (the pure-MLP fields, closed-form test fields) gi
 sample its colour ``c_i(d)``, composited as ``C = Σ w_i c_i``. For a colour network that is
 affine in its features the two agree.
 
+Pixel footprints (anti-aliasing). A ray may carry its pixel's *footprint* ``ρ``: the width of
+the pixel per unit distance along the ray (the square root of its solid angle). A sample at
+distance ``t`` then covers a width ``ρ·t`` of the foreground, and an angle ``ρ·t·s`` of the
+background's sphere of radius ``1/s``; :meth:`Volume.footprint_at` gives it in the units of
+the field's domain, and a field that filters (:class:`~.fields.GridField` with ``antialias``)
+leaves out what its grid levels cannot resolve at that width. Rays without a footprint
+(None) are looked up as points.
+
 Primal renders (the integrator) terminate rays early: the background is rendered only
 behind a foreground that lets light through (``skip_occluded`` of :func:`render_rays`), and
 per-sample colour is evaluated only at samples that can show, after the densities of both
@@ -112,18 +120,24 @@ class Volume:
 
     infinite_last = False
     open = None
+    footprint = None      # per ray: the pixel's width per unit distance, or None
 
     def parameter(self, ray, v):
         """The ray parameter of sample coordinate ``v`` (the identity here)."""
         return v
+
+    def footprint_at(self, ray, v):
+        """The pixel footprint of the samples at ``v`` on rays ``ray`` in the units of the
+        field's domain (None for rays without a footprint)."""
+        return None
 
 
 class Foreground(Volume):
     """The unit-sphere volume, parametrized by ray distance ``t``; ``far`` (per ray, or None)
     ends the segment there (the ray hit a surface), ``inf`` leaves it whole."""
 
-    def __init__(self, o, d, near=0.0, far=None):
-        self.o, self.d = o, d
+    def __init__(self, o, d, near=0.0, far=None, footprint=None):
+        self.o, self.d, self.footprint = o, d, footprint
         # The samples' distances t are constants of the ray parameters (as nerfstudio's):
         # gradients reach o and d through p = o + t·d only.
         self.lo, self.hi = geo.foreground_interval(dr.detach(o), dr.detach(d), near)
@@ -143,6 +157,12 @@ class Foreground(Volume):
     def distance(self, ray, v):
         return v
 
+    def footprint_at(self, ray, v):
+        """``ρ·t``: the footprint's width at distance ``t``, in the ball's units."""
+        if self.footprint is None:
+            return None
+        return dr.gather(mi.Float, self.footprint, ray) * v
+
     def normalized(self, ray, v):
         """Position along the chord, 0 at its start and 1 at the sphere."""
         lo, hi = dr.gather(mi.Float, self.lo, ray), dr.gather(mi.Float, self.hi, ray)
@@ -160,8 +180,8 @@ class Background(Volume):
 
     infinite_last = True
 
-    def __init__(self, o, d, far=None):
-        self.d = d
+    def __init__(self, o, d, far=None, footprint=None):
+        self.d, self.footprint = d, footprint
         self.t_b, self.p_m, self.b = geo.closest_approach(o, d)
         self.s_max = geo.background_s_max(dr.detach(o), dr.detach(d))   # constant, as t
         self.lo = dr.zeros(mi.Float, dr.width(d))
@@ -201,6 +221,14 @@ class Background(Volume):
         s = dr.maximum(self.s(ray, v), 1.0 / MAX_DEPTH_RADIUS)
         return geo.inverted_sphere_distance(dr.gather(mi.Float, self.t_b, ray),
                                             dr.gather(mi.Float, self.b, ray), s)
+
+    def footprint_at(self, ray, v):
+        """``ρ·t·s``: the angle (radians) the footprint's width at distance ``t`` subtends
+        on the sphere of radius ``1/s`` it lies on."""
+        if self.footprint is None:
+            return None
+        return (dr.gather(mi.Float, self.footprint, ray) * self.distance(ray, v)
+                * self.s(ray, v))
 
 
 # ----------------------------------------------------------------------------- quadrature
@@ -281,13 +309,13 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
 
     def evaluate(ray, t):
         """Density and the per-sample values to composite (features, or colour) at ``t``."""
-        x = volume.inputs(ray, t)
+        x, width = volume.inputs(ray, t), _footprint(volume.footprint_at(ray, t))
         if lazy:
-            out = (field.density(x), [])
+            out = (field.density(x, **width), [])
         elif deferred:
-            out = field.features(x)
+            out = field.features(x, **width)
         else:
-            sigma, rgb = field(x, volume.d, ray)
+            sigma, rgb = field(x, volume.d, ray, **width)
             out = (sigma, [rgb.x, rgb.y, rgb.z])
         if near_gradient > 0 and not lazy:
             scale = near_gradient_scale(dr.detach(volume.distance(ray, t)), near_gradient)
@@ -335,6 +363,12 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
     return VolumeRender(shading, w, volume.normalized(ray, v), n, distance)
 
 
+def _footprint(width):
+    """The keyword a field is looked up with: ``width`` where the rays have a footprint (fields
+    that do not filter take none)."""
+    return {} if width is None else {'width': width}
+
+
 def _shading(field, deferred, w, values, distance, n, d):
     """Colour, opacity and depth of ``n`` samples per ray with weights ``w``."""
     sums = dr.block_sum([w * f for f in values] + [w, w * distance], n)
@@ -368,7 +402,9 @@ def _shade_visible(volume, field, t, w, transmittance, n):
     rgb = dr.zeros(mi.Color3f, dr.width(t))
     if dr.width(shown) > 0:
         ray = shown // n
-        _, rgb_shown = field(volume.inputs(ray, dr.gather(mi.Float, t, shown)), volume.d, ray)
+        t_shown = dr.gather(mi.Float, t, shown)
+        _, rgb_shown = field(volume.inputs(ray, t_shown), volume.d, ray,
+                             **_footprint(volume.footprint_at(ray, t_shown)))
         dr.scatter(rgb, rgb_shown, shown)
     return rgb
 
@@ -428,7 +464,7 @@ class Sampling:
     near: float = 0.0
 
 
-def _render_visible_background(o, d, fg, render, seed, far=None):
+def _render_visible_background(o, d, fg, render, seed, far=None, footprint=None):
     """The background of the rays that the foreground does not occlude, zero elsewhere."""
     n_rays = dr.width(fg.fine.opacity)
     dr.eval(fg.fine.opacity)
@@ -444,15 +480,17 @@ def _render_visible_background(o, d, fg, render, seed, far=None):
 
     if dr.width(visible) == 0:
         return VolumeRender(expand(None), None, None, 0)
-    sub = render(dr.gather(mi.Point3f, o, visible), dr.gather(mi.Vector3f, d, visible),
-                 None if seed is None else dr.gather(mi.UInt32, seed, visible),
-                 None if far is None else dr.gather(mi.Float, far, visible))
+    def part(x, tp):
+        return None if x is None else dr.gather(tp, x, visible)
+    sub = render(part(o, mi.Point3f), part(d, mi.Vector3f), part(seed, mi.UInt32),
+                 part(far, mi.Float), part(footprint, mi.Float))
     return VolumeRender(expand(sub.fine), sub.weights, sub.position, sub.n, sub.distance,
                         rays=visible)
 
 
 def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
-                skip_occluded=False, ray_gradients=False, far=None, near_gradient=0.0):
+                skip_occluded=False, ray_gradients=False, far=None, near_gradient=0.0,
+                footprint=None):
     """Render rays ``o + t·d`` (``|d| = 1``) through the foreground and background volumes.
 
     ``bg_field=None`` renders the foreground volume alone (a bounded NeRF).
@@ -474,12 +512,16 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
     opaque (``fine.opacity < 1``: ``1 - fine.opacity`` is the light that reaches the
     surface), and a ray with ``far = inf`` renders exactly as without ``far``.
     ``near_gradient`` (training): see :func:`render_volume`.
+    ``footprint`` (Float per ray, or None): each ray's pixel width per unit distance, for
+    fields that filter their lookups by it (module docs, "Pixel footprints").
     """
     o, d = mi.Point3f(o), mi.Vector3f(d)
     if not ray_gradients:
         o, d = dr.detach(o), dr.detach(d)
     if far is not None:
         far = dr.detach(mi.Float(far))
+    if footprint is not None:
+        footprint = dr.detach(mi.Float(footprint))
     occupancy = occupancy or {}
 
     def volume(v, key):
@@ -489,16 +531,16 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
         with stage('occupancy sampling'):
             return OccupiedVolume(v, grid, DEFAULT_BINS[grid.domain])
 
-    fg = render_volume(volume(Foreground(o, d, sampling.near, far), 'fg'), fg_field,
+    fg = render_volume(volume(Foreground(o, d, sampling.near, far, footprint), 'fg'), fg_field,
                        sampling.fg_samples, sampling.fine_samples, seed, stream=0,
                        visible_only=skip_occluded, near_gradient=near_gradient)
     bg = None
     if bg_field is not None and skip_occluded:
-        bg = _render_visible_background(o, d, fg, lambda o, d, seed, far: render_volume(
-            volume(Background(o, d, far), 'bg'), bg_field, sampling.bg_samples,
-            sampling.fine_samples, seed, stream=2, visible_only=True), seed, far)
+        bg = _render_visible_background(o, d, fg, lambda o, d, seed, far, fp: render_volume(
+            volume(Background(o, d, far, fp), 'bg'), bg_field, sampling.bg_samples,
+            sampling.fine_samples, seed, stream=2, visible_only=True), seed, far, footprint)
     elif bg_field is not None:
-        bg = render_volume(volume(Background(o, d, far), 'bg'), bg_field,
+        bg = render_volume(volume(Background(o, d, far, footprint), 'bg'), bg_field,
                            sampling.bg_samples, sampling.fine_samples, seed, stream=2,
                            near_gradient=near_gradient)
     return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None))

@@ -67,6 +67,13 @@ class RayBank:
     as :attr:`Split.images <mi_nerfpp.data.dataset.Split.images>` converts it. The bank holds
     per image its camera (``fx, s, cx, fy, cy`` of K, the rotation and the centre, Float64)
     and the stored pixels: a training pixel costs the bytes its file stored (3 for 8 bits).
+
+    Image pyramid (:meth:`level`): at ``factor`` F the images are H/F x W/F pixels (a
+    remainder cropped, as :func:`~mi_nerfpp.data.images.downscale_image`); ray ``(image,
+    y, x)`` goes through the centre of the F x F block of pixels at ``(F·x, F·y)``, as the
+    camera :meth:`downscaled <mi_nerfpp.data.Camera.downscaled>` by F sees it, and its colour
+    is the block's mean: a box-filtered downsample, read from the same stored pixels (no copy
+    per level). :meth:`footprint` gives each ray's pixel width per unit distance at its level.
     """
 
     def __init__(self, split):
@@ -79,7 +86,6 @@ class RayBank:
                                 f'a training step can address: choose a --downscale')
         h, w = images.stored[0].shape[:2]
         n = len(split)
-        self.size = n * h * w
         cams = split.cameras
         K = np.array([[c.K[0, 0], c.K[0, 1], c.K[0, 2], c.K[1, 1], c.K[1, 2]] for c in cams])
         R = np.array([c.c2w[:3, :3] for c in cams])
@@ -91,11 +97,24 @@ class RayBank:
                   for a in images.stored]
         self.pixels = _owned_concatenation(stored, _STORE_TYPES[kind])
         self.layout = (n, h, w, kind, images.scale)
+        self.factor = 1
+        self.size = n * h * w
+
+    def level(self, factor):
+        """The same bank at pyramid level ``factor`` (a power of two; 1: the images as
+        stored), sharing its arrays."""
+        return RayBank.from_arrays(dict(self.arrays(), factor=int(factor)))
+
+    def max_factor(self):
+        """The coarsest pyramid factor that leaves the images at least one pixel."""
+        h, w = self.layout[1:3]
+        return 1 << (min(h, w).bit_length() - 1)
 
     def arrays(self):
-        """The bank's Dr.Jit arrays and its layout as Python values (a frozen step takes them
-        as inputs; another layout records the step anew)."""
-        return {'cameras': self.cameras, 'pixels': self.pixels, 'layout': self.layout}
+        """The bank's Dr.Jit arrays and its layout and level as Python values (a frozen step
+        takes them as inputs; another layout or level records the step anew)."""
+        return {'cameras': self.cameras, 'pixels': self.pixels, 'layout': self.layout,
+                'factor': self.factor}
 
     @classmethod
     def from_arrays(cls, arrays):
@@ -103,25 +122,41 @@ class RayBank:
         bank = cls.__new__(cls)
         bank.cameras, bank.pixels, bank.layout = (arrays['cameras'], arrays['pixels'],
                                                   arrays['layout'])
+        bank.factor = int(arrays.get('factor', 1))
         n, h, w = bank.layout[:3]
-        bank.size = n * h * w
+        if bank.factor < 1 or h // bank.factor < 1 or w // bank.factor < 1:
+            raise ValueError(f'pyramid factor {bank.factor} leaves no pixel of {w}x{h} images')
+        bank.size = n * (h // bank.factor) * (w // bank.factor)
         return bank
+
+    def _pixel(self, i):
+        """``(image, x, y)`` of rays ``i`` at this level (UInt32)."""
+        f = self.factor
+        h, w = self.layout[1] // f, self.layout[2] // f
+        image = i // (h * w)
+        within = i - image * (h * w)                  # the pixel (x, y) in its image
+        y = within // w
+        return image, within - y * w, y
+
+    def _camera_plane(self, image, x, y):
+        """``K⁻¹ [u', v', 1] = (u, v, 1)`` at the centre ``(u', v')`` of this level's pixel
+        ``(x, y)`` (in the stored image's pixel units), by back substitution (K is upper
+        triangular), in Float64; and ``k(j)``, the gather of entry j of each ray's K."""
+        K = self.cameras[0]
+        f = self.factor
+
+        def k(j):
+            return dr.gather(_Float64, K, image * 5 + j)
+        v = (_Float64(y) * f + 0.5 * f - k(4)) / k(3)
+        u = (_Float64(x) * f + 0.5 * f - k(1) * v - k(2)) / k(0)
+        return u, v, k
 
     def batch(self, index):
         """``(origin, direction, colour)`` of the rays ``index``."""
         i = mi.UInt32(index)
-        h, w = self.layout[1:3]
-        image = self.images(i)
-        within = i - image * (h * w)                  # the pixel (x, y) in its image
-        y = within // w
-        x = within - y * w
-        K, R, center = self.cameras
-
-        def k(j):
-            return dr.gather(_Float64, K, image * 5 + j)
-        # K⁻¹ [x + 0.5, y + 0.5, 1] by back substitution (K is upper triangular), then R.
-        v = (_Float64(y) + 0.5 - k(4)) / k(3)
-        u = (_Float64(x) + 0.5 - k(1) * v - k(2)) / k(0)
+        image, x, y = self._pixel(i)
+        u, v, _ = self._camera_plane(image, x, y)
+        _, R, center = self.cameras
         d = [dr.gather(_Float64, R, image * 9 + 3 * a) * u
              + dr.gather(_Float64, R, image * 9 + 3 * a + 1) * v
              + dr.gather(_Float64, R, image * 9 + 3 * a + 2) for a in range(3)]
@@ -129,26 +164,54 @@ class RayBank:
         o = [dr.gather(_Float64, center, image * 3 + a) for a in range(3)]
         return (mi.Point3f(*[mi.Float(c) for c in o]),
                 mi.Vector3f(*[mi.Float(c / norm) for c in d]),
-                mi.Color3f(*[self._channel(i, c) for c in range(3)]))
+                mi.Color3f(*self._colour(image, x, y)))
+
+    def footprint(self, index):
+        """The pixel footprint of the rays ``index``: the width of their pixel at this level
+        per unit distance, ``F·sqrt(cos³θ / (fx·fy))`` (the square root of the pixel's solid
+        angle, θ the ray's angle to the optical axis), as
+        :func:`~mi_nerfpp.geometry.pixel_footprint` measures it on a Mitsuba camera."""
+        image, x, y = self._pixel(mi.UInt32(index))
+        u, v, k = self._camera_plane(image, x, y)
+        cos = dr.rsqrt(u * u + v * v + 1.0)
+        return mi.Float(self.factor * dr.sqrt(cos * cos * cos / (k(0) * k(3))))
 
     def images(self, index):
         """The training-image index of the rays ``index`` (UInt32)."""
-        h, w = self.layout[1:3]
-        return mi.UInt32(index) // (h * w)
+        return self._pixel(mi.UInt32(index))[0]
 
-    def _channel(self, i, c):
-        """Channel ``c`` of the stored colour of the rays ``i``, as float32."""
-        kind, scale = self.layout[3:]
-        at = 3 * i + c
+    def _colour(self, image, x, y):
+        """The colour (three Floats) of this level's pixels ``(x, y)`` of ``image``: the mean
+        of the stored F x F block, summed in Float64 (integers exactly) and rounded once."""
+        n, h, w, kind, scale = self.layout
+        f = self.factor
+        first = image * (h * w) + (y * f) * w + x * f      # the block's top-left pixel
+        out = []
+        for c in range(3):
+            total = None
+            for dy in range(f):
+                for dx in range(f):
+                    value = self._stored(3 * (first + (dy * w + dx)) + c)
+                    total = value if total is None else total + value
+            if kind in ('uint8', 'uint16'):
+                # In Float64, then rounded: the float32 quotient value / scale, as NumPy's.
+                out.append(mi.Float(_Float64(total) / (scale * f * f)))
+            elif f == 1:
+                out.append(mi.Float(total))
+            else:
+                out.append(mi.Float(total / (f * f)))
+        return out
+
+    def _stored(self, at):
+        """The stored value at flat position ``at``: UInt32 for integer stores, Float64 for
+        float stores."""
+        kind = self.layout[3]
         if kind == 'uint8':
-            value = mi.UInt32(dr.gather(_UInt8, self.pixels, at))
-        elif kind == 'uint16':                    # little-endian byte pairs
-            value = (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at))
-                     | (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at + 1)) << 8))
-        else:
-            return mi.Float(dr.gather(_STORE_TYPES[kind], self.pixels, at))
-        # In Float64, then rounded: the float32 quotient value / scale, as NumPy's.
-        return mi.Float(_Float64(value) / scale)
+            return mi.UInt32(dr.gather(_UInt8, self.pixels, at))
+        if kind == 'uint16':                      # little-endian byte pairs
+            return (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at))
+                    | (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at + 1)) << 8))
+        return _Float64(dr.gather(_STORE_TYPES[kind], self.pixels, at))
 
 
 _Float64 = dr.float64_array_t(mi.Float)
@@ -340,13 +403,14 @@ class Trainer:
         the grids' shapes: a change of either records the step anew."""
         cfg, n, p = self.cfg.losses, self.cfg.schedule.batch_rays, self.progress()
         gen = dr.rng(seed=int(self.rng.integers(0, 2 ** 63)))
+        rays = self._level()
         sparse = [field is not None and weight > 0 and p >= start
                   for field, weight, start in zip((self.model.fg, self.model.bg),
                                                   per_volume(cfg.sparsity),
                                                   per_volume(cfg.sparsity_start))]
         grids = [k for k in self.opt.keys() if optim.is_grid(k)] if cfg.tv > 0 else []
         draws = {
-            'index': gen.integers(mi.UInt32, n, 0, self.rays.size),
+            'index': gen.integers(mi.UInt32, n, 0, rays.size),
             'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
             'sparsity': [[gen.random(mi.Float, n) for _ in range(4)] if on else None
                          for on in sparse],
@@ -357,9 +421,17 @@ class Trainer:
         phase = dict(refine=self.model.poses is not None and p >= self.cfg.optimizer.poses_start,
                      entropy=cfg.opacity_entropy > 0 and p >= cfg.entropy_start,
                      shapes=tuple(tuple(self.opt[k].shape) for k in self.opt.keys()))
-        return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': self.rays.arrays(),
+        return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': rays.arrays(),
                 'occupancy': {k: g.density for k, g in self.model.occupancy.items()},
                 'non_finite': dr.opaque(mi.UInt32, 0, 1)}     # set by the step's guard
+
+    def _level(self):
+        """The ray bank at this point of the run's image pyramid (``--pyramid``), at most as
+        coarse as leaves the images a pixel."""
+        factor = self.cfg.schedule.pyramid_factor(self.progress())
+        if factor == 1:
+            return self.rays
+        return self.rays.level(min(factor, self.rays.max_factor()))
 
     def _cells(self, key):
         shape = self.opt[key].shape
@@ -374,6 +446,8 @@ class Trainer:
         rays = RayBank.from_arrays(inputs['rays'])
         index = draws['index']
         o, d, gt = rays.batch(index)
+        # The pixels' footprints, for fields that filter their lookups by them.
+        footprint = rays.footprint(index) if model.antialias else None
         occupancy = {}
         for k, grid in model.occupancy.items():       # the model's grids are left untouched
             occupancy[k] = copy.copy(grid)
@@ -385,7 +459,7 @@ class Trainer:
             o, d = poses.correct_rays(params, rays.images(index), o, d)
         res = render_rays(o, d, *model.radiance_fields(), model.sampling, seed=draws['seed'],
                           occupancy=occupancy, ray_gradients=refine,
-                          near_gradient=self.near_gradient)
+                          near_gradient=self.near_gradient, footprint=footprint)
         # Radiance is linear; the loss compares it in the encoding of the images, after the
         # image's colour transform when appearance is learned.
         encode = model.loss_encoding

@@ -144,3 +144,79 @@ def test_density_gradient_reaches_the_sample_positions_through_the_grid():
               - np.array(field.density([mi.Float(minus[:, j]) for j in range(3)]))) / (2 * h)
         np.testing.assert_allclose(ad[:, k], fd, rtol=0.02, atol=2e-4)
     assert np.abs(ad).max() > 1e-3          # not trivially zero
+
+
+# ----------------------------------------------------------------------------- footprints
+
+def _inputs(domain, n=256, seed=1):
+    """Random field inputs of ``domain``: points in the ball, or (x̂, s) of the background."""
+    rng = np.random.default_rng(seed)
+    if domain == 'ball':
+        return [mi.Float(v) for v in rng.uniform(-0.7, 0.7, (3, n)).astype(np.float32)]
+    x = rng.normal(size=(3, n))
+    x /= np.linalg.norm(x, axis=0)
+    s = rng.uniform(0.05, 1.0, n)
+    return [mi.Float(v.astype(np.float32)) for v in (*x, s)]
+
+
+@pytest.mark.parametrize('domain, warp', [('ball', 0.0), ('ball', 0.4), ('inverted_sphere', 0.0)])
+def test_a_footprint_within_the_finest_cell_is_the_point_lookup(domain, warp):
+    """``antialias`` with footprints no wider than the finest level's cell: every level keeps
+    its weight of 1, so density and features are those of the point lookup, bit for bit."""
+    extra = {'warp_radius': warp} if domain == 'ball' else {}
+    field = GridField(domain, resolutions=(4, 16), channels=3, antialias=True, seed=3, **extra)
+    x = _inputs(domain)
+    n = dr.width(x[0])
+    # Footprints up to the finest cell, in the domain's units; the warp magnifies the centre
+    # by at most BALL_WARP_SHARE / warp, so shrink them by that much there.
+    from mi_nerfpp.geometry import BALL_WARP_SHARE
+    magnify = BALL_WARP_SHARE / warp if warp else 1.0
+    width = mi.Float(np.linspace(0.0, 1.0, n).astype(np.float32)) * (
+        field.cell_size(1) / magnify)
+    sigma_p, feat_p = field.features(x)
+    sigma_f, feat_f = field.features(x, width)
+    np.testing.assert_array_equal(np.array(sigma_f), np.array(sigma_p))
+    for a, b in zip(feat_f, feat_p):
+        np.testing.assert_array_equal(np.array(a), np.array(b))
+    # Without antialias the footprint is ignored whatever its size.
+    field.antialias = False
+    np.testing.assert_array_equal(np.array(field.density(x, width * 100.0)),
+                                  np.array(field.density(x)))
+
+
+@pytest.mark.parametrize('domain', ['ball', 'inverted_sphere'])
+def test_a_wide_footprint_weighs_each_level_by_how_well_its_cells_resolve_it(domain):
+    """Closed form: at a footprint of 1.5 fine cells the fine level weighs 0.5 and the coarse
+    level 1 (its cells are 4x wider); from 2 fine cells to one coarse cell the fine level is gone. The
+    same as the point lookup of a field whose fine grid is scaled by that weight."""
+    field = GridField(domain, resolutions=(4, 16), channels=3, antialias=True, seed=5)
+    x = _inputs(domain)
+    n = dr.width(x[0])
+    for multiple, weight in ((1.5, 0.5), (2.0, 0.0), (3.5, 0.0)):
+        width = dr.full(mi.Float, field.cell_size(1) * multiple, n)
+        sigma, features = field.features(x, width)
+        reference = GridField(domain, resolutions=(4, 16), channels=3, seed=5)
+        reference.set_parameters({'grid1': field.params['grid1'] * weight})
+        sigma_ref, features_ref = reference.features(x)
+        np.testing.assert_allclose(np.array(sigma), np.array(sigma_ref), rtol=1e-5,
+                                   err_msg=f"footprint of {multiple} fine cells")
+        for a, b in zip(features, features_ref):
+            np.testing.assert_allclose(np.array(a), np.array(b), rtol=1e-5, atol=1e-7)
+    # At 16 fine cells (4 coarse cells) no level is left: density from the bias alone.
+    width = dr.full(mi.Float, field.cell_size(1) * 16.0, n)
+    np.testing.assert_allclose(np.array(field.density(x, width)),
+                               np.exp(field.density_bias), rtol=1e-6)
+
+
+def test_level_weight():
+    from mi_nerfpp.fields import level_weight
+    w = level_weight(mi.Float([0.0, 0.5, 1.0, 1.25, 1.5, 2.0, 3.0]), 1.0)
+    np.testing.assert_allclose(np.array(w), [1, 1, 1, 0.75, 0.5, 0, 0])
+
+
+def test_antialias_round_trips_through_the_config():
+    field = GridField('ball', resolutions=(4, 8), channels=3, antialias=True)
+    again = make_field(field.config)
+    assert again.antialias and field.config['antialias'] is True
+    assert make_field({k: v for k, v in field.config.items() if k != 'antialias'}).antialias \
+        is False    # a field stored before footprints looks up points

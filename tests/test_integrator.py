@@ -163,3 +163,36 @@ def test_integrator_builds_random_fields_only_when_asked(tmp_path):
     assert integ.model is m                       # the handed model was rendered, no other
     fresh = mi.load_dict(scene_dict(seed=4, field='nerf')).integrator()
     assert fresh.model.n_parameters() > 0 and fresh._model is fresh.model
+
+
+def test_renders_pass_each_pixels_footprint_to_the_fields():
+    """A model whose grids filter by footprint (``antialias``), rendered by the integrator at
+    12 x 9 pixels (footprints of several fine cells): the beauty equals :func:`render_rays`
+    of the same rays with the footprints the training bank gives that camera, and differs
+    from the point lookup."""
+    from mi_nerfpp.data import Split
+    from mi_nerfpp.data.storage import StoredImages
+    from mi_nerfpp.model import NeRFPPModel
+    from mi_nerfpp.render import render_rays
+    from mi_nerfpp.train import RayBank
+    from mi_nerfpp.views import ViewRenderer, rgb
+    from tests.helpers import orbit_camera
+    grid = dict(kind='grid', resolutions=[8, 64], channels=3, hidden=8, antialias=True)
+    model = NeRFPPModel.create(seed=2, fg_config=dict(grid, domain='ball'),
+                               bg_config=dict(grid, domain='inverted_sphere'))
+    for field in (model.fg, model.bg):       # a fine level with detail that shows
+        field.set_parameters({'grid1': field.params['grid1'] * 30.0})
+    camera = orbit_camera(0.4, 0.1, 0.8, 12, 9, focal=0.8)
+    renderer = ViewRenderer(model)
+    image = rgb(renderer.render(camera))
+    bank = RayBank(Split([camera], ['x.png'], StoredImages([np.zeros((9, 12, 3), np.uint8)],
+                                                           255.0)))
+    index = np.arange(bank.size, dtype=np.uint32)
+    o, d, _ = bank.batch(index)
+    expected = {}
+    for footprint in (bank.footprint(index), None):
+        res = render_rays(o, d, *model.radiance_fields(), model.sampling, occupancy=None,
+                          skip_occluded=True, footprint=footprint)
+        expected[footprint is None] = np.array(res.fine.rgb).T.reshape(9, 12, 3)
+    np.testing.assert_allclose(image, expected[False], atol=2e-3)
+    assert np.abs(image - expected[True]).mean() > 5e-3     # the footprints did change it

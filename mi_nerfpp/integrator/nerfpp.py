@@ -13,6 +13,7 @@ import mitsuba as mi
 import numpy as np
 from mitsuba.ad.integrators.common import ADIntegrator
 
+from ..geometry import pixel_footprint
 from ..layers import AOVS, aov_list, rst_table
 from ..model import FIELD_KINDS, NeRFPPModel
 from ..objects import split_scene
@@ -260,6 +261,7 @@ class NeRFPPIntegrator(ADIntegrator):
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
         o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
+        fp = pixel_footprint(ray)
         seed = None
         if self.stratified:
             seed = mi.UInt32(sampler.next_1d() * 4294967040.0)
@@ -269,12 +271,12 @@ class NeRFPPIntegrator(ADIntegrator):
         if parts.objects is None and parts.catchers is None:
             # No shapes: the volumes alone, without any intersection.
             if mode != dr.ADMode.Primal:
-                L, aovs = self.render_layers(o, d, seed)
+                L, aovs = self.render_layers(o, d, seed, footprint=fp)
             elif n <= self.chunk_rays:
-                L, aovs = self.render_layers(o, d, seed, primal=True)
+                L, aovs = self.render_layers(o, d, seed, primal=True, footprint=fp)
             else:
-                L, aovs = self._chunked(lambda o, d, seed: self.render_layers(
-                    o, d, seed, primal=True), [o, d, seed], n)
+                L, aovs = self._chunked(lambda o, d, seed, fp: self.render_layers(
+                    o, d, seed, primal=True, footprint=fp), [o, d, seed, fp], n)
             # The objects' layers are 0.
             return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
         # One seed per camera sample: its index hashed with the sampler (which carries the
@@ -286,11 +288,11 @@ class NeRFPPIntegrator(ADIntegrator):
             environment = self._catcher_environment(parts, mode == dr.ADMode.Primal)
         if mode != dr.ADMode.Primal:
             L, aovs = self._render_scene(parts, o, d, seed, path_seed, primal=False,
-                                         environment=environment)
+                                         environment=environment, footprint=fp)
         else:
-            L, aovs = self._chunked(lambda o, d, seed, path_seed: self._render_scene(
-                parts, o, d, seed, path_seed, primal=True, environment=environment),
-                [o, d, seed, path_seed], n)
+            L, aovs = self._chunked(lambda o, d, seed, path_seed, fp: self._render_scene(
+                parts, o, d, seed, path_seed, primal=True, environment=environment,
+                footprint=fp), [o, d, seed, path_seed, fp], n)
         return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
 
 

@@ -16,7 +16,7 @@ class ShapeLayers:
     them as its own; they use those of :class:`~.volumes.VolumeLayers`)."""
 
     def _render_scene(self, parts, o, d, seed, path_seed, primal, environment=None,
-                      transform=True, camera=True):
+                      transform=True, camera=True, footprint=None):
         """Beauty and AOVs of camera rays through a scene with shapes (see
         :mod:`mi_nerfpp.objects`): the volumes up to the first surface, the surfaces path
         traced with the volumes as their light, the shadow catchers' differential shading
@@ -31,7 +31,8 @@ class ShapeLayers:
                                 self.rr_depth)
             far0 = dr.gather(mi.Float, paths.far, paths.segment(0))
             hit = ~dr.isinf(far0)
-        L0, volumes, opacity0 = self._volume(o, d, seed, primal, far0, transform, camera)
+        L0, volumes, opacity0 = self._volume(o, d, seed, primal, far0, transform, camera,
+                                             footprint)
         surfaces = dr.zeros(mi.Color3f, n)
         if parts.objects is not None:
             # Every segment's volumes: the camera segment's from above, the others here.

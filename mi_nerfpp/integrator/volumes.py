@@ -17,14 +17,17 @@ class VolumeLayers:
     """The volumes' methods of :class:`~mi_nerfpp.integrator.NeRFPPIntegrator` (which takes
     them as its own; they read its ``model``, ``sampling``, ``background`` and parameters)."""
 
-    def render_layers(self, o, d, seed, primal=False, far=None):
+    def render_layers(self, o, d, seed, primal=False, far=None, footprint=None):
         """Beauty and volume AOVs of world-space rays: ``(L: Color3f, aovs: {channel: Float})``
         (the ``fg``, ``bg``, ``depth`` and ``distance`` channels), the volumes ending at
-        ``far`` (world units per ray, ``inf``: no end; None: all)."""
-        L, aovs, _ = self._volume(o, d, seed, primal, far)
+        ``far`` (world units per ray, ``inf``: no end; None: all); ``footprint``: the rays'
+        pixel widths per unit distance (:func:`~mi_nerfpp.geometry.pixel_footprint`), or
+        None."""
+        L, aovs, _ = self._volume(o, d, seed, primal, far, footprint=footprint)
         return L, aovs
 
-    def _volume(self, o, d, seed, primal=False, far=None, transform=True, camera=True):
+    def _volume(self, o, d, seed, primal=False, far=None, transform=True, camera=True,
+                footprint=None):
         """:meth:`render_layers` plus the composite opacity (``1 -`` the transmittance to
         ``far``); ``transform=False`` leaves out the appearance transform; ``camera=False``
         (rays that leave a surface) starts the samples at the ray origin, not at ``near``."""
@@ -38,7 +41,8 @@ class VolumeLayers:
                           bg_field if self.background else None, sampling, seed,
                           occupancy=model.occupancy,
                           skip_occluded=primal and not self.occluded_background,
-                          far=None if far is None else norm.to_model_distance(far))
+                          far=None if far is None else norm.to_model_distance(far),
+                          footprint=footprint if model.antialias else None)
         fg = res.fg.fine
         L, fg_rgb, alpha = res.fine.rgb, fg.rgb, dr.clip(fg.opacity, 0.0, 1.0)
         bg = res.bg.fine.rgb if res.bg is not None else mi.Color3f(0.0)

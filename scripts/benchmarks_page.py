@@ -45,9 +45,9 @@ PAGE = ROOT / 'docs' / 'benchmarks.md'
 REGENERATE = 'python scripts/benchmarks_page.py'
 
 # Known benchmarks first, in this order (quality and speed of the default job, then the rest).
-ORDER = ('versus', 'held_out', 'profile', 'quality', 'train', 'render', 'compare', 'cluster',
-         'objects', 'appearance', 'poses', 'coverage', 'converged', 'noise_ceiling',
-         'render_samples', 'ablation', 'photo_set_memory')
+ORDER = ('versus', 'held_out', 'resolution', 'profile', 'quality', 'train', 'render',
+         'compare', 'cluster', 'objects', 'appearance', 'poses', 'coverage', 'converged',
+         'noise_ceiling', 'render_samples', 'ablation', 'photo_set_memory')
 REQUIRED = ('benchmark', 'title', 'command', 'date', 'machine', 'git', 'tables')
 MACHINE_KEYS = ('cpu', 'memory_gib', 'os', 'python', 'mitsuba', 'drjit')
 

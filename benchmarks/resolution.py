@@ -20,6 +20,7 @@ A crop of the first test view from each run, beside the test image, goes to
 ``results/<name>_crops.png``. Results: ``benchmarks/results/<--name>.json``.
 """
 import argparse
+import dataclasses
 import os
 import tempfile
 
@@ -27,9 +28,11 @@ import numpy as np
 
 import mi_nerfpp  # noqa: F401
 from mi_nerfpp import bench
+from mi_nerfpp.data import load_dataset
 from mi_nerfpp.data.images import downscale_image
 from mi_nerfpp.metrics import equivalent_blur, psnr, ssim
 from mi_nerfpp.run import open_run
+from mi_nerfpp.train import in_model_frame
 from mi_nerfpp.views import ViewRenderer, encoded_rgb
 
 
@@ -70,6 +73,9 @@ def main():
     for item in a.runs:
         label, _, run = item.partition('=')
         model, meta, cfg, data = open_run(run)
+        if cfg.data.downscale != 1:        # score at the capture's own resolution
+            full = load_dataset(data.root, downscale=1, background=cfg.data.background)
+            data = dataclasses.replace(full, **in_model_frame(full, model.normalization))
         renderer = ViewRenderer(model)
         test = data.test
         factor = trained_factor(meta, cfg, data)

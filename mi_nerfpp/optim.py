@@ -28,82 +28,18 @@ def is_grid(name: str) -> bool:
     return name.rsplit('.', 1)[-1].startswith('grid')
 
 
-# Arrays of at least this many entries take the sparse path of :class:`LazyAdam`.
-SPARSE_ADAM_MIN_ENTRIES = 1 << 16
-
-
 def adam(params: dict, lr: float = LR_MLP, lazy: bool = False, beta_2: float = ADAM_BETA2):
     """An Adam optimizer holding ``params`` (name -> array).
 
     ``lazy``: entries whose gradient is zero in a step are left alone, moments included
     (``mask_updates``, as instant-ngp does for its grids): a grid cell that no sample
-    touched does not keep drifting on stale momentum; the large arrays (the grids) are then
-    updated where the gradient is nonzero only (:class:`LazyAdam`). ``beta_2``: decay of the
-    second-moment estimate (instant-ngp uses 0.99 for its sparsely touched grids).
+    touched does not keep drifting on stale momentum. ``beta_2``: decay of the second-moment
+    estimate (instant-ngp uses 0.99 for its sparsely touched grids).
     """
-    opt = LazyAdam(lr=lr, beta_2=beta_2) if lazy else dr.opt.Adam(lr=lr, beta_2=beta_2)
+    opt = dr.opt.Adam(lr=lr, mask_updates=lazy, beta_2=beta_2)
     for k, v in params.items():
         opt[k] = v
     return opt
-
-
-class LazyAdam(dr.opt.Adam):
-    """``drjit.opt.Adam`` with ``mask_updates``, which reads and writes only the touched entries
-    of large arrays.
-
-    The masked update of ``drjit.opt.Adam`` still streams every entry of every array (the
-    parameter, its gradient and both moments, read and written): for the feature grids, 17 M
-    entries of which a step of 1,024 rays touches a few per cent, that pass was most of a step.
-    Here an array of at least :data:`SPARSE_ADAM_MIN_ENTRIES` entries is updated through the
-    indices of its nonzero gradient (``drjit.compress``, which a frozen step records): the
-    gradient is read once, the rest only where it is nonzero. The arithmetic is Adam's own
-    (``_step``) on the gathered entries, so the result equals the masked update's exactly;
-    smaller arrays take that masked update.
-    """
-
-    def __init__(self, lr=LR_MLP, beta_2=ADAM_BETA2, **kwargs):
-        super().__init__(lr=lr, beta_2=beta_2, mask_updates=True, **kwargs)
-
-    def step(self, *, eval=True, grad_scale=None, active=None):
-        if grad_scale is not None or active is not None:
-            raise ValueError('LazyAdam takes no grad_scale or active mask')
-        large = {k: entry for k, entry in self.state.items()
-                 if dr.width(entry[0].array) >= SPARSE_ADAM_MIN_ENTRIES}
-        for k in large:
-            del self.state[k]
-        try:
-            super().step(eval=False)          # the small arrays, masked
-        finally:
-            cache = dr.opt._LRCache()
-            updated = {k: self._sparse_step(cache, k, large) for k in list(large)}
-            self.state.update(updated)
-        if eval:
-            dr.eval()
-
-    def _sparse_step(self, cache, key, entries):
-        """The update of array ``key``, taken out of ``entries`` first: its moments are then
-        referenced here alone and are updated in place."""
-        value, promoted, lr, extra = entries.pop(key)
-        t_p, m, v, v_max = extra
-        del extra
-        if v_max is not None:
-            raise ValueError('LazyAdam does not do AMSGrad')
-        grad = value.grad.array
-        Float = type(grad)
-        touched = dr.compress(grad != 0)
-        new_value, (t, m_i, v_i, _) = self._step(
-            cache, dr.gather(Float, dr.detach(value).array, touched),
-            dr.gather(Float, grad, touched), lr if lr is not None else self.lr,
-            (t_p, dr.gather(Float, m, touched), dr.gather(Float, v, touched), None))
-        flat = Float(dr.detach(value).array)
-        dr.scatter(flat, new_value, touched)
-        dr.scatter(m, m_i, touched)
-        dr.scatter(v, v_i, touched)
-        new = type(value)(flat, value.shape) if dr.is_tensor_v(value) else type(value)(flat)
-        dr.enable_grad(new)
-        state = (new, promoted, lr, (t, m, v, None))
-        dr.schedule(state)
-        return state
 
 
 def set_learning_rates(opt, progress: float, lr_grid: float = LR_GRID, lr_mlp: float = LR_MLP,

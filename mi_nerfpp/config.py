@@ -373,11 +373,10 @@ class ScheduleOptions(_Options):
     coarse_to_fine: tuple = option((), 'grid field: fractions of the run at which the grids '
                                    'double in resolution (they start at RES / 2^n)', type=float,
                                    nargs='*', metavar='F', shapes_model=True)
-    pyramid: tuple = option((), 'image pyramid: fractions of the run at which training moves to '
-                            'the next finer level of box-filtered images (it starts at 1/2^n '
-                            'of their size, the last fraction reaches full size); pair with '
-                            '--coarse-to-fine and --antialias', type=float, nargs='*',
-                            metavar='F')
+    pyramid: tuple = option((0.1, 0.3), 'image pyramid: fractions of the run at which training '
+                            'moves to the next finer level of box-filtered images (it starts at '
+                            '1/2^n of their size, the last fraction reaches full size; none: '
+                            'full size throughout)', type=float, nargs='*', metavar='F')
 
     def _validate(self):        # neither iterations nor minutes: chosen from the capture
         if self.minutes is not None and not (_finite(self.minutes) and self.minutes > 0):

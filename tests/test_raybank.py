@@ -149,13 +149,14 @@ def test_training_takes_the_same_steps_as_on_precomputed_rays(capture, tmp_path,
     """Four steps from the same seed on the per-batch rays and on the precomputed ones (one
     thread, so that both runs are deterministic): the same losses and parameters, bit for bit;
     with pose refinement from the first step, the corrected rays too (and the appearance
-    transforms take the image index of each ray). The precomputed rays have no footprints:
-    the fields look up points (``antialias`` off), as before issue 34."""
+    transforms take the image index of each ray). The precomputed rays have no footprints
+    and no pyramid: the fields look up points (``antialias`` off) at full size, as before
+    issue 34."""
     dataset = load_dataset(capture)
     config = TrainConfig.from_options(
         iterations=4, batch_rays=512, fg_samples=8, bg_samples=8, fine_samples=8,
         checkpoint_every=0, preview_every=0, refine_poses=refine, poses_start=0.0,
-        appearance=refine, antialias=False)
+        appearance=refine, antialias=False, pyramid=())
     runs = {}
     for name, bank in (('per batch', RayBank), ('precomputed', PrecomputedRayBank)):
         monkeypatch.setattr(train, 'RayBank', bank)

@@ -292,7 +292,8 @@ def test_frozen_step_replays_the_traced_step(dataset, tmp_path, extra):
     each step's learning rate and random draws reach the replay, and a prior that starts
     half-way (or pose refinement) records the step anew instead of replaying the old one.
     On one thread (``one_thread``), so that the two runs' gradient sums agree in the last bits."""
-    cfg = dict(iterations=8, seed=3, **SMALL, **extra)
+    # At full size throughout: each level of the image pyramid records the step anew too.
+    cfg = dict(iterations=8, seed=3, pyramid=(), **SMALL, **extra)
     runs = {}
     with one_thread():
         for freeze in (False, True):

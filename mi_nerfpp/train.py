@@ -196,9 +196,7 @@ class RayBank:
             if kind in ('uint8', 'uint16'):
                 # In Float64, then rounded: the float32 quotient value / scale, as NumPy's.
                 out.append(mi.Float(_Float64(total) / (scale * f * f)))
-            elif f == 1:
-                out.append(mi.Float(total))
-            else:
+            else:                                   # exact for F = 1
                 out.append(mi.Float(total / (f * f)))
         return out
 

@@ -166,6 +166,17 @@ class ModelOptions(_Options):
                                           'background grid', type=int, nargs='+', metavar='RES',
                                           default_help='(default: as --grid-levels)',
                                           shapes_model=True)
+    grid_planes: tuple = option(tuple(_grid_default('planes')), 'grid field: resolution of each '
+                                'plane level of the foreground grid: three planes of RES x RES '
+                                'cells over the coordinate pairs, summed (a factorized level: '
+                                'fine cells for 3 RES² entries instead of RES³)', type=int,
+                                nargs='*', metavar='RES', shapes_model=True)
+    bg_grid_planes: tuple | None = option(None, 'grid field: resolution of each plane level of '
+                                          'the background grid (longitude x colatitude 2RES x '
+                                          'RES, longitude and colatitude x s with RES/2 along s)',
+                                          type=int, nargs='*', metavar='RES',
+                                          default_help='(default: as --grid-planes)',
+                                          shapes_model=True)
     grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
                                 shapes_model=True)
     fg_warp: float = option(_grid_default('warp_radius'), 'grid field: radius of the inner ball '
@@ -229,6 +240,12 @@ class ModelOptions(_Options):
         if self.bg_grid_levels is not None and (not self.bg_grid_levels
                                                 or min(self.bg_grid_levels) < 2):
             self._bad('bg_grid_levels', 'one or more resolutions of at least 2')
+        self.grid_planes = _as_tuple(self.grid_planes)
+        if self.bg_grid_planes is not None:
+            self.bg_grid_planes = _as_tuple(self.bg_grid_planes)
+        for name in ('grid_planes', 'bg_grid_planes'):
+            if any(r < 2 for r in getattr(self, name) or ()):
+                self._bad(name, 'resolutions of at least 2')
         if not (_finite(self.fg_warp) and 0 <= self.fg_warp < 1):
             self._bad('fg_warp', 'a radius in [0, 1)')
         self.bg_s_ratio = _as_tuple(self.bg_s_ratio)
@@ -245,6 +262,12 @@ class ModelOptions(_Options):
         if domain == 'inverted_sphere' and self.bg_grid_levels is not None:
             return self.bg_grid_levels
         return self.grid_levels
+
+    def planes(self, domain):
+        """The plane levels' resolutions of one volume's grid field."""
+        if domain == 'inverted_sphere' and self.bg_grid_planes is not None:
+            return tuple(self.bg_grid_planes)
+        return tuple(self.grid_planes)
 
 
 @dataclass
@@ -491,7 +514,8 @@ class TrainConfig:
         return dict(kind='grid', domain=domain, resolutions=start,
                     channels=m.grid_channels, dir_octaves=m.dir_octaves,
                     color_layers=m.color_layers, hidden=m.color_width, color=m.color,
-                    density_bias=m.density_bias, antialias=m.antialias, **extra)
+                    density_bias=m.density_bias, antialias=m.antialias,
+                    planes=list(m.planes(domain)), **extra)
 
     @property
     def render_sampling(self) -> Sampling:
@@ -527,6 +551,19 @@ class TrainConfig:
         ratios = per_level(m.bg_s_ratio, len(levels))
         return [max(int(r * q), 4) * r * 2 * r * channels for r, q in zip(levels, ratios)]
 
+    def grid_planes_entries(self, domain) -> list[int]:
+        """Entries of each plane level of one volume's grid field (the three planes of
+        :meth:`GridField._plane_shapes <mi_nerfpp.fields.GridField._plane_shapes>`), times
+        ``--grid-channels``; empty for a volume without a grid field."""
+        m = self.model
+        kind = m.field if domain == 'ball' else m.bg_field
+        if kind != 'grid' or (domain == 'inverted_sphere' and m.kind != 'nerfpp'):
+            return []
+        if domain == 'ball':
+            return [3 * r * r * m.grid_channels for r in m.planes(domain)]
+        return [(2 * r * r + 3 * r * max(r // 2, 4)) * m.grid_channels
+                for r in m.planes(domain)]
+
     def occupancy_cells(self, resolution=None) -> list[int]:
         """Cells of each volume's occupancy grid (:class:`~.occupancy.OccupancyGrid`)."""
         if not self.sampling.occupancy:
@@ -541,7 +578,9 @@ class TrainConfig:
         field samples of a training step). ``values``: see :meth:`_sizes`."""
         batch, spr, fg, bg, channels, occupancy = self._sizes(**values)
         grids = sum(self.grid_levels_entries('ball', fg, channels)
-                    + self.grid_levels_entries('inverted_sphere', bg, channels))
+                    + self.grid_levels_entries('inverted_sphere', bg, channels)
+                    + self.grid_planes_entries('ball')
+                    + self.grid_planes_entries('inverted_sphere'))
         return {'grids': grids * limits.GRID_BYTES_PER_ENTRY,
                 'occupancy': sum(self.occupancy_cells(occupancy))
                 * limits.OCCUPANCY_BYTES_PER_CELL,

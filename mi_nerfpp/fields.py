@@ -147,6 +147,9 @@ class Field:
             # Let go of the previous tensors now (a frozen training step, which sets them on
             # lookup, would keep its recording's inputs alive otherwise).
             tex.set_tensor(self.params[f'grid{i}'])
+        planes = [k for k in self.params if k.startswith('plane')]
+        for key, tex in zip(planes, getattr(self, 'plane_textures', ())):
+            tex.set_tensor(self.params[key])
 
 
 class _Net:
@@ -242,6 +245,15 @@ class GridField(Field):
     footprint within the finest cell, or none, is today's point lookup exactly. Fields built
     without it (and checkpoints from before it) look up points.
 
+    ``planes``: plane levels (resolutions ``R``), a factorized level that holds fine cells in
+    few entries: three ``Texture2f`` planes over the coordinate pairs (x, y), (x, z), (y, z) of
+    the ball (``R x R`` each; in the background (longitude, colatitude) ``2R x R``, and
+    longitude and colatitude against ``s`` with ``R/2`` cells along ``s``), whose bilinear
+    lookups are summed into one more level's density logit and features (so density is their
+    product, as K-Planes'). ``3R²`` entries instead of ``R³``: a step's cost grows with the
+    entries (the Adam update and the gradient buffers), not with the resolution. They start
+    at zero, so what no sample reaches adds nothing.
+
     Ball domain: level ``R`` is an ``R³`` grid over ``[-1, 1]³``, indexed by the point itself or,
     with ``warp_radius > 0``, by :func:`~mi_nerfpp.geometry.ball_warp` of it (finer cells in the
     centre, where a 360° capture's cameras look).
@@ -257,7 +269,7 @@ class GridField(Field):
 
     def __init__(self, domain, resolutions=(32, 128), channels=4, hidden=32, dir_octaves=2,
                  density_bias=-3.0, density_activation='exp', color_layers=1, s_ratio=0.5,
-                 warp_radius=0.0, color='deferred', antialias=False, seed=0):
+                 warp_radius=0.0, color='deferred', antialias=False, planes=(), seed=0):
         super().__init__(domain)
         self.antialias = bool(antialias)
         if color not in COLOR_MODES:
@@ -297,7 +309,20 @@ class GridField(Field):
             size = shape[0] * shape[1] * shape[2] * shape[3]
             self.params[f'grid{i}'] = mi.TensorXf(rng.normal(mi.Float, size) * 0.1, shape)
             self.textures.append(mi.Texture3f(self.params[f'grid{i}'], use_accel=False, wrap_mode=wrap))
-        n_feat = len(self.resolutions) * (self.channels - 1)
+        self.planes = [int(r) for r in planes]
+        if any(r < 2 for r in self.planes):
+            raise ValueError(f'GridField planes must be resolutions of at least 2, got {planes}')
+        # Plane levels start at zero: a plane cell that no sample reaches adds nothing, so the
+        # dense levels alone describe what training did not see.
+        self.plane_textures = []
+        for i, r in enumerate(self.planes):
+            for axes, shape in self._plane_shapes(r):
+                key = f'plane{i}{axes}'
+                self.params[key] = mi.TensorXf(dr.zeros(mi.Float, shape[0] * shape[1]
+                                                        * self.channels), shape + (self.channels,))
+                self.plane_textures.append(mi.Texture2f(self.params[key], use_accel=False,
+                                                        wrap_mode=wrap))
+        n_feat = (len(self.resolutions) + len(self.planes)) * (self.channels - 1)
         n_dir = 3 * (1 + 2 * self.dir_octaves)
         self.color_net = _LateNet(self, 'color', n_feat, n_dir, [self.hidden] * self.color_layers,
                                   3, rng)
@@ -309,6 +334,19 @@ class GridField(Field):
             return (r, r, r)
         return (max(int(r * self.s_ratios[level]), 4), r, 2 * r)
 
+    # The coordinate pairs of a plane level: (first, second) texture axes, by index into
+    # :func:`~mi_nerfpp.geometry.grid_coordinates`.
+    PLANE_AXES = {'xy': (0, 1), 'xz': (0, 2), 'yz': (1, 2)}
+
+    def _plane_shapes(self, r):
+        """``[(axes, (H, W))]`` of the three planes of a plane level at resolution ``r``: ``r x r``
+        in the ball; in the inverted sphere (longitude, colatitude) ``r x 2r``, (longitude, s)
+        ``r/2 x 2r`` and (colatitude, s) ``r/2 x r`` (as a dense level of ``s_ratio`` 0.5)."""
+        if self.domain == 'ball':
+            return [(a, (r, r)) for a in self.PLANE_AXES]
+        n = {0: 2 * r, 1: r, 2: max(r // 2, 4)}       # cells along longitude, colatitude, s
+        return [(a, (n[j], n[i])) for a, (i, j) in self.PLANE_AXES.items()]
+
     @property
     def config(self):
         return dict(kind=self.kind, domain=self.domain, resolutions=self.resolutions,
@@ -316,7 +354,7 @@ class GridField(Field):
                     color_layers=self.color_layers, density_bias=self.density_bias,
                     density_activation=self.density_activation, s_ratio=self.s_ratio,
                     warp_radius=self.warp_radius, color=self.color_mode,
-                    antialias=self.antialias)
+                    antialias=self.antialias, planes=self.planes)
 
     @property
     def deferred(self):
@@ -350,6 +388,11 @@ class GridField(Field):
         r = self.resolutions[level]
         return 2.0 / r if self.domain == 'ball' else dr.pi / r
 
+    def plane_cell_size(self, level):
+        """The width of a cell of plane level ``level``, as :meth:`cell_size`."""
+        r = self.planes[level]
+        return 2.0 / r if self.domain == 'ball' else dr.pi / r
+
     def _lookup(self, x, width=None):
         """Density logit and feature vector (all levels) at field inputs ``x``, each level
         weighted by :func:`level_weight` of the footprint ``width`` (``antialias`` only)."""
@@ -379,6 +422,24 @@ class GridField(Field):
             g = list(tex.eval(mi.Point3f(*c)))
             if width is not None:
                 w = level_weight(width, self.cell_size(i))
+                g = [w * v for v in g]
+            density += g[0]
+            features += g[1:]
+        for i, r in enumerate(self.planes):
+            g = None
+            for (axes, shape), tex in zip(self._plane_shapes(r), self.plane_textures[3 * i:]):
+                tex.set_tensor(self.params[f'plane{i}{axes}'])
+                a, b = self.PLANE_AXES[axes]
+                c = [coords[a], coords[b]]
+                if self.domain == 'inverted_sphere':
+                    # Periodic in longitude only (axis 0): keep colatitude and s off the wrap.
+                    c = [c[k] if (a, b)[k] == 0 else
+                         dr.clip(c[k], 0.5 / shape[1 - k], 1.0 - 0.5 / shape[1 - k])
+                         for k in (0, 1)]
+                v = list(tex.eval(mi.Point2f(*c)))
+                g = v if g is None else [p + q for p, q in zip(g, v)]
+            if width is not None:
+                w = level_weight(width, self.plane_cell_size(i))
                 g = [w * v for v in g]
             density += g[0]
             features += g[1:]

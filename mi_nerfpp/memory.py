@@ -92,6 +92,7 @@ def model_parameters(config) -> int:
         for r, s in zip(levels, ratios):
             cells = r ** 3 if domain == 'ball' else max(int(r * s), 4) * r * 2 * r
             total += cells * m.grid_channels
+        total += sum(config.grid_planes_entries(domain))
     return total
 
 

@@ -24,7 +24,15 @@ COLOR_LOSS_WEIGHT = 3.0
 
 
 def is_grid(name: str) -> bool:
-    """Whether a parameter is a feature grid (``grid0``, ``fg.grid1``, ...), not an MLP array."""
+    """Whether a parameter is a feature grid (a dense level ``grid0``, ``fg.grid1``, ... or a
+    plane of a plane level, ``fg.plane0xy``, ...), not an MLP array: it learns at the grids'
+    rate."""
+    return name.rsplit('.', 1)[-1].startswith(('grid', 'plane'))
+
+
+def is_grid_level(name: str) -> bool:
+    """Whether a parameter is a dense 3-D grid level (``grid0``, ``bg.grid1``, ...): what the
+    grid priors (total variation, far-field smoothness) apply to."""
     return name.rsplit('.', 1)[-1].startswith('grid')
 
 

@@ -411,7 +411,7 @@ class Trainer:
                   for field, weight, start in zip((self.model.fg, self.model.bg),
                                                   per_volume(cfg.sparsity),
                                                   per_volume(cfg.sparsity_start))]
-        grids = [k for k in self.opt.keys() if optim.is_grid(k)] if cfg.tv > 0 else []
+        grids = [k for k in self.opt.keys() if optim.is_grid_level(k)] if cfg.tv > 0 else []
         draws = {
             'index': gen.integers(mi.UInt32, n, 0, rays.size),
             'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
@@ -489,7 +489,7 @@ class Trainer:
         if cfg.far_smoothness > 0 and model.bg is not None and model.bg.kind == 'grid':
             loss += cfg.far_smoothness * sum(
                 (priors.far_field_smoothness(opt[k]) for k in opt.keys()
-                 if k.startswith('bg.') and optim.is_grid(k)), mi.Float(0.0))
+                 if k.startswith('bg.') and optim.is_grid_level(k)), mi.Float(0.0))
         with stage('losses and reverse pass'):
             dr.backward(loss)
         with stage('adam'):

@@ -147,8 +147,7 @@ class Field:
             # Let go of the previous tensors now (a frozen training step, which sets them on
             # lookup, would keep its recording's inputs alive otherwise).
             tex.set_tensor(self.params[f'grid{i}'])
-        planes = [k for k in self.params if k.startswith('plane')]
-        for key, tex in zip(planes, getattr(self, 'plane_textures', ())):
+        for key, tex in getattr(self, 'plane_textures', {}).items():
             tex.set_tensor(self.params[key])
 
 
@@ -314,14 +313,14 @@ class GridField(Field):
             raise ValueError(f'GridField planes must be resolutions of at least 2, got {planes}')
         # Plane levels start at zero: a plane cell that no sample reaches adds nothing, so the
         # dense levels alone describe what training did not see.
-        self.plane_textures = []
+        self.plane_textures = {}         # parameter name -> Texture2f
         for i, r in enumerate(self.planes):
             for axes, shape in self._plane_shapes(r):
                 key = f'plane{i}{axes}'
                 self.params[key] = mi.TensorXf(dr.zeros(mi.Float, shape[0] * shape[1]
                                                         * self.channels), shape + (self.channels,))
-                self.plane_textures.append(mi.Texture2f(self.params[key], use_accel=False,
-                                                        wrap_mode=wrap))
+                self.plane_textures[key] = mi.Texture2f(self.params[key], use_accel=False,
+                                                        wrap_mode=wrap)
         n_feat = (len(self.resolutions) + len(self.planes)) * (self.channels - 1)
         n_dir = 3 * (1 + 2 * self.dir_octaves)
         self.color_net = _LateNet(self, 'color', n_feat, n_dir, [self.hidden] * self.color_layers,
@@ -385,12 +384,13 @@ class GridField(Field):
         """The width of a cell of ``level`` in the units of :meth:`Volume.footprint_at
         <mi_nerfpp.render.Volume.footprint_at>`: ``2/R`` of the (warped) ball, ``π/R`` radians of
         the background's colatitude (and of its longitude at the equator)."""
-        r = self.resolutions[level]
-        return 2.0 / r if self.domain == 'ball' else dr.pi / r
+        return self._cell_width(self.resolutions[level])
 
     def plane_cell_size(self, level):
         """The width of a cell of plane level ``level``, as :meth:`cell_size`."""
-        r = self.planes[level]
+        return self._cell_width(self.planes[level])
+
+    def _cell_width(self, r):
         return 2.0 / r if self.domain == 'ball' else dr.pi / r
 
     def _lookup(self, x, width=None):
@@ -427,7 +427,8 @@ class GridField(Field):
             features += g[1:]
         for i, r in enumerate(self.planes):
             g = None
-            for (axes, shape), tex in zip(self._plane_shapes(r), self.plane_textures[3 * i:]):
+            for axes, shape in self._plane_shapes(r):
+                tex = self.plane_textures[f'plane{i}{axes}']
                 tex.set_tensor(self.params[f'plane{i}{axes}'])
                 a, b = self.PLANE_AXES[axes]
                 c = [coords[a], coords[b]]

@@ -15,9 +15,10 @@ median and mean step (or frame) time of the warm blocks, training rays/s from th
 mean includes the periodic occupancy refresh when ``--block`` is a multiple of its period), the
 worker's peak RSS, and the ratio new/base. ``train`` uses each version's default training
 options on the embedded default capture (``-- OPTIONS`` are keyword options of the new
-version's config, as ``name=value``, e.g. ``batch_rays=2048``). ``render`` renders each run's
-``render.xml`` (its model, its sample counts) with the film resized, like
-``benchmarks/render.py --run``.
+version's config, as ``name=value``, e.g. ``batch_rays=2048``); both versions take their steps
+at fraction ``--at`` of a run (0.6: past the phases of the schedule, where most of a run's steps
+are). ``render`` renders each run's ``render.xml`` (its model, its sample counts) with the film
+resized, like ``benchmarks/render.py --run``.
 """
 from __future__ import annotations
 
@@ -44,6 +45,7 @@ make = getattr(T.TrainConfig, 'from_options', T.TrainConfig)
 cfg = make(iterations=10 ** 9, checkpoint_every=0, preview_every=0, **args['options'])
 batch = cfg.schedule.batch_rays if hasattr(cfg, 'schedule') else cfg.batch_rays
 trainer = T.Trainer(dataset, args['out'], cfg)
+trainer.iteration = int(args['at'] * 10 ** 9)    # the phase of the run the steps are taken in
 for _ in range(args['warmup']):
     trainer.step()
 dr.sync_thread()
@@ -136,6 +138,10 @@ def main():
     ap.add_argument('--rounds', type=int, default=8)
     ap.add_argument('--block', type=int, default=16, help='training steps per turn')
     ap.add_argument('--warmup', type=int, default=20, help='training steps before timing')
+    ap.add_argument('--at', type=float, default=0.6,
+                    help='train: the fraction of a run at which the steps are taken (what the '
+                         'schedule has switched on by then: the image pyramid at full size '
+                         'from 0.3, the background\'s sparsity prior from 0.5)')
     ap.add_argument('--base-run', help='render: the base version\'s run folder')
     ap.add_argument('--run', help='render: this version\'s run folder')
     ap.add_argument('--width', type=int, default=1280)
@@ -157,7 +163,7 @@ def main():
                     key, value = item.split('=', 1)
                     options[key] = json.loads(value)
             args = {'options': options, 'out': os.path.join(tmp, f'run_{name}'),
-                    'warmup': a.warmup}
+                    'warmup': a.warmup, 'at': a.at}
             workers[name] = Worker(name, trees[name], TRAIN_WORKER, args)
         else:
             run = a.base_run if name == 'base' else a.run

@@ -8,8 +8,9 @@ training step, which does not depend on the images' size (a step draws ``batch_r
 
 - the process with Mitsuba, Dr.Jit, LLVM and the step's kernels: :data:`BASE_BYTES`;
 - the model's parameters (float32), each held :data:`PARAMETER_COPIES` times (value,
-  gradient, Adam's two moments) plus once per Dr.Jit thread (gradients of large grids are
-  summed in one copy per thread, :data:`mi_nerfpp.train.GRADIENT_EXPAND_THRESHOLD`);
+  gradient, Adam's two moments) plus once per Dr.Jit thread (in steps of
+  :data:`mi_nerfpp.train.EXPAND_MIN_SAMPLES` or more, gradients of large grids are summed in
+  one copy per thread; the plan counts them whatever the step);
 - :data:`SAMPLE_BYTES` per sample of the batch (``batch_rays x samples per ray``).
 
 The constants were measured with ``benchmarks/photo_set_memory.py`` (20 photos of 120x80,

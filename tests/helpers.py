@@ -47,6 +47,17 @@ class AnalyticField:
         return self.density(x), rgb if isinstance(rgb, mi.Color3f) else mi.Color3f(*rgb)
 
 
+def field_inputs(domain, n=256, seed=1):
+    """Random field inputs of ``domain``: points in the ball, or (x̂, s) of the background."""
+    rng = np.random.default_rng(seed)
+    if domain == 'ball':
+        return [mi.Float(v) for v in rng.uniform(-0.7, 0.7, (3, n)).astype(np.float32)]
+    x = rng.normal(size=(3, n))
+    x /= np.linalg.norm(x, axis=0)
+    s = rng.uniform(0.05, 1.0, n)
+    return [mi.Float(v.astype(np.float32)) for v in (*x, s)]
+
+
 def tiny_model(seed=0, background=True):
     return NeRFPPModel.create(seed=seed, background=background,
                               fg_config=dict(TINY_GRID, domain='ball'),

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from mi_nerfpp.fields import GridField, MLPField, make_field
+from tests.helpers import field_inputs
 
 
 def _eval(field, n=64, seed=0):
@@ -148,16 +149,6 @@ def test_density_gradient_reaches_the_sample_positions_through_the_grid():
 
 # ----------------------------------------------------------------------------- footprints
 
-def _inputs(domain, n=256, seed=1):
-    """Random field inputs of ``domain``: points in the ball, or (x̂, s) of the background."""
-    rng = np.random.default_rng(seed)
-    if domain == 'ball':
-        return [mi.Float(v) for v in rng.uniform(-0.7, 0.7, (3, n)).astype(np.float32)]
-    x = rng.normal(size=(3, n))
-    x /= np.linalg.norm(x, axis=0)
-    s = rng.uniform(0.05, 1.0, n)
-    return [mi.Float(v.astype(np.float32)) for v in (*x, s)]
-
 
 @pytest.mark.parametrize('domain, warp', [('ball', 0.0), ('ball', 0.4), ('inverted_sphere', 0.0)])
 def test_a_footprint_within_the_finest_cell_is_the_point_lookup(domain, warp):
@@ -165,7 +156,7 @@ def test_a_footprint_within_the_finest_cell_is_the_point_lookup(domain, warp):
     its weight of 1, so density and features are those of the point lookup, bit for bit."""
     extra = {'warp_radius': warp} if domain == 'ball' else {}
     field = GridField(domain, resolutions=(4, 16), channels=3, antialias=True, seed=3, **extra)
-    x = _inputs(domain)
+    x = field_inputs(domain)
     n = dr.width(x[0])
     # Footprints up to the finest cell, in the domain's units; the warp magnifies the centre
     # by at most BALL_WARP_SHARE / warp, so shrink them by that much there.
@@ -190,7 +181,7 @@ def test_a_wide_footprint_weighs_each_level_by_how_well_its_cells_resolve_it(dom
     level 1 (its cells are 4x wider); from 2 fine cells to one coarse cell the fine level is gone. The
     same as the point lookup of a field whose fine grid is scaled by that weight."""
     field = GridField(domain, resolutions=(4, 16), channels=3, antialias=True, seed=5)
-    x = _inputs(domain)
+    x = field_inputs(domain)
     n = dr.width(x[0])
     for multiple, weight in ((1.5, 0.5), (2.0, 0.0), (3.5, 0.0)):
         width = dr.full(mi.Float, field.cell_size(1) * multiple, n)

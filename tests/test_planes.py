@@ -11,20 +11,9 @@ from mi_nerfpp.config import TrainConfig
 from mi_nerfpp.fields import GridField, make_field
 from mi_nerfpp.model import NeRFPPModel
 from mi_nerfpp.optim import is_grid, is_grid_level
-from tests.helpers import TINY_GRID
+from tests.helpers import TINY_GRID, field_inputs
 
 AXES = {'xy': (0, 1), 'xz': (0, 2), 'yz': (1, 2)}
-
-
-def _inputs(domain, n=200, seed=1):
-    """Field inputs away from the longitude seam (points in the ball, or (x̂, s))."""
-    rng = np.random.default_rng(seed)
-    if domain == 'ball':
-        return [mi.Float(v) for v in rng.uniform(-0.9, 0.9, (3, n)).astype(np.float32)]
-    x = rng.normal(size=(3, n))
-    x /= np.linalg.norm(x, axis=0)
-    s = rng.uniform(0.0, 1.0, n)
-    return [mi.Float(v.astype(np.float32)) for v in (*x, s)]
 
 
 def _bilinear(plane, u, v, periodic_u):
@@ -61,7 +50,7 @@ def test_a_plane_level_is_the_sum_of_three_bilinear_planes(domain):
               if k.startswith('plane')}
     field.set_parameters(dict({k: mi.TensorXf(v) for k, v in values.items()},
                               grid0=dr.zeros(mi.TensorXf, field.params['grid0'].shape)))
-    x = _inputs(domain)
+    x = field_inputs(domain)
     coords = np.array([np.array(c) for c in grid_coordinates(domain, x)], dtype=np.float64)
     expected = 0.0
     for axes, (a, b) in AXES.items():
@@ -97,7 +86,7 @@ def test_the_background_planes_are_periodic_in_longitude_only():
 def test_plane_levels_start_at_zero_and_change_nothing(domain):
     """A new field's plane levels add nothing: density and dense features are those of the
     same field without planes (same seed), and the planes' features are zero."""
-    x = _inputs(domain)
+    x = field_inputs(domain)
     with_planes = GridField(domain, resolutions=(4, 8), channels=3, planes=(16,), seed=7)
     without = GridField(domain, resolutions=(4, 8), channels=3, seed=7)
     sigma, features = with_planes.features(x)
@@ -118,7 +107,7 @@ def test_plane_gradients_match_central_differences(domain):
     rng = np.random.default_rng(3)
     base = {k: rng.normal(scale=0.3, size=v.shape).astype(np.float32)
             for k, v in field.params.items() if k.startswith('plane')}
-    x = _inputs(domain, n=64)
+    x = field_inputs(domain, n=64)
 
     def total(values, grad=False):
         tensors = {k: mi.TensorXf(v) for k, v in values.items()}
@@ -158,7 +147,7 @@ def test_plane_levels_round_trip_through_config_and_checkpoint(tmp_path):
     save_checkpoint(path, model, meta={})
     again, _, _ = load_checkpoint(path)
     assert again.config == model.config
-    x = _inputs('ball')
+    x = field_inputs('ball')
     np.testing.assert_array_equal(np.array(again.fg.density(x)), np.array(model.fg.density(x)))
     # A field stored before plane levels has none.
     old = {k: v for k, v in model.fg.config.items() if k != 'planes'}

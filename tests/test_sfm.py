@@ -72,14 +72,18 @@ def test_most_photos_register_and_the_rest_are_listed(photos, sfm):
     assert stems == sorted(os.path.splitext(n)[0] for n in report['registered'])
 
 
-def test_a_second_run_verifies_the_same_pairs_and_registers_the_same_photos(photos, sfm,
-                                                                           tmp_path):
+def test_runs_on_one_thread_verify_the_same_pairs_and_register_the_same_photos(photos,
+                                                                              tmp_path):
     # Geometric verification and the mapper are seeded (mi_nerfpp.sfm.SFM_SEED): before, the
     # verified pairs varied from run to run (59 or 60 here) and one CI run registered 11 of 20.
-    report, _ = sfm
-    again = run_sfm(photos[0], str(tmp_path / 'again'), progress=False)
-    assert again['verified_pairs'] == report['verified_pairs']
-    assert sorted(again['registered']) == sorted(report['registered'])
+    # Seeded, COLMAP's matcher still varies with the order in which its threads take the pairs
+    # (a CI run of 2026-11-26 verified 60 pairs where the first run had 59): on one thread
+    # (`colmap --threads 1`) two runs are the same.
+    first = run_sfm(photos[0], str(tmp_path / 'first'), num_threads=1, progress=False)
+    again = run_sfm(photos[0], str(tmp_path / 'again'), num_threads=1, progress=False)
+    assert again['verified_pairs'] == first['verified_pairs']
+    assert sorted(again['registered']) == sorted(first['registered'])
+    assert len(first['registered']) >= MIN_REGISTERED * len(os.listdir(photos[0]))
 
 
 def test_camera_centres_match_the_ground_truth_after_alignment(photos, sfm):

@@ -27,7 +27,7 @@ import math
 from dataclasses import dataclass
 
 from . import appearance as app, limits, occupancy as occ, optim, poses
-from .fields import GridField
+from .fields import GridField, plane_shapes
 from .frame import NERF_CAMERA_RADIUS
 from .model import FIELD_KINDS, default_field_config
 from .options import flag, group, groups, option, option_name, options_of
@@ -552,16 +552,14 @@ class TrainConfig:
         return [max(int(r * q), 4) * r * 2 * r * channels for r, q in zip(levels, ratios)]
 
     def grid_planes_entries(self, domain) -> list[int]:
-        """Entries of each plane level of one volume's grid field (the three planes of
-        :meth:`GridField._plane_shapes <mi_nerfpp.fields.GridField._plane_shapes>`), times
-        ``--grid-channels``; empty for a volume without a grid field."""
+        """Entries of each plane level of one volume's grid field (its three planes,
+        :func:`~mi_nerfpp.fields.plane_shapes`), times ``--grid-channels``; empty for a volume
+        without a grid field."""
         m = self.model
         kind = m.field if domain == 'ball' else m.bg_field
         if kind != 'grid' or (domain == 'inverted_sphere' and m.kind != 'nerfpp'):
             return []
-        if domain == 'ball':
-            return [3 * r * r * m.grid_channels for r in m.planes(domain)]
-        return [(2 * r * r + 3 * r * max(r // 2, 4)) * m.grid_channels
+        return [sum(h * w for _, (h, w) in plane_shapes(domain, r)) * m.grid_channels
                 for r in m.planes(domain)]
 
     def occupancy_cells(self, resolution=None) -> list[int]:

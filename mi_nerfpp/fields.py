@@ -102,6 +102,21 @@ def level_weight(width, cell):
     return dr.clip(2.0 - width * (1.0 / cell), 0.0, 1.0)
 
 
+# The coordinate pairs of a plane level of :class:`GridField`: (first, second) texture axes, by
+# index into :func:`~mi_nerfpp.geometry.grid_coordinates`.
+PLANE_AXES = {'xy': (0, 1), 'xz': (0, 2), 'yz': (1, 2)}
+
+
+def plane_shapes(domain, r):
+    """``[(axes, (H, W))]`` of the three planes of a plane level at resolution ``r``: ``r x r``
+    in the ball; in the inverted sphere (longitude, colatitude) ``r x 2r``, (longitude, s)
+    ``r/2 x 2r`` and (colatitude, s) ``r/2 x r`` (as a dense level of ``s_ratio`` 0.5)."""
+    if domain == 'ball':
+        return [(a, (r, r)) for a in PLANE_AXES]
+    n = {0: 2 * r, 1: r, 2: max(r // 2, 4)}       # cells along longitude, colatitude, s
+    return [(a, (n[j], n[i])) for a, (i, j) in PLANE_AXES.items()]
+
+
 class Field:
     """Base class: config, parameters and the ``(x, d) -> (σ, rgb)`` interface."""
 
@@ -315,7 +330,7 @@ class GridField(Field):
         # dense levels alone describe what training did not see.
         self.plane_textures = {}         # parameter name -> Texture2f
         for i, r in enumerate(self.planes):
-            for axes, shape in self._plane_shapes(r):
+            for axes, shape in plane_shapes(self.domain, r):
                 key = f'plane{i}{axes}'
                 self.params[key] = mi.TensorXf(dr.zeros(mi.Float, shape[0] * shape[1]
                                                         * self.channels), shape + (self.channels,))
@@ -332,19 +347,6 @@ class GridField(Field):
         if self.domain == 'ball':
             return (r, r, r)
         return (max(int(r * self.s_ratios[level]), 4), r, 2 * r)
-
-    # The coordinate pairs of a plane level: (first, second) texture axes, by index into
-    # :func:`~mi_nerfpp.geometry.grid_coordinates`.
-    PLANE_AXES = {'xy': (0, 1), 'xz': (0, 2), 'yz': (1, 2)}
-
-    def _plane_shapes(self, r):
-        """``[(axes, (H, W))]`` of the three planes of a plane level at resolution ``r``: ``r x r``
-        in the ball; in the inverted sphere (longitude, colatitude) ``r x 2r``, (longitude, s)
-        ``r/2 x 2r`` and (colatitude, s) ``r/2 x r`` (as a dense level of ``s_ratio`` 0.5)."""
-        if self.domain == 'ball':
-            return [(a, (r, r)) for a in self.PLANE_AXES]
-        n = {0: 2 * r, 1: r, 2: max(r // 2, 4)}       # cells along longitude, colatitude, s
-        return [(a, (n[j], n[i])) for a, (i, j) in self.PLANE_AXES.items()]
 
     @property
     def config(self):
@@ -427,10 +429,10 @@ class GridField(Field):
             features += g[1:]
         for i, r in enumerate(self.planes):
             g = None
-            for axes, shape in self._plane_shapes(r):
+            for axes, shape in plane_shapes(self.domain, r):
                 tex = self.plane_textures[f'plane{i}{axes}']
                 tex.set_tensor(self.params[f'plane{i}{axes}'])
-                a, b = self.PLANE_AXES[axes]
+                a, b = PLANE_AXES[axes]
                 c = [coords[a], coords[b]]
                 if self.domain == 'inverted_sphere':
                     # Periodic in longitude only (axis 0): keep colatitude and s off the wrap.

@@ -5,7 +5,8 @@
                                  [name=value ...]
 
 Training (the default capture without DATA, default options; ``name=value`` sets options of the
-training config): after ``--warmup`` steps, ``--steps`` steps are traced without
+training config), at fraction ``--at`` of a run (0.6: past the schedule's phases, as
+``benchmarks/versus.py train``): after ``--warmup`` steps, ``--steps`` steps are traced without
 ``drjit.freeze`` under a :class:`mi_nerfpp.profiling.KernelProfile`, which attributes every
 kernel to the stage that launched it (occupancy refresh and sampling, field evaluations, the
 merge of coarse and fine samples, quadrature, deferred colour, losses and the reverse pass,
@@ -66,7 +67,7 @@ def training_config(options, freeze):
     return cfg, batch
 
 
-def profile_training(data, options, steps, warmup):
+def profile_training(data, options, steps, warmup, at):
     import drjit as dr
     from mi_nerfpp.data import load_dataset
     from mi_nerfpp.profiling import KernelProfile
@@ -77,6 +78,7 @@ def profile_training(data, options, steps, warmup):
     for freeze in (False, True):
         cfg, batch = training_config(options, freeze)
         trainer = Trainer(dataset, tempfile.mkdtemp(prefix='mi_nerfpp_profile_'), cfg)
+        trainer.iteration = int(at * 10 ** 9)     # the phase of the run (see --at)
         for _ in range(warmup):
             trainer.step()
         dr.sync_thread()
@@ -131,7 +133,7 @@ def worker(args):
     """Measure the version this process imports; print the result as JSON."""
     import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
     result = {'training': profile_training(args['data'], args['options'], args['steps'],
-                                           args['warmup'])}
+                                           args['warmup'], args.get('at', 0.0))}
     if args.get('run'):
         result['render'] = profile_render(args['run'], args['width'], args['height'])
     print(json.dumps(result))
@@ -163,6 +165,9 @@ def main():
     ap.add_argument('--data', help='dataset folder (default: the embedded default capture)')
     ap.add_argument('--steps', type=int, default=20)
     ap.add_argument('--warmup', type=int, default=20)
+    ap.add_argument('--at', type=float, default=0.6,
+                    help='the fraction of a run at which the steps are taken (as '
+                         'benchmarks/versus.py train --at)')
     ap.add_argument('--run', help='also profile a render of this run folder')
     ap.add_argument('--width', type=int, default=1280)
     ap.add_argument('--height', type=int, default=720)
@@ -171,7 +176,7 @@ def main():
     ap.add_argument('options', nargs='*', help='training options as name=value (this version)')
     a = ap.parse_intermixed_args()
     common = {'data': a.data and os.path.abspath(a.data), 'steps': a.steps,
-              'warmup': a.warmup, 'width': a.width, 'height': a.height}
+              'warmup': a.warmup, 'width': a.width, 'height': a.height, 'at': a.at}
     versions = {'this checkout': measure(ROOT, dict(
         common, options={k: json.loads(v) for k, v in (o.split('=', 1) for o in a.options)},
         run=a.run and os.path.abspath(a.run)))}

@@ -266,8 +266,8 @@ class ModelOptions(_Options):
     def planes(self, domain):
         """The plane levels' resolutions of one volume's grid field."""
         if domain == 'inverted_sphere' and self.bg_grid_planes is not None:
-            return tuple(self.bg_grid_planes)
-        return tuple(self.grid_planes)
+            return self.bg_grid_planes
+        return self.grid_planes
 
 
 @dataclass
@@ -535,14 +535,19 @@ class TrainConfig:
         return n if self.model.kind == 'nerf' else n + s.bg_samples + s.fine_samples
 
     # ------------------------------------------------------------------ limits
+    def _has_grid(self, domain) -> bool:
+        """Whether the volume of ``domain`` has a grid field."""
+        m = self.model
+        kind = m.field if domain == 'ball' else m.bg_field
+        return kind == 'grid' and (domain == 'ball' or m.kind == 'nerfpp')
+
     def grid_levels_entries(self, domain, levels=None, channels=None) -> list[int]:
         """Entries of each feature-grid level of one volume (:class:`GridField`'s shapes):
         ``R³`` cells in the ball, ``max(⌊q·R⌋, 4) × R × 2R`` in the inverted sphere, times
         ``--grid-channels``; empty for a volume without a grid field. ``levels``,
         ``channels``: in place of the config's."""
         m = self.model
-        kind = m.field if domain == 'ball' else m.bg_field
-        if kind != 'grid' or (domain == 'inverted_sphere' and m.kind != 'nerfpp'):
+        if not self._has_grid(domain):
             return []
         levels = m.levels(domain) if levels is None else levels
         channels = channels or m.grid_channels
@@ -556,8 +561,7 @@ class TrainConfig:
         :func:`~mi_nerfpp.fields.plane_shapes`), times ``--grid-channels``; empty for a volume
         without a grid field."""
         m = self.model
-        kind = m.field if domain == 'ball' else m.bg_field
-        if kind != 'grid' or (domain == 'inverted_sphere' and m.kind != 'nerfpp'):
+        if not self._has_grid(domain):
             return []
         return [sum(h * w for _, (h, w) in plane_shapes(domain, r)) * m.grid_channels
                 for r in m.planes(domain)]

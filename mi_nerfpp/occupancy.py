@@ -27,7 +27,6 @@ import numpy as np
 
 from .arrays import owned
 from .geometry import grid_coordinates
-from .sampling import flat_index
 
 # Weight of an empty bin's length in the occupied-length coordinate: small enough
 # that empty space absorbs nothing visible, non-zero so that a ray through empty
@@ -126,10 +125,10 @@ class OccupiedVolume:
     parameter, ``parameter(ray, u)`` (the protocol of :class:`~.render.Volume`).
 
     A ray's ``K`` bins all have the same length, so its occupied-length coordinate is fixed by
-    which bins are occupied: one bit per bin (``K/32`` words per ray). The cumulative length
-    before bin ``b`` is ``width·(n_b + ε·(b − n_b))`` with ``n_b`` the occupied bins before it
-    (a population count), so sample placement reads a few words per ray instead of per-bin
-    arrays."""
+    which bins are occupied: one bit per bin (``K/32`` words per ray, :func:`occupied_words`).
+    The cumulative length before bin ``b`` is ``width·(n_b + ε·(b − n_b))`` with ``n_b`` the
+    occupied bins before it (a population count), so sample placement reads a few words per
+    ray instead of per-bin arrays."""
 
     def __init__(self, volume, grid, bins):
         self.base, self.bins = volume, int(bins)
@@ -137,49 +136,52 @@ class OccupiedVolume:
             raise ValueError(f'occupancy bins per ray must be a multiple of 32, got {bins}')
         self.infinite_last, self.open = volume.infinite_last, volume.open
         self.d, self.footprint = volume.d, volume.footprint
-        n_rays = dr.width(volume.lo)
-        ray, k = flat_index(n_rays, self.bins)
-        lo, hi = dr.gather(mi.Float, volume.lo, ray), dr.gather(mi.Float, volume.hi, ray)
-        mid = dr.fma(mi.Float(k) + 0.5, (hi - lo) * (1.0 / self.bins), lo)
-        bit = dr.select(grid.occupied(volume.inputs(ray, mid)), mi.UInt32(1) << (k & 31), 0)
-        self.words = dr.block_sum(bit, 32)            # disjoint bits: the sum is their union
-        n_words = self.bins // 32
-        occupied = dr.block_sum(dr.popcnt(self.words), n_words)
+        self.words = occupied_words(volume, grid, self.bins)
+        # Occupied bins before each word (before[0] = 0).
+        self.before = [dr.zeros(mi.UInt32, dr.width(volume.lo))]
+        for word in self.words:
+            self.before.append(self.before[-1] + dr.popcnt(word))
+        occupied = self.before.pop()
         # Bin length; a segment of zero length keeps a finite (tiny) coordinate.
         self.width = dr.maximum((volume.hi - volume.lo) * (1.0 / self.bins), 1e-12)
         self.total = self.width * (mi.Float(occupied)
                                    + EMPTY_WEIGHT * mi.Float(self.bins - occupied))
-        dr.eval(self.words, self.width, self.total)
+        dr.eval(self.words, self.before[1:], self.width, self.total)
+        n_rays = dr.width(volume.lo)
         self.lo = dr.zeros(mi.Float, n_rays)
         self.hi = dr.ones(mi.Float, n_rays)
 
     def parameter(self, ray, u):
-        """The wrapped volume's parameter ``v`` at occupied-length fraction ``u`` (a binary
-        search in the ray's bins: renders compute it once per sample)."""
-        K, n_words = self.bins, self.bins // 32
-        words = [dr.gather(mi.UInt32, self.words, ray * n_words + w) for w in range(n_words)]
+        """The wrapped volume's parameter ``v`` at occupied-length fraction ``u``: the word of
+        bins that holds it (from the occupied bins before each word), then a binary search in
+        that word's 32 bins (renders compute it once per sample)."""
+        K = self.bins
         width = dr.gather(mi.Float, self.width, ray)
         target = u * dr.gather(mi.Float, self.total, ray)
 
-        def before(b):
-            """Occupied bins before bin ``b`` (UInt32, 0 <= b <= K)."""
-            q, r = b >> 5, b & 31
-            count = mi.UInt32(0)
-            for w, word in enumerate(words):
-                low = dr.select(r == 0, 0, word & ((mi.UInt32(1) << r) - 1))
-                count += dr.select(q > w, dr.popcnt(word), dr.select(q == w, dr.popcnt(low), 0))
-            return count
-
-        def cdf(b):
-            n = before(b)
+        def cdf(b, n):
+            """Occupied length before bin ``b`` with ``n`` occupied bins before it."""
             return width * (mi.Float(n) + EMPTY_WEIGHT * mi.Float(b - n))
 
-        # The last bin whose start lies at or before the target (the searches probe b = K).
-        b = mi.UInt32(dr.maximum(mi.Int32(dr.binary_search(
-            0, K, lambda b: cdf(dr.minimum(b, K)) <= target)) - 1, 0))
-        occupied = ((words[0] if n_words == 1 else _word(words, b >> 5)) >> (b & 31)) & 1
-        mass = width * dr.select(occupied == 1, 1.0, EMPTY_WEIGHT)
-        frac = dr.clip((target - cdf(b)) / mass, 0.0, 1.0)
+        # The last word whose first bin starts at or before the target (cdf is monotonic).
+        q, word, n_q = mi.UInt32(0), dr.gather(mi.UInt32, self.words[0], ray), mi.UInt32(0)
+        for w in range(1, len(self.words)):
+            n_w = dr.gather(mi.UInt32, self.before[w], ray)
+            past = cdf(32 * w, n_w) <= target
+            q = dr.select(past, w, q)
+            word = dr.select(past, dr.gather(mi.UInt32, self.words[w], ray), word)
+            n_q = dr.select(past, n_w, n_q)
+
+        def before(r):
+            """Occupied bins before bin ``32q + r`` (0 <= r <= 32: the search probes 32)."""
+            low = dr.select(r >= 32, word, word & ((mi.UInt32(1) << (r & 31)) - 1))
+            return n_q + dr.popcnt(low)
+
+        # The last bin of the word whose start lies at or before the target.
+        r = dr.binary_search(1, 32, lambda r: cdf(32 * q + r, before(r)) <= target) - 1
+        b = 32 * q + r
+        mass = width * dr.select(((word >> r) & 1) == 1, 1.0, EMPTY_WEIGHT)
+        frac = dr.clip((target - cdf(b, before(r))) / mass, 0.0, 1.0)
         lo = dr.gather(mi.Float, self.base.lo, ray)
         hi = dr.gather(mi.Float, self.base.hi, ray)
         return dr.fma((mi.Float(b) + frac) * (1.0 / K), hi - lo, lo)
@@ -200,9 +202,31 @@ class OccupiedVolume:
         return u
 
 
-def _word(words, q):
-    """``words[q]`` for a per-lane index ``q`` into a short list of UInt32 arrays."""
-    out = words[0]
-    for w in range(1, len(words)):
-        out = dr.select(q == w, words[w], out)
-    return out
+def occupied_words(volume, grid, bins):
+    """Which of ``bins`` equal bins along each ray of ``volume`` are occupied in ``grid`` (looked
+    up at the bins' midpoints): ``bins/32`` UInt32 arrays, one bit per bin, bin ``k`` at bit
+    ``k % 32`` of word ``k // 32``.
+
+    One kernel: a symbolic loop over the bins per ray, so the ``rays·bins`` lookups (128 per
+    foreground ray) never become arrays of their own (a wavefront of them wrote and summed
+    ~0.5 GB per 1280x720 render)."""
+    n_rays, n_words = dr.width(volume.lo), bins // 32
+    ray = dr.arange(mi.UInt32, n_rays)
+    with dr.suspend_grad():            # bits are constants of the ray parameters
+        lo = dr.detach(volume.lo)
+        step = (dr.detach(volume.hi) - lo) * (1.0 / bins)
+
+        def body(k, words):
+            mid = dr.fma(mi.Float(k) + 0.5, step, lo)
+            bit = dr.select(grid.occupied(volume.inputs(ray, mid)), mi.UInt32(1) << (k & 31), 0)
+            q = k >> 5
+            return k + 1, tuple(dr.select(q == w, word | bit, word)
+                                for w, word in enumerate(words))
+
+        _, words = dr.while_loop(
+            # (Opaque zeros: with literal ones, a grid without occupied cells leaves the
+            # words literal through the first recording and the loop refuses the second.)
+            (dr.zeros(mi.UInt32, n_rays), tuple(dr.opaque(mi.UInt32, 0, n_rays)
+                                                for _ in range(n_words))),
+            lambda k, words: k < bins, body, labels=('k', 'words'), label='occupied_words')
+    return list(words)

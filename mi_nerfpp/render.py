@@ -64,7 +64,8 @@ import mitsuba as mi
 from . import geometry as geo
 from .occupancy import DEFAULT_BINS, OccupiedVolume
 from .profiling import settle, stage
-from .sampling import flat_index, gather_merged, inverse_cdf, merge_order, stratified, uniforms
+from .sampling import (flat_index, gather_merged, inverse_cdf, merge_order, split_merged, stratified,
+                       uniforms)
 
 MAX_DEPTH_RADIUS = 1000.0
 INFINITE_DELTA = 1e10
@@ -332,8 +333,9 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
         dr.eval(v_c, t_c)
     with stage('field'):
         sigma_c, values_c = evaluate(ray_c, t_c)
+    order = None
     if n_fine == 0:
-        v, t, sigma, values, n = v_c, t_c, sigma_c, values_c, n_coarse
+        v, t, sigma, n = v_c, t_c, sigma_c, n_coarse
     else:
         with stage('sampling'):
             w_c, _ = weights(volume, v_c, dr.detach(sigma_c), n_coarse)
@@ -345,20 +347,27 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
         with stage('field'):
             sigma_f, values_f = evaluate(ray_f, t_f)
         with stage('merge'):
+            # Only what the weights need is merged: the values are composited where they
+            # are, with the merged weights taken back to the coarse and fine samples.
             order = merge_order(v_c, n_coarse, v_f, n_fine)
             v, t = gather_merged(order, v_c, v_f), gather_merged(order, t_c, t_f)
             sigma = gather_merged(order, sigma_c, sigma_f)
-            values = [gather_merged(order, a, b) for a, b in zip(values_c, values_f)]
-            settle(v, t, sigma, values)
+            settle(v, t, sigma)
         n = n_coarse + n_fine
     ray, _ = flat_index(n_rays, n)
     with stage('quadrature'):
         w, transmittance = weights(volume, v, sigma, n)
         if lazy:
             rgb = _shade_visible(volume, field, t, w, transmittance, n)
-            values = [rgb.x, rgb.y, rgb.z]
+            parts = [(w, [rgb.x, rgb.y, rgb.z], n)]
+        elif order is None:
+            parts = [(w, values_c, n)]
+        else:
+            dr.eval(w)         # (read by three sums: computed once)
+            w_c, w_f = split_merged(order, w)
+            parts = [(w_c, values_c, n_coarse), (w_f, values_f, n_fine)]
         distance = volume.distance(ray, t)
-        shading = _shading(field, deferred, w, values, distance, n, volume.d)
+        shading = _shading(field, deferred, parts, w, distance, n, volume.d)
         settle(shading.rgb, shading.opacity, shading.depth, w, distance)
     return VolumeRender(shading, w, volume.normalized(ray, v), n, distance)
 
@@ -369,13 +378,18 @@ def _footprint(width):
     return {} if width is None else {'width': width}
 
 
-def _shading(field, deferred, w, values, distance, n, d):
-    """Colour, opacity and depth of ``n`` samples per ray with weights ``w``."""
-    sums = dr.block_sum([w * f for f in values] + [w, w * distance], n)
-    opacity, depth = sums[-2], sums[-1]
+def _shading(field, deferred, parts, w, distance, n, d):
+    """Colour, opacity and depth of ``n`` samples per ray with weights ``w`` at ``distance``;
+    ``parts``: ``(weights, values, m)`` of the sample sets (``m`` per ray) whose values (the
+    features, or colour) are composited: ``Σ w·f`` over the sets."""
+    opacity, depth = dr.block_sum([w, w * distance], n)
+    sums = None
+    for weight, values, m in parts:
+        part = dr.block_sum([weight * f for f in values], m)
+        sums = part if sums is None else [a + b for a, b in zip(sums, part)]
     if deferred:
         with stage('colour'):
-            rgb = composite_features(field, sums[:-2], opacity, d)
+            rgb = composite_features(field, sums, opacity, d)
     else:
         rgb = mi.Color3f(*sums[:3])
     return Shading(rgb=rgb, opacity=opacity, depth=depth)

@@ -56,6 +56,7 @@ passes; the image moves by less than 1e-4 per threshold.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import drjit as dr
@@ -79,6 +80,8 @@ HIDDEN_WEIGHT = 1e-4
 # Deferred colour: composited features are divided by the opacity, at least this much (a ray
 # that sees nothing has no colour to speak of; its premultiplied colour is ~0 either way).
 FEATURE_OPACITY_FLOOR = 1e-4
+# The accumulated opacity at which a ray's surface is taken (:func:`surface_distance`).
+SURFACE_LEVEL = 0.5
 
 
 @dataclass
@@ -99,6 +102,9 @@ class VolumeRender:
     n: int
     distance: mi.Float = None  # distance along the ray of each sample (same layout as weights)
     rays: mi.UInt32 = None     # the rays the per-sample arrays belong to (None: every ray)
+    # Fused renders (no per-sample arrays): per ray, the distance at which the accumulated
+    # weight reaches the surface level, and whether it does (:func:`surface_distance`).
+    surface: tuple = None
 
 
 @dataclass
@@ -289,7 +295,7 @@ def near_gradient_scale(distance, radius):
 
 
 def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_only=False,
-                  near_gradient=0.0):
+                  near_gradient=0.0, fused=False, level=SURFACE_LEVEL):
     """Hierarchical sampling and quadrature of one volume (see module docs).
 
     The coarse pass places ``n_coarse`` stratified samples and evaluates the field there; its
@@ -303,9 +309,13 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
     show (:func:`_shade_visible`). A deferred field's features come with its density at no
     extra cost, so its render is the same with or without it.
     ``near_gradient`` (training; 0: off): the gradients of samples within this distance of the
-    ray's origin are scaled down by :func:`near_gradient_scale`; values are unchanged."""
+    ray's origin are scaled down by :func:`near_gradient_scale`; values are unchanged.
+    ``fused`` (primal rendering): the merge and the quadrature in one kernel per ray
+    (:func:`_fused_quadrature`), without per-sample arrays in the result; its ``surface`` is
+    taken at accumulated weight ``level`` (a number or one per ray)."""
     deferred = getattr(field, 'deferred', False)
     lazy = visible_only and n_fine > 0 and not deferred
+    fused = fused and n_fine > 0 and not lazy
     n_rays = dr.width(volume.lo)
 
     def evaluate(ray, t):
@@ -346,6 +356,10 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
             dr.eval(v_f, t_f)
         with stage('field'):
             sigma_f, values_f = evaluate(ray_f, t_f)
+        if fused:
+            with stage('quadrature'):
+                return _fused_quadrature(volume, field, (v_c, t_c, sigma_c, values_c, n_coarse),
+                                         (v_f, t_f, sigma_f, values_f, n_fine), level)
         with stage('merge'):
             # Only what the weights need is merged: the values are composited where they
             # are, with the merged weights taken back to the coarse and fine samples.
@@ -370,6 +384,84 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
         shading = _shading(field, deferred, parts, w, distance, n, volume.d)
         settle(shading.rgb, shading.opacity, shading.depth, w, distance)
     return VolumeRender(shading, w, volume.normalized(ray, v), n, distance)
+
+
+def _fused_quadrature(volume, field, coarse, fine, level):
+    """The quadrature of a volume's coarse and fine samples (each ``(v, t, σ, values, n)``, sorted
+    per ray) for primal rendering, in one kernel: a symbolic loop per ray walks both sets in
+    merged order (ties: coarse first, as :func:`~.sampling.merge_order`) and accumulates
+    :func:`weights`, the composite of the values (features or colour), opacity, depth, and the
+    first sample at which the accumulated weight reaches ``level`` (:func:`_crossing`), without
+    merged or per-sample arrays. The same sums as the wavefront path, in sequential order
+    (float32 rounding apart); its ``VolumeRender`` has no per-sample arrays."""
+    deferred = getattr(field, 'deferred', False)
+    n_rays = dr.width(volume.lo)
+    ray = dr.arange(mi.UInt32, n_rays)
+    with dr.suspend_grad():
+        sets = []
+        for v, t, sigma, values, n in (coarse, fine):
+            ray_n, _ = flat_index(n_rays, n)
+            sets.append((dr.detach(v), dr.detach(sigma), dr.detach(volume.distance(ray_n, t)),
+                         [dr.detach(f) for f in values], n))
+        (v_c, sigma_c, dist_c, values_c, n_c), (v_f, sigma_f, dist_f, values_f, n_f) = sets
+        scale = dr.detach(volume.delta_scale(ray))
+        hi = dr.detach(dr.gather(mi.Float, volume.hi, ray))
+        infinite = None
+        if volume.infinite_last:
+            infinite = dr.full(mi.Bool, True, n_rays) if volume.open is None \
+                else dr.gather(mi.Bool, volume.open, ray)
+        level = dr.full(mi.Float, level, n_rays) if isinstance(level, (int, float)) \
+            else mi.Float(dr.detach(level))
+        dr.eval(dist_c, dist_f, scale, hi, infinite, level)
+
+        def body(i, j, head_c, head_f, transmittance, opacity, depth, sums, hit_distance,
+                 found):
+            take_c = (i < n_c) & ((j >= n_f) | (head_c <= head_f))
+            take_f = ~take_c
+            at_c, at_f = ray * n_c + i, ray * n_f + j
+
+            def pick(a, b):
+                return dr.select(take_c, dr.gather(mi.Float, a, at_c, take_c),
+                                 dr.gather(mi.Float, b, at_f, take_f))
+            x = dr.select(take_c, head_c, head_f)
+            sigma, distance = pick(sigma_c, sigma_f), pick(dist_c, dist_f)
+            values = [pick(a, b) for a, b in zip(values_c, values_f)]
+            i, j = dr.select(take_c, i + 1, i), dr.select(take_f, j + 1, j)
+            has_c, has_f = i < n_c, j < n_f
+            # The next sample of the set just taken from.
+            head_c = dr.select(take_c, dr.gather(mi.Float, v_c, at_c + 1, take_c & has_c), head_c)
+            head_f = dr.select(take_f, dr.gather(mi.Float, v_f, at_f + 1, take_f & has_f), head_f)
+            last = ~has_c & ~has_f
+            x_next = dr.select(has_c & has_f, dr.minimum(head_c, head_f),
+                               dr.select(has_c, head_c, dr.select(has_f, head_f, hi)))
+            delta = (x_next - x) * scale
+            if infinite is not None:
+                delta = dr.select(last & infinite, INFINITE_DELTA, delta)
+            passed = dr.exp(-sigma * delta)
+            w = transmittance * (1.0 - passed)
+            before = opacity
+            opacity = opacity + w
+            hit = ~found & (opacity >= level) & (before < level)
+            return (i, j, head_c, head_f, transmittance * passed, opacity,
+                    dr.fma(w, distance, depth),
+                    tuple(dr.fma(w, f, a) for f, a in zip(values, sums)),
+                    dr.select(hit, distance, hit_distance), found | hit)
+
+        def zeros(tp=mi.Float, value=0):
+            return dr.opaque(tp, value, n_rays)
+        state = (zeros(mi.UInt32), zeros(mi.UInt32), dr.gather(mi.Float, v_c, ray * n_c),
+                 dr.gather(mi.Float, v_f, ray * n_f), zeros(value=1.0), zeros(), zeros(),
+                 tuple(zeros() for _ in values_c), zeros(), zeros(mi.Bool, False))
+        _, _, _, _, _, opacity, depth, sums, hit_distance, found = dr.while_loop(
+            state, lambda i, j, *_: i + j < n_c + n_f, body, label='fused_quadrature')
+        if deferred:
+            with stage('colour'):
+                rgb = composite_features(field, list(sums), opacity, volume.d)
+        else:
+            rgb = mi.Color3f(*sums[:3])
+        shading = Shading(rgb=rgb, opacity=opacity, depth=depth)
+        settle(shading.rgb, shading.opacity, shading.depth, hit_distance, found)
+    return VolumeRender(shading, None, None, n_c + n_f, surface=(hit_distance, found))
 
 
 def _footprint(width):
@@ -478,8 +570,10 @@ class Sampling:
     near: float = 0.0
 
 
-def _render_visible_background(o, d, fg, render, seed, far=None, footprint=None):
-    """The background of the rays that the foreground does not occlude, zero elsewhere."""
+def _render_visible_background(o, d, fg, render, seed, far=None, footprint=None, level=None):
+    """The background of the rays that the foreground does not occlude, zero elsewhere
+    (``render(o, d, seed, far, footprint, level)`` of those rays; per-ray arguments may be
+    None)."""
     n_rays = dr.width(fg.fine.opacity)
     dr.eval(fg.fine.opacity)
     visible = dr.compress(1.0 - fg.fine.opacity > OCCLUDED_TRANSMITTANCE)
@@ -497,14 +591,13 @@ def _render_visible_background(o, d, fg, render, seed, far=None, footprint=None)
     def part(x, tp):
         return None if x is None else dr.gather(tp, x, visible)
     sub = render(part(o, mi.Point3f), part(d, mi.Vector3f), part(seed, mi.UInt32),
-                 part(far, mi.Float), part(footprint, mi.Float))
-    return VolumeRender(expand(sub.fine), sub.weights, sub.position, sub.n, sub.distance,
-                        rays=visible)
+                 part(far, mi.Float), part(footprint, mi.Float), part(level, mi.Float))
+    return dataclasses.replace(sub, fine=expand(sub.fine), rays=visible)
 
 
 def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
                 skip_occluded=False, ray_gradients=False, far=None, near_gradient=0.0,
-                footprint=None):
+                footprint=None, fused=False):
     """Render rays ``o + t·d`` (``|d| = 1``) through the foreground and background volumes.
 
     ``bg_field=None`` renders the foreground volume alone (a bounded NeRF).
@@ -528,6 +621,9 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
     ``near_gradient`` (training): see :func:`render_volume`.
     ``footprint`` (Float per ray, or None): each ray's pixel width per unit distance, for
     fields that filter their lookups by it (module docs, "Pixel footprints").
+    ``fused`` (primal rendering only): each volume's merge and quadrature in one kernel per
+    ray (:func:`_fused_quadrature`); the result then has no per-sample arrays (what the
+    regularizers and deep output read) but the surfaces that :func:`surface_distance` needs.
     """
     o, d = mi.Point3f(o), mi.Vector3f(d)
     if not ray_gradients:
@@ -547,16 +643,19 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
 
     fg = render_volume(volume(Foreground(o, d, sampling.near, far, footprint), 'fg'), fg_field,
                        sampling.fg_samples, sampling.fine_samples, seed, stream=0,
-                       visible_only=skip_occluded, near_gradient=near_gradient)
+                       visible_only=skip_occluded, near_gradient=near_gradient, fused=fused)
     bg = None
+    # Fused: the background's share of the surface level, in its own accumulated weight.
+    level = _background_level(fg.fine.opacity, SURFACE_LEVEL) if fused else SURFACE_LEVEL
     if bg_field is not None and skip_occluded:
-        bg = _render_visible_background(o, d, fg, lambda o, d, seed, far, fp: render_volume(
+        bg = _render_visible_background(o, d, fg, lambda o, d, seed, far, fp, level: render_volume(
             volume(Background(o, d, far, fp), 'bg'), bg_field, sampling.bg_samples,
-            sampling.fine_samples, seed, stream=2, visible_only=True), seed, far, footprint)
+            sampling.fine_samples, seed, stream=2, visible_only=True, fused=fused,
+            level=level), seed, far, footprint, level if fused else None)
     elif bg_field is not None:
         bg = render_volume(volume(Background(o, d, far, footprint), 'bg'), bg_field,
                            sampling.bg_samples, sampling.fine_samples, seed, stream=2,
-                           near_gradient=near_gradient)
+                           near_gradient=near_gradient, fused=fused, level=level)
     return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None))
 
 
@@ -574,28 +673,43 @@ def _crossing(weights, distance, n, level):
     return t, found
 
 
-def surface_distance(res: RenderResult, level=0.5):
+def _background_level(alpha, level):
+    """The background's share of accumulated opacity ``level`` in its own accumulated weight
+    (it is opaque), behind a foreground of opacity ``alpha``."""
+    alpha = dr.detach(alpha)
+    return (level - alpha) / dr.maximum(1.0 - alpha, 1e-12)
+
+
+def surface_distance(res: RenderResult, level=SURFACE_LEVEL):
     """Per ray: the distance at which the accumulated opacity of the fine composite (foreground,
     then ``λ·`` background) reaches ``level`` - a robust surface estimate, unlike the expected
     depth, which lands between surfaces at soft edges and in haze. Rays whose composite never
     reaches ``level`` (a foreground-only render over nothing) get the foreground's expected
-    depth, or the :data:`MAX_DEPTH_RADIUS` cap where it is empty."""
+    depth, or the :data:`MAX_DEPTH_RADIUS` cap where it is empty. A fused render found its
+    surfaces at :data:`SURFACE_LEVEL` while it composited (``VolumeRender.surface``)."""
     fg = res.fg
+    fused = fg.weights is None
+    if fused and level != SURFACE_LEVEL:
+        raise ValueError(f'a fused render has its surfaces at level {SURFACE_LEVEL}, not {level}')
     alpha = dr.detach(fg.fine.opacity)
-    t_fg, found_fg = _crossing(dr.detach(fg.weights), fg.distance, fg.n,
-                               dr.full(mi.Float, level, dr.width(alpha)))
+    if fused:
+        t_fg, found_fg = fg.surface
+    else:
+        t_fg, found_fg = _crossing(dr.detach(fg.weights), fg.distance, fg.n,
+                                   dr.full(mi.Float, level, dr.width(alpha)))
     empty = dr.maximum(res.fine.opacity, 0.0) <= 1e-6
     fallback = dr.select(empty, MAX_DEPTH_RADIUS, res.fine.depth / dr.maximum(res.fine.opacity,
                                                                                1e-6))
     depth = dr.select(found_fg, t_fg, fallback)
     bg = res.bg
-    if bg is None or bg.weights is None:
+    if bg is None or (bg.weights is None and bg.surface is None):
         return depth
-    # The background's share of the level, in its own accumulated weight (it is opaque).
-    bg_level = (level - alpha) / dr.maximum(1.0 - alpha, 1e-12)
     rays = bg.rays if bg.rays is not None else dr.arange(mi.UInt32, dr.width(alpha))
-    t_bg, found_bg = _crossing(dr.detach(bg.weights), bg.distance, bg.n,
-                               dr.gather(mi.Float, bg_level, rays))
+    if bg.surface is not None:
+        t_bg, found_bg = bg.surface
+    else:
+        t_bg, found_bg = _crossing(dr.detach(bg.weights), bg.distance, bg.n,
+                                   dr.gather(mi.Float, _background_level(alpha, level), rays))
     behind = dr.full(mi.Float, MAX_DEPTH_RADIUS, dr.width(alpha))
     dr.scatter(behind, dr.select(found_bg, t_bg, MAX_DEPTH_RADIUS), rays)
     return dr.select(alpha >= level, depth, behind)

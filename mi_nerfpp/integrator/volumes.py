@@ -37,12 +37,15 @@ class VolumeLayers:
         sampling = self.sampling
         if not camera:      # path segments that leave a surface: from their origin on
             sampling = dataclasses.replace(sampling, near=0.0)
+        # A deep render reads the samples of the camera rays: no fused quadrature for those.
+        deep = camera and transform and getattr(self, '_deep', None) is not None
         res = render_rays(*norm.to_model_rays(o, d), fg_field,
                           bg_field if self.background else None, sampling, seed,
                           occupancy=model.occupancy,
                           skip_occluded=primal and not self.occluded_background,
                           far=None if far is None else norm.to_model_distance(far),
-                          footprint=footprint if model.antialias else None)
+                          footprint=footprint if model.antialias else None,
+                          fused=primal and not deep)
         fg = res.fg.fine
         L, fg_rgb, alpha = res.fine.rgb, fg.rgb, dr.clip(fg.opacity, 0.0, 1.0)
         bg = res.bg.fine.rgb if res.bg is not None else mi.Color3f(0.0)
@@ -72,8 +75,7 @@ class VolumeLayers:
                               distance=(norm.to_world_distance(res.fine.depth),),
                               A=(dr.full(mi.Float, 1.0, dr.width(alpha)) if self.background
                                  else alpha,))
-        if camera and transform and getattr(self, '_deep', None) is not None:
-            # A deep render (mi_nerfpp.deep) reads the samples of the camera rays.
+        if deep:
             self._deep.update(res=res, aovs=aovs)
         return L, aovs, res.fine.opacity
 

@@ -65,8 +65,8 @@ import mitsuba as mi
 from . import geometry as geo
 from .occupancy import DEFAULT_BINS, OccupiedVolume
 from .profiling import settle, stage
-from .sampling import (flat_index, gather_merged, inverse_cdf, merge_order, split_merged, stratified,
-                       uniforms)
+from .sampling import (FineSampler, flat_index, gather_merged, merge_order, per_ray, split_merged,
+                       stratified_sample, uniforms)
 
 MAX_DEPTH_RADIUS = 1000.0
 INFINITE_DELTA = 1e10
@@ -338,9 +338,9 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
 
     ray_c, _ = flat_index(n_rays, n_coarse)
     with stage('sampling'):
-        v_c = stratified(volume.lo, volume.hi, n_coarse, uniforms(seed, n_coarse, stream))
-        t_c = volume.parameter(ray_c, v_c)
-        dr.eval(v_c, t_c)
+        xi_c = uniforms(seed, n_coarse, stream)
+        v_c, t_c = _placed(volume, n_rays, n_coarse, lambda ray, k: stratified_sample(
+            volume.lo, volume.hi, ray, k, n_coarse, xi_c))
     with stage('field'):
         sigma_c, values_c = evaluate(ray_c, t_c)
     order = None
@@ -350,10 +350,9 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
         with stage('sampling'):
             w_c, _ = weights(volume, v_c, dr.detach(sigma_c), n_coarse)
             ray_f, _ = flat_index(n_rays, n_fine)
-            v_f = inverse_cdf(v_c, w_c, volume.lo, volume.hi, n_coarse, n_fine,
-                              uniforms(seed, n_fine, stream + 1))
-            t_f = volume.parameter(ray_f, v_f)
-            dr.eval(v_f, t_f)
+            fine = FineSampler(v_c, w_c, volume.lo, volume.hi, n_coarse, n_fine,
+                               uniforms(seed, n_fine, stream + 1))
+            v_f, t_f = _placed(volume, n_rays, n_fine, fine.sample)
         with stage('field'):
             sigma_f, values_f = evaluate(ray_f, t_f)
         if fused:
@@ -462,6 +461,18 @@ def _fused_quadrature(volume, field, coarse, fine, level):
         shading = Shading(rgb=rgb, opacity=opacity, depth=depth)
         settle(shading.rgb, shading.opacity, shading.depth, hit_distance, found)
     return VolumeRender(shading, None, None, n_c + n_f, surface=(hit_distance, found))
+
+
+def _placed(volume, n_rays, n, sample):
+    """``n`` samples per ray of ``volume``: their coordinates ``v = sample(ray, k)`` and ray
+    parameters, placed in one loop per ray (:func:`~.sampling.per_ray`: the occupied-length
+    inverse reads its per-ray arrays once per ray, not once per sample). Evaluated."""
+    def both(ray, k):
+        v = sample(ray, k)
+        return v, volume.parameter(ray, v)
+    v, t = per_ray(n_rays, n, 2, both)
+    dr.eval(v, t)
+    return v, t
 
 
 def _footprint(width):

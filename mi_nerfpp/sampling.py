@@ -40,6 +40,34 @@ def uniforms(seed, n, stream):
     return rng.next_float32()
 
 
+def per_ray(n_rays, n, count, sample):
+    """``count`` per-sample Floats ``sample(ray, k)`` for the samples ``k < n`` of every ray,
+    computed in one symbolic loop per ray and written in the flat layout.
+
+    ``ray`` is the identity index there, so the per-ray arrays that ``sample`` gathers with it
+    are read directly, once per ray: a per-sample wavefront gathers each of them at every
+    sample (the occupied-length inverse reads ten per-ray arrays)."""
+    ray = dr.arange(mi.UInt32, n_rays)
+    out = [dr.empty(mi.Float, n_rays * n) for _ in range(count)]
+
+    def body(k):
+        for array, value in zip(out, sample(ray, k)):
+            dr.scatter(array, value, ray * n + k)
+        return (k + 1,)
+    with dr.suspend_grad():          # sample positions carry no derivatives
+        dr.while_loop((dr.zeros(mi.UInt32, n_rays),), lambda k: k < n, body, label='per_ray')
+    return out
+
+
+def stratified_sample(lo, hi, ray, k, n, xi=None):
+    """Sample ``k`` of ``n`` stratified samples on ``[lo, hi]`` of rays ``ray`` (see
+    :func:`stratified`; ``xi`` per sample in the flat layout, or None)."""
+    jitter = 0.5 if xi is None else dr.gather(mi.Float, xi, ray * n + k)
+    u = (mi.Float(k) + jitter) * (1.0 / n)
+    a, b = dr.gather(mi.Float, lo, ray), dr.gather(mi.Float, hi, ray)
+    return dr.fma(u, b - a, a)
+
+
 def stratified(lo, hi, n, xi=None):
     """``n`` stratified samples per ray on ``[lo, hi]``, sorted along the ray.
 
@@ -47,9 +75,7 @@ def stratified(lo, hi, n, xi=None):
     ``xi`` is None, else at fraction ``xi`` (Float of size ``rays·n``) within it.
     """
     ray, k = flat_index(dr.width(lo), n)
-    u = (mi.Float(k) + (0.5 if xi is None else xi)) * (1.0 / n)
-    a, b = dr.gather(mi.Float, lo, ray), dr.gather(mi.Float, hi, ray)
-    return dr.fma(u, b - a, a)
+    return stratified_sample(lo, hi, ray, k, n, xi)
 
 
 def bin_edges(v, lo, hi, n):
@@ -76,6 +102,33 @@ def cdf_bin(cdf, base, n, value):
     return base + mi.UInt32(dr.maximum(mi.Int32(first_above) - 1, 0))
 
 
+class FineSampler:
+    """Fine samples from the piecewise-constant PDF of the coarse weights (see
+    :func:`inverse_cdf`): the per-ray CDF once, then any fine sample ``j`` of any ray
+    (:meth:`sample`), in a wavefront or in a loop per ray (:func:`per_ray`)."""
+
+    def __init__(self, v, weights, lo, hi, n_coarse, n_fine, xi=None):
+        self.n_coarse, self.n_fine, self.xi = n_coarse, n_fine, xi
+        v, weights = dr.detach(v), dr.detach(weights)
+        self.p = weights + PDF_EPSILON
+        self.total = dr.block_sum(self.p, n_coarse)
+        self.cdf = dr.block_prefix_sum(self.p, n_coarse, exclusive=True)     # per-ray, from 0
+        self.left, self.right = bin_edges(v, lo, hi, n_coarse)
+        dr.eval(self.p, self.total, self.cdf, self.left, self.right)
+
+    def sample(self, ray, j):
+        """Fine sample ``j`` of rays ``ray``: the stratified uniform ``u_j = (j + ξ_j)/n_fine``
+        through the inverse CDF."""
+        n = self.n_fine
+        jitter = 0.5 if self.xi is None else dr.gather(mi.Float, self.xi, ray * n + j)
+        u = (mi.Float(j) + jitter) * (1.0 / n)
+        u_scaled = u * dr.gather(mi.Float, self.total, ray)
+        b = cdf_bin(self.cdf, ray * self.n_coarse, self.n_coarse, u_scaled)
+        frac = (u_scaled - dr.gather(mi.Float, self.cdf, b)) / dr.gather(mi.Float, self.p, b)
+        e0, e1 = dr.gather(mi.Float, self.left, b), dr.gather(mi.Float, self.right, b)
+        return dr.fma(dr.clip(frac, 0.0, 1.0), e1 - e0, e0)
+
+
 def inverse_cdf(v, weights, lo, hi, n_coarse, n_fine, xi=None):
     """Draw ``n_fine`` samples per ray from the piecewise-constant PDF of the coarse weights.
 
@@ -85,20 +138,8 @@ def inverse_cdf(v, weights, lo, hi, n_coarse, n_fine, xi=None):
     where the coarse weights are (in the direction of the ray for both volumes:
     no mirrored PDF).
     """
-    n_rays = dr.width(lo)
-    v, weights = dr.detach(v), dr.detach(weights)
-    p = weights + PDF_EPSILON
-    total = dr.block_sum(p, n_coarse)
-    cdf = dr.block_prefix_sum(p, n_coarse, exclusive=True)            # per-ray, starts at 0
-    left, right = bin_edges(v, lo, hi, n_coarse)
-
-    ray, j = flat_index(n_rays, n_fine)
-    u = (mi.Float(j) + (0.5 if xi is None else xi)) * (1.0 / n_fine)
-    u_scaled = u * dr.gather(mi.Float, total, ray)
-    b = cdf_bin(cdf, ray * n_coarse, n_coarse, u_scaled)
-    frac = (u_scaled - dr.gather(mi.Float, cdf, b)) / dr.gather(mi.Float, p, b)
-    e0, e1 = dr.gather(mi.Float, left, b), dr.gather(mi.Float, right, b)
-    return dr.fma(dr.clip(frac, 0.0, 1.0), e1 - e0, e0)
+    ray, j = flat_index(dr.width(lo), n_fine)
+    return FineSampler(v, weights, lo, hi, n_coarse, n_fine, xi).sample(ray, j)
 
 
 class MergeOrder(NamedTuple):

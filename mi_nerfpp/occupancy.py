@@ -207,26 +207,25 @@ def occupied_words(volume, grid, bins):
     up at the bins' midpoints): ``bins/32`` UInt32 arrays, one bit per bin, bin ``k`` at bit
     ``k % 32`` of word ``k // 32``.
 
-    One kernel: a symbolic loop over the bins per ray, so the ``rays·bins`` lookups (128 per
-    foreground ray) never become arrays of their own (a wavefront of them wrote and summed
-    ~0.5 GB per 1280x720 render)."""
-    n_rays, n_words = dr.width(volume.lo), bins // 32
+    One kernel: symbolic loops over the bins per ray (one per word), so the ``rays·bins``
+    lookups (128 per foreground ray) never become arrays of their own (a wavefront of them wrote
+    and summed ~0.5 GB per 1280x720 render)."""
+    n_rays = dr.width(volume.lo)
     ray = dr.arange(mi.UInt32, n_rays)
+    words = []
     with dr.suspend_grad():            # bits are constants of the ray parameters
         lo = dr.detach(volume.lo)
         step = (dr.detach(volume.hi) - lo) * (1.0 / bins)
+        for first in range(0, bins, 32):          # one loop of 32 bins per word
+            def body(r, word):
+                mid = dr.fma(mi.Float(r + first) + 0.5, step, lo)
+                bit = dr.select(grid.occupied(volume.inputs(ray, mid)), mi.UInt32(1) << r, 0)
+                return r + 1, word | bit
 
-        def body(k, words):
-            mid = dr.fma(mi.Float(k) + 0.5, step, lo)
-            bit = dr.select(grid.occupied(volume.inputs(ray, mid)), mi.UInt32(1) << (k & 31), 0)
-            q = k >> 5
-            return k + 1, tuple(dr.select(q == w, word | bit, word)
-                                for w, word in enumerate(words))
-
-        _, words = dr.while_loop(
-            # (Opaque zeros: with literal ones, a grid without occupied cells leaves the
-            # words literal through the first recording and the loop refuses the second.)
-            (dr.zeros(mi.UInt32, n_rays), tuple(dr.opaque(mi.UInt32, 0, n_rays)
-                                                for _ in range(n_words))),
-            lambda k, words: k < bins, body, labels=('k', 'words'), label='occupied_words')
+            _, word = dr.while_loop(
+                # (An opaque zero: with a literal one, a grid without occupied cells leaves the
+                # word literal through the first recording and the loop refuses the second.)
+                (dr.zeros(mi.UInt32, n_rays), dr.opaque(mi.UInt32, 0, n_rays)),
+                lambda r, word: r < 32, body, labels=('r', 'word'), label='occupied_words')
+            words.append(word)
     return list(words)

@@ -214,3 +214,40 @@ def test_refreshes_with_new_seeds_reuse_their_kernels():
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, flag)
     assert jit and all(k['cache_hit'] for k in jit), jit
+
+
+@pytest.mark.parametrize('domain', ['ball', 'inverted_sphere'])
+def test_samples_placed_per_ray_equal_the_wavefront(domain):
+    """Samples placed in one loop per ray (how renders and training place them) are the
+    wavefront's exactly: stratified coarse samples with jitter, then fine samples by inverse CDF,
+    through the occupied-length inverse of a random occupancy grid."""
+    from mi_nerfpp.render import Background, _placed
+    from mi_nerfpp.sampling import (FineSampler, flat_index, inverse_cdf, stratified,
+                                    stratified_sample, uniforms)
+    rng = np.random.default_rng(9)
+    n, n_c, n_f = 200, 16, 8
+    o = rng.normal(size=(n, 3))
+    o *= 0.9 * rng.uniform(size=(n, 1)) ** (1 / 3) / np.linalg.norm(o, axis=1, keepdims=True)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    O = mi.Point3f(*[F(o[:, i]) for i in range(3)])
+    D = mi.Vector3f(*[F(d[:, i]) for i in range(3)])
+    grid = OccupancyGrid(domain, 32)
+    grid.density = F((rng.uniform(size=dr.width(grid.density)) < 0.3) * 10.0)
+    vol = OccupiedVolume(Foreground(O, D) if domain == 'ball' else Background(O, D), grid, 128
+                         if domain == 'ball' else 64)
+    seed = mi.UInt32(rng.integers(0, 2 ** 32 - 1, n, dtype=np.uint64).astype(np.uint32))
+    xi_c, xi_f = uniforms(seed, n_c, 0), uniforms(seed, n_f, 1)
+
+    v_c, t_c = _placed(vol, n, n_c, lambda ray, k: stratified_sample(vol.lo, vol.hi, ray, k,
+                                                                     n_c, xi_c))
+    ref_v = stratified(vol.lo, vol.hi, n_c, xi_c)
+    np.testing.assert_array_equal(npf(v_c), npf(ref_v))
+    np.testing.assert_array_equal(npf(t_c), npf(vol.parameter(flat_index(n, n_c)[0], ref_v)))
+
+    w = F(rng.uniform(size=n * n_c) ** 4)
+    v_f, t_f = _placed(vol, n, n_f, FineSampler(v_c, w, vol.lo, vol.hi, n_c, n_f, xi_f).sample)
+    ref_f = inverse_cdf(v_c, w, vol.lo, vol.hi, n_c, n_f, xi_f)
+    np.testing.assert_array_equal(npf(v_f), npf(ref_f))
+    np.testing.assert_array_equal(npf(t_f), npf(vol.parameter(flat_index(n, n_f)[0], ref_f)))
+    assert np.all(np.diff(npf(t_f, n_f), axis=1) >= 0)

@@ -50,6 +50,21 @@ def half_space_grid(resolution=16):
     return grid
 
 
+def random_volume(domain, n, rng):
+    """The volume of ``domain`` along ``n`` random rays from inside the ball, and an occupancy grid
+    of 32 cells per axis with 30 % of them occupied at random."""
+    from mi_nerfpp.render import Background
+    o = rng.normal(size=(n, 3))
+    o *= 0.9 * rng.uniform(size=(n, 1)) ** (1 / 3) / np.linalg.norm(o, axis=1, keepdims=True)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    O = mi.Point3f(*[F(o[:, i]) for i in range(3)])
+    D = mi.Vector3f(*[F(d[:, i]) for i in range(3)])
+    grid = OccupancyGrid(domain, 32)
+    grid.density = F((rng.uniform(size=dr.width(grid.density)) < 0.3) * 10.0)
+    return (Foreground(O, D) if domain == 'ball' else Background(O, D)), grid
+
+
 @pytest.mark.parametrize('domain', ['ball', 'inverted_sphere'])
 def test_cell_points_map_back_to_their_cells(domain):
     grid = OccupancyGrid(domain, 16)
@@ -160,19 +175,10 @@ def test_occupied_length_coordinate_matches_a_float64_reference(domain, bins):
     """``parameter(u)`` of random rays through a random occupancy grid equals the inverse of the
     occupied-length CDF computed in float64 from the bins' occupancy (equal bins, empty ones
     weighing EMPTY_WEIGHT), within float32 rounding of the ray parameter."""
-    from mi_nerfpp.render import Background
     from mi_nerfpp.sampling import flat_index
     rng = np.random.default_rng(4)
     n, m = 300, 24
-    o = rng.normal(size=(n, 3))
-    o *= 0.9 * rng.uniform(size=(n, 1)) ** (1 / 3) / np.linalg.norm(o, axis=1, keepdims=True)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    O = mi.Point3f(*[F(o[:, i]) for i in range(3)])
-    D = mi.Vector3f(*[F(d[:, i]) for i in range(3)])
-    base = Foreground(O, D) if domain == 'ball' else Background(O, D)
-    grid = OccupancyGrid(domain, 32)
-    grid.density = F((rng.uniform(size=dr.width(grid.density)) < 0.3) * 10.0)
+    base, grid = random_volume(domain, n, rng)
     vol = OccupiedVolume(base, grid, bins)
     # The reference's bins: occupied where the grid's cell of the bin's midpoint is.
     lo, hi = npf(base.lo), npf(base.hi)
@@ -221,21 +227,12 @@ def test_samples_placed_per_ray_equal_the_wavefront(domain):
     """Samples placed in one loop per ray (how renders and training place them) are the
     wavefront's exactly: stratified coarse samples with jitter, then fine samples by inverse CDF,
     through the occupied-length inverse of a random occupancy grid."""
-    from mi_nerfpp.render import Background, _placed
+    from mi_nerfpp.render import _placed
     from mi_nerfpp.sampling import (FineSampler, flat_index, inverse_cdf, stratified,
                                     stratified_sample, uniforms)
     rng = np.random.default_rng(9)
     n, n_c, n_f = 200, 16, 8
-    o = rng.normal(size=(n, 3))
-    o *= 0.9 * rng.uniform(size=(n, 1)) ** (1 / 3) / np.linalg.norm(o, axis=1, keepdims=True)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    O = mi.Point3f(*[F(o[:, i]) for i in range(3)])
-    D = mi.Vector3f(*[F(d[:, i]) for i in range(3)])
-    grid = OccupancyGrid(domain, 32)
-    grid.density = F((rng.uniform(size=dr.width(grid.density)) < 0.3) * 10.0)
-    vol = OccupiedVolume(Foreground(O, D) if domain == 'ball' else Background(O, D), grid, 128
-                         if domain == 'ball' else 64)
+    vol = OccupiedVolume(*random_volume(domain, n, rng), 128 if domain == 'ball' else 64)
     seed = mi.UInt32(rng.integers(0, 2 ** 32 - 1, n, dtype=np.uint64).astype(np.uint32))
     xi_c, xi_f = uniforms(seed, n_c, 0), uniforms(seed, n_f, 1)
 

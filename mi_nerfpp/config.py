@@ -190,6 +190,10 @@ class ModelOptions(_Options):
                         'features along each ray and runs the colour MLP once per ray; '
                         "'sample' runs it at every sample", choices=('deferred', 'sample'),
                         shapes_model=True)
+    bg_color: str | None = option(None, "grid field: colour of the background volume, 'deferred' "
+                                  "or 'sample' as --color", type=str,
+                                  choices=('deferred', 'sample'),
+                                  default_help='(default: as --color)', shapes_model=True)
     antialias: bool = option(True, "grid field: weigh each grid level by whether its cells "
                              "resolve the pixel's footprint at the sample (levels finer than "
                              'the footprint fade out), so renders at other resolutions than the '
@@ -256,6 +260,8 @@ class ModelOptions(_Options):
             self._bad('composite', "'linear' or 'srgb'")
         if self.bg_field is None:
             self.bg_field = self.field
+        if self.bg_color is None:
+            self.bg_color = self.color
 
     def levels(self, domain):
         """The final grid resolutions of one volume's grid field."""
@@ -513,7 +519,8 @@ class TrainConfig:
                  {'warp_radius': m.fg_warp})
         return dict(kind='grid', domain=domain, resolutions=start,
                     channels=m.grid_channels, dir_octaves=m.dir_octaves,
-                    color_layers=m.color_layers, hidden=m.color_width, color=m.color,
+                    color_layers=m.color_layers, hidden=m.color_width,
+                    color=m.bg_color if domain == 'inverted_sphere' else m.color,
                     density_bias=m.density_bias, antialias=m.antialias,
                     planes=list(m.planes(domain)), **extra)
 
@@ -771,6 +778,8 @@ class TrainConfig:
         now = json.loads(json.dumps(self.options()))
         stored = self.stored_options(stored)
         stored.setdefault('bg_field', stored.get('field'))
+        if 'color' in stored:
+            stored.setdefault('bg_color', stored['color'])
         if isinstance(stored.get('bg_s_ratio'), (int, float)):    # before per-level ratios
             stored['bg_s_ratio'] = [stored['bg_s_ratio']]
         out = []

@@ -27,7 +27,7 @@ import math
 from dataclasses import dataclass
 
 from . import appearance as app, limits, occupancy as occ, optim, poses
-from .fields import GridField, plane_shapes
+from .fields import BACKGROUND_COLOR, COLOR_MODES, GridField, plane_shapes
 from .frame import NERF_CAMERA_RADIUS
 from .model import FIELD_KINDS, default_field_config
 from .options import flag, group, groups, option, option_name, options_of
@@ -186,14 +186,13 @@ class ModelOptions(_Options):
                                'radius) per cell of colatitude in the background grid: one '
                                'ratio, or one per background level', type=float, nargs='+',
                                metavar='Q', shapes_model=True)
-    color: str = option(_grid_default('color'), "grid field: 'deferred' composites the grid "
-                        'features along each ray and runs the colour MLP once per ray; '
-                        "'sample' runs it at every sample", choices=('deferred', 'sample'),
-                        shapes_model=True)
-    bg_color: str | None = option(None, "grid field: colour of the background volume, 'deferred' "
-                                  "or 'sample' as --color", type=str,
-                                  choices=('deferred', 'sample'),
-                                  default_help='(default: as --color)', shapes_model=True)
+    color: str = option(_grid_default('color'), "grid field: colour of the foreground volume: "
+                        "'deferred' composites the grid features along each ray and runs the "
+                        "colour MLP once per ray; 'sample' runs it at every sample",
+                        choices=COLOR_MODES, shapes_model=True)
+    bg_color: str = option(BACKGROUND_COLOR, "grid field: colour of the background volume, "
+                           "'deferred' or 'sample' as --color", choices=COLOR_MODES,
+                           shapes_model=True)
     antialias: bool = option(True, "grid field: weigh each grid level by whether its cells "
                              "resolve the pixel's footprint at the sample (levels finer than "
                              'the footprint fade out), so renders at other resolutions than the '
@@ -260,8 +259,6 @@ class ModelOptions(_Options):
             self._bad('composite', "'linear' or 'srgb'")
         if self.bg_field is None:
             self.bg_field = self.field
-        if self.bg_color is None:
-            self.bg_color = self.color
 
     def levels(self, domain):
         """The final grid resolutions of one volume's grid field."""

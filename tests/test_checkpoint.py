@@ -273,24 +273,26 @@ def test_version_2_grid_fields_keep_their_per_sample_colour(tmp_path):
 
 
 def test_the_background_may_colour_every_sample_while_the_foreground_defers(tmp_path):
-    """``--bg-color``: the background's colour mode apart from the foreground's (default: as
-    ``--color``). The fields get their own modes, a checkpoint keeps them, and a checkpoint stored
-    before the option (its background coloured as its ``--color``) refuses to resume as another."""
+    """``--bg-color`` (default: per sample) is the background's colour mode apart from the
+    foreground's ``--color`` (default: deferred). The fields get their own modes, a checkpoint
+    keeps them, and a checkpoint stored before the option (its background coloured as its
+    ``--color``) refuses to resume as another."""
     from mi_nerfpp.config import TrainConfig
-    config = TrainConfig.from_options(bg_color='sample')
+    config = TrainConfig()
     m = config.model
     assert config.field_config(m.field, 'ball')['color'] == 'deferred'
     assert config.field_config(m.bg_field, 'inverted_sphere')['color'] == 'sample'
-    assert TrainConfig.from_options(color='sample').model.bg_color == 'sample'
-    assert TrainConfig().model.bg_color == 'deferred'
+    other = TrainConfig.from_options(color='sample', bg_color='deferred')
+    assert other.field_config(m.field, 'ball')['color'] == 'sample'
+    assert other.field_config(m.bg_field, 'inverted_sphere')['color'] == 'deferred'
     model = NeRFPPModel.create(seed=1, fg_config=dict(TINY_GRID, domain='ball'),
                                bg_config=dict(TINY_GRID, domain='inverted_sphere', color='sample'))
     path = tmp_path / 'm.npz'
     save_checkpoint(path, model)
     loaded, _, _ = load_checkpoint(path)
     assert loaded.fg.deferred and not loaded.bg.deferred
-    stored = TrainConfig().to_dict()
+    stored = TrainConfig.from_options(bg_color='deferred').to_dict()
     del stored['model']['bg_color']
-    assert TrainConfig().resume_conflicts(stored) == []
+    assert TrainConfig.from_options(bg_color='deferred').resume_conflicts(stored) == []
     assert config.resume_conflicts(stored) == [
         "--bg-color: the checkpoint has 'deferred', this run asks for 'sample'"]

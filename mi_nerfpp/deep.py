@@ -11,8 +11,10 @@ units, as the flat ``depth.Z``; samples sorted front to back and not overlapping
 *events*: each foreground sample ``i`` absorbs the fraction ``w_i`` of the ray's light (its
 quadrature weight), each background sample ``λ·w_k``, and a scene's shape the rest,
 ``1 - opacity`` at its hit; each event brings its share of the radiance the ray sees: a
-volume's layer radiance split over its samples in proportion to their weights (the grid
-fields colour *deferred*, once per ray, so a sample has no colour of its own), the shapes'
+volume's layer radiance split over its samples in proportion to their weights (a grid field
+with *deferred* colour, the foreground's default, colours once per ray, so a sample has no
+colour of its own; per-sample colours, the background's default, are split the same way), the
+shapes'
 ``obj`` radiance at the hit, the shadow catchers' change scaling the volumes' events. A pixel's
 rays (a ``k x k`` grid of positions in the pixel, ``k = round(sqrt(spp))``, the positions of
 Mitsuba's ``stratified`` sampler without jitter) are merged by depth: sorted front to back,

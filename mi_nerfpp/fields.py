@@ -187,16 +187,31 @@ class _Net:
         for k in self.module.keys():
             field.params[f'{prefix}.{k}'] = mi.TensorXf(self.module[k])
 
+    @property
+    def differentiated(self):
+        """Whether any of the weights is being differentiated (tensor mode)."""
+        return any(dr.grad_enabled(self.field.params[f'{self.prefix}.{k}'])
+                   for k in self.module.keys())
+
+    def _bind(self):
+        """The module's weights from the params dict (detached unless differentiated)."""
+        differentiate = self.differentiated
+        for k in self.module.keys():
+            w = self.field.params[f'{self.prefix}.{k}']
+            self.module[k] = w if differentiate else dr.detach(w)
+        return differentiate
+
     def __call__(self, inputs):
         """List of input Floats -> list of output Floats."""
-        weights = [self.field.params[f'{self.prefix}.{k}'] for k in self.module.keys()]
-        differentiate = any(dr.grad_enabled(w) for w in weights)
-        for k, w in zip(self.module.keys(), weights):
-            self.module[k] = w if differentiate else dr.detach(w)
-        if differentiate:
+        if self._bind():
             return unrows(self.module(rows(inputs)))
         packed = nn.pack(self.module, layout='inference')
         return list(packed(nn.CoopVec(*inputs)))
+
+    def tensor(self, t):
+        """A (inputs, N) tensor -> the (outputs, N) tensor, in tensor mode."""
+        self._bind()
+        return self.module(t)
 
 
 class _LateNet:
@@ -223,14 +238,29 @@ class _LateNet:
     def __call__(self, sample_inputs, ray_inputs, ray=None):
         """``ray``: the ray of each sample (UInt32), or None when the sample inputs are per
         ray too (deferred colour)."""
-        per_ray = self.ray(ray_inputs)
         if ray is None:
+            per_ray = self.ray(ray_inputs)
             return self.rest([a + b for a, b in zip(self.sample(sample_inputs), per_ray)])
+        if any(net.differentiated for net in (self.sample, self.ray, self.rest)):
+            return unrows(self.rest.tensor(self._first_layer(sample_inputs, ray_inputs, ray)))
+        per_ray = self.ray(ray_inputs)
         # One kernel for all of them: a gather from an unevaluated array evaluates that array
         # alone, so each of the ``first`` outputs would otherwise be a kernel of its own.
         dr.eval(per_ray)
         h = [a + dr.gather(mi.Float, b, ray) for a, b in zip(self.sample(sample_inputs), per_ray)]
         return self.rest(h)
+
+    def _first_layer(self, sample_inputs, ray_inputs, ray):
+        """The first layer's (width, samples) tensor in tensor mode (training): ``A·a`` of each
+        sample plus ``B·b + bias`` of its ray, gathered for all rows at once (row by row, the
+        split into Floats and back cost kernels of their own, forward and backward)."""
+        a = self.sample.tensor(rows(sample_inputs))
+        b = self.ray.tensor(rows(ray_inputs))
+        width, n, n_rays = a.shape[0], a.shape[1], b.shape[1]
+        k = dr.arange(mi.UInt32, width * n)
+        row = k // n
+        index = row * n_rays + dr.gather(mi.UInt32, ray, k - row * n)
+        return mi.TensorXf(a.array + dr.gather(mi.Float, b.array, index), (width, n))
 
 
 # ----------------------------------------------------------------------------- grid + MLP

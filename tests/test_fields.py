@@ -211,3 +211,50 @@ def test_antialias_round_trips_through_the_config():
     assert again.antialias and field.config['antialias'] is True
     assert make_field({k: v for k, v in field.config.items() if k != 'antialias'}).antialias \
         is False    # a field stored before footprints looks up points
+
+
+@pytest.mark.parametrize('layers', [1, 2])
+def test_per_sample_colour_for_training_equals_the_render_network(layers):
+    """A per-sample colour network evaluated with its weights differentiated (training: tensor
+    mode, the ray's share of the first layer gathered for every row at once) gives the render's
+    colours (packed cooperative vectors, row by row) and weight gradients equal to central
+    finite differences."""
+    from mi_nerfpp.fields import positional_encoding
+    field = GridField('inverted_sphere', resolutions=(4, 8), channels=3, hidden=8,
+                      color_layers=layers, dir_octaves=1, color='sample')
+    net = field.color_net
+    n_feat = field.params['color.sample.layers.0.weights'].shape[1]
+    rng = np.random.default_rng(1)
+    n_rays, per_ray = 5, 7
+    features = [mi.Float(v) for v in rng.normal(size=(n_feat, n_rays * per_ray)).astype(np.float32)]
+    d = rng.normal(size=(3, n_rays))
+    d = mi.Vector3f(*[mi.Float(v) for v in (d / np.linalg.norm(d, axis=0)).astype(np.float32)])
+    ray = mi.UInt32(np.repeat(np.arange(n_rays), per_ray).astype(np.uint32))
+    encoded = positional_encoding([d.x, d.y, d.z], field.dir_octaves)
+    coef = rng.normal(size=3)
+
+    def colours():
+        return np.array([np.array(c) for c in net(features, encoded, ray)])
+    rendered = colours()
+    keys = ['color.sample.layers.0.weights', 'color.ray.layers.0.weights',
+            'color.ray.layers.0.bias']
+    for key in keys:
+        dr.enable_grad(field.params[key])
+    out = net(features, encoded, ray)
+    np.testing.assert_allclose(np.array([np.array(c) for c in out]), rendered, rtol=1e-5,
+                               atol=1e-6)
+    dr.backward(sum((float(c) * dr.sum(o) for c, o in zip(coef, out)), mi.Float(0.0)))
+    for key in keys:
+        grad = np.array(dr.grad(field.params[key])).ravel()
+        base = np.array(dr.detach(field.params[key])).astype(np.float64)
+        shape = base.shape
+        for i in rng.choice(base.size, 3, replace=False):
+            values = []
+            for h in (1e-3, -1e-3):
+                moved = base.ravel().copy()
+                moved[i] += h
+                field.params[key] = mi.TensorXf(moved.astype(np.float32).reshape(shape))
+                values.append(float(np.sum(coef[:, None] * colours())))
+            field.params[key] = mi.TensorXf(base.astype(np.float32).reshape(shape))
+            assert grad[i] == pytest.approx((values[0] - values[1]) / 2e-3, rel=2e-2, abs=2e-3), \
+                (key, i)

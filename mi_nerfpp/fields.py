@@ -41,8 +41,9 @@ DOMAINS = {'ball': 3, 'inverted_sphere': 4}
 COLOR_MODES = ('deferred', 'sample')
 # How training colours the background volume unless told (``--bg-color``); the foreground takes
 # the grid field's own default (deferred). After 10 minutes, time-matched on the default capture
-# and gt_plaza (seeds 0 and 1), per-sample colour in the background scored 0.2-0.5 dB above
-# deferred colour in all four runs, with 25 % fewer steps (CHANGELOG, 2026-11-26 afternoon).
+# (seeds 0-2) and gt_plaza (seeds 0-1), per-sample colour in the background scored 0.2-0.5 dB
+# above deferred colour in four runs of five (0.1 dB below in the fifth), with 25 % fewer
+# steps (CHANGELOG, 2026-11-26 afternoon).
 BACKGROUND_COLOR = 'sample'
 
 

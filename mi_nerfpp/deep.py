@@ -14,8 +14,8 @@ quadrature weight), each background sample ``λ·w_k``, and a scene's shape the 
 volume's layer radiance split over its samples in proportion to their weights (a grid field
 with *deferred* colour, the foreground's default, colours once per ray, so a sample has no
 colour of its own; per-sample colours, the background's default, are split the same way), the
-shapes' ``obj`` radiance at the hit, the shadow catchers' change scaling the volumes' events. A pixel's
-rays (a ``k x k`` grid of positions in the pixel, ``k = round(sqrt(spp))``, the positions of
+shapes' ``obj`` radiance at the hit, the shadow catchers' change scaling the volumes' events.
+A pixel's rays (a ``k x k`` grid of positions in the pixel, ``k = round(sqrt(spp))``, the positions of
 Mitsuba's ``stratified`` sampler without jitter) are merged by depth: sorted front to back,
 the pixel's transmittance at depth ``z`` is the average of its rays' (``T(z) = mean_s
 T_s(z)``), and consecutive events become one deep sample while they stay in the same volume

@@ -209,6 +209,9 @@ class ModelOptions(_Options):
                                  'space is carved out rather than grown into (the grid '
                                  "field's own default, for random models, is more "
                                  'transparent)', shapes_model=True)
+    grid_init: float = option(_grid_default('init'), 'grid field: standard deviation of the '
+                              'noise the grid levels start with; 0 starts them neutral, so '
+                              'that cells no training ray reaches hold no colour of their own')
     composite: str = option('linear', "sRGB photos: 'linear' decodes each sample's colour and "
                             'composites in linear light, so that the EXR layers recombine '
                             "exactly; 'srgb' sums the encoded colours (the layers recombine "
@@ -238,6 +241,7 @@ class ModelOptions(_Options):
                     f'at most {MAX_COLOR_LAYERS} (every layer is traced into the training '
                     f'kernels)')
         self._check(('density_bias',), _finite, 'a finite number')
+        self._check(('grid_init',), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
         if not self.grid_levels or min(self.grid_levels) < 2:
             self._bad('grid_levels', 'one or more resolutions of at least 2')
         if self.bg_grid_levels is not None and (not self.bg_grid_levels
@@ -359,6 +363,11 @@ class LossOptions(_Options):
     far_smoothness: float = option(0.0, "weight of the smoothness prior on the background "
                                    "grid's far slice (what directions no training view saw "
                                    'show), which continues the neighbouring colours there')
+    unseen_fill: bool = option(False, 'every --occupancy-every steps, grid entries that no '
+                               'training sample has reached yet take the mean of their '
+                               'neighbours (a harmonic fill): what no photo constrains '
+                               'continues its surroundings smoothly instead of keeping its '
+                               'start (not with --coarse-to-fine)')
     tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
     appearance_prior: float = option(app.PRIOR, 'weight of the L2 prior that keeps the '
@@ -518,7 +527,7 @@ class TrainConfig:
                     channels=m.grid_channels, dir_octaves=m.dir_octaves,
                     color_layers=m.color_layers, hidden=m.color_width,
                     color=m.bg_color if domain == 'inverted_sphere' else m.color,
-                    density_bias=m.density_bias, antialias=m.antialias,
+                    density_bias=m.density_bias, antialias=m.antialias, init=m.grid_init,
                     planes=list(m.planes(domain)), **extra)
 
     @property

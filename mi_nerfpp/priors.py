@@ -10,6 +10,11 @@
   directions no training view saw show.
 
 Each returns a scalar Float (a mean), differentiable in its inputs.
+
+Cells that no training sample reaches get no gradient from any of these: they keep what they
+started with. :func:`unseen_fill` moves them instead, one step of descent on
+:func:`dirichlet_energy` restricted to them (a harmonic fill, as inpainting does), so that
+places and directions no photo constrains continue their surroundings smoothly.
 """
 from __future__ import annotations
 
@@ -75,6 +80,54 @@ def far_field_smoothness(grid):
         south = at(dr.minimum(y + 1, Y - 1), x, c)
         total += dr.mean(dr.square(east - v)) + dr.mean(dr.square(south - v))
     return total / (C - 1)
+
+
+def _neighbours(shape, periodic):
+    """For each entry of a (Z, Y, X, C) grid tensor: its flat index and the flat indices of the
+    same channel in the six neighbouring cells (-x, +x, -y, +y, -z, +z), periodic along X when
+    ``periodic`` (the background's longitude), the entry itself past a clamped border."""
+    Z, Y, X, C = shape
+    i = dr.arange(mi.UInt32, Z * Y * X * C)
+    c, cell = i % C, i // C
+    x, y, z = cell % X, (cell // X) % Y, cell // (X * Y)
+
+    def step(v, n, up, wrap):
+        edge, beyond = (n - 1, 0) if up else (0, n - 1)
+        return dr.select(v == edge, beyond if wrap else edge, v + 1 if up else v - 1)
+
+    def at(zz, yy, xx):
+        return ((zz * Y + yy) * X + xx) * C + c
+
+    return i, [at(z, y, step(x, X, False, periodic)), at(z, y, step(x, X, True, periodic)),
+               at(z, step(y, Y, False, False), x), at(z, step(y, Y, True, False), x),
+               at(step(z, Z, False, False), y, x), at(step(z, Z, True, False), y, x)]
+
+
+def dirichlet_energy(grid, periodic=False):
+    """``E = Σ (g[n] − g[i])²`` over every entry ``i`` of a (Z, Y, X, C) grid tensor and its
+    +x, +y, +z neighbour ``n`` (each pair of neighbouring cells once; periodic along X when
+    ``periodic``, no term past a clamped border): the smoothness that :func:`unseen_fill`
+    descends on."""
+    i, n = _neighbours(grid.shape, periodic)
+    v = grid.array
+    total = mi.Float(0.0)
+    for j in n[1::2]:
+        total += dr.sum(dr.square(dr.gather(mi.Float, v, j) - v))
+    return total
+
+
+def unseen_fill(grid, free, periodic=False):
+    """One Jacobi step of the harmonic fill of the entries ``free`` (a Bool per entry) of a
+    (Z, Y, X, C) grid tensor: each free entry takes the mean of its six neighbours (see
+    :func:`_neighbours`), every other entry stays. That is ``g − ∇E/12`` on the free entries
+    (``E``: :func:`dirichlet_energy`), gradient descent on the grid's roughness where nothing
+    else pulls, with the constrained entries as the boundary; repeated, it converges to the
+    smooth (harmonic) continuation of the constrained cells into the free ones. Returns a new
+    tensor."""
+    i, n = _neighbours(grid.shape, periodic)
+    v = grid.array
+    mean = sum(dr.gather(mi.Float, v, j, free) for j in n) * (1.0 / 6.0)
+    return mi.TensorXf(dr.select(free, mean, v), grid.shape)
 
 
 def random_points(domain, u):

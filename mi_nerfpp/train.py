@@ -373,7 +373,14 @@ class Trainer:
         self._coarse_to_fine()
         optim.set_learning_rates(self.opt, self.progress(), o.lr_grid, o.lr_mlp, o.lr_final,
                                  {'appearance': o.lr_appearance, 'poses': o.lr_poses})
-        if self.model.occupancy and self.iteration % self.cfg.sampling.occupancy_every == 0:
+        refresh = self.iteration % self.cfg.sampling.occupancy_every == 0
+        # Not with coarse-to-fine grids: a resampled level's moments start anew, so that zero
+        # moments no longer tell which cells were seen.
+        if (self.cfg.losses.unseen_fill and refresh and self.iteration > 0
+                and not self.cfg.schedule.coarse_to_fine):
+            with stage('unseen fill'):
+                self._unseen_fill()
+        if self.model.occupancy and refresh:
             with stage('occupancy refresh'):
                 self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
                 self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
@@ -512,6 +519,18 @@ class Trainer:
                     field.set_parameters({f'grid{level}': dr.detach(self.opt[key])})
                     field.upsample(level, target)
                     self.opt[key] = field.params[f'grid{level}']   # new shape: fresh Adam moments
+
+    def _unseen_fill(self):
+        """One step of :func:`~mi_nerfpp.priors.unseen_fill` on every grid level: its entries
+        that no sample has reached yet (Adam's second moment still zero) take their neighbours'
+        mean."""
+        with dr.suspend_grad():
+            for key in [k for k in self.opt.keys() if optim.is_grid_level(k)]:
+                field = self.model.fg if key.startswith('fg.') else self.model.bg
+                moment = self.opt.state[key][3][2]    # (t, m, v, v_max): see _optimizer_state
+                self.opt[key] = priors.unseen_fill(self.opt[key], moment == 0,
+                                                   periodic=field.domain == 'inverted_sphere')
+        dr.eval()
 
     def _sparsity_loss(self, points):
         """Cauchy sparsity of each volume's density at ``batch_rays`` random points, weighted

@@ -106,3 +106,52 @@ def test_far_field_smoothness_value_and_gradient():
     grad = fd_check(f, g.ravel(), eps=1e-2, rtol=1e-2, atol=1e-4).reshape(shape)
     # Only the far slice's features feel it: not the density channel, not the slices behind.
     assert np.all(grad[1:] == 0) and np.all(grad[..., 0] == 0) and np.abs(grad[0, ..., 1:]).max() > 0
+
+
+def dirichlet_by_hand(g, periodic):
+    """Σ of squared differences between each cell and its +x, +y, +z neighbour (a (Z, Y, X, C)
+    array; +x wraps when ``periodic``, no term past a clamped border)."""
+    total = np.sum((np.diff(g, axis=0)) ** 2) + np.sum((np.diff(g, axis=1)) ** 2)
+    dx = np.roll(g, -1, axis=2) - g if periodic else np.diff(g, axis=2)
+    return total + np.sum(dx ** 2)
+
+
+@pytest.mark.parametrize('periodic', [False, True])
+def test_dirichlet_energy_value_and_gradient(periodic):
+    rng = np.random.default_rng(3)
+    shape = (3, 4, 5, 2)
+    g = 0.1 * rng.normal(size=shape)          # E ~ 1: central differences exact (quadratic)
+
+    def f(x):
+        return priors.dirichlet_energy(mi.TensorXf(x, shape), periodic)
+
+    assert f(mi.Float(g.ravel().astype(np.float32))).array[0] == pytest.approx(
+        dirichlet_by_hand(g, periodic), rel=1e-5)
+    fd_check(f, g.ravel(), eps=0.05, rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.parametrize('periodic', [False, True])
+def test_unseen_fill_is_a_gradient_step_on_the_free_entries(periodic):
+    """The fill moves the free entries by −∇E/12 (E: dirichlet_energy, gradient by autodiff)
+    and leaves every other entry as it was; repeated, it converges to the harmonic fill:
+    between two constrained faces of a slab the free cells end on the straight line."""
+    rng = np.random.default_rng(4)
+    shape = (3, 4, 5, 2)
+    g = rng.normal(size=shape).astype(np.float32)
+    free = rng.random(g.size) < 0.5
+    x = mi.Float(g.ravel())
+    dr.enable_grad(x)
+    dr.backward(priors.dirichlet_energy(mi.TensorXf(x, shape), periodic))
+    step = g.ravel() - np.array(dr.grad(x)) / 12
+    filled = np.array(priors.unseen_fill(mi.TensorXf(g.ravel(), shape), mi.Bool(free),
+                                         periodic).array)
+    np.testing.assert_allclose(filled[free], step[free], rtol=1e-5, atol=1e-5)
+    assert np.array_equal(filled[~free], g.ravel()[~free])
+    # Harmonic: values fixed at x = 0 (0) and x = 6 (1) of a 1 x 1 x 7 x 1 row, free between.
+    row = np.zeros((1, 1, 7, 1), np.float32)
+    row[..., 6, :] = 1
+    free = mi.Bool(np.arange(7) % 6 != 0)
+    t = mi.TensorXf(row.ravel(), row.shape)
+    for _ in range(400):
+        t = priors.unseen_fill(t, free)
+    np.testing.assert_allclose(np.array(t.array), np.arange(7) / 6, atol=1e-4)

@@ -11,6 +11,7 @@ import pytest
 
 from mi_nerfpp.checkpoint import load_checkpoint
 from mi_nerfpp.data import load_dataset
+from mi_nerfpp import priors
 from mi_nerfpp.evaluate import evaluate_split
 from mi_nerfpp.config import TrainConfig
 from mi_nerfpp.options import values
@@ -366,3 +367,50 @@ def test_ctrl_c_while_a_step_is_recorded_saves_a_checkpoint(dataset, tmp_path, m
     resumed = Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=4, **SMALL),
                       resume=True)
     assert resumed.run() is True and resumed.iteration == 4
+
+
+def test_neutral_grids_and_the_unseen_fill_moves_only_cells_no_sample_reached(dataset,
+                                                                              tmp_path):
+    """``--grid-init 0`` starts the grid levels at zero (the default at noise of 0.1), the
+    colour MLP the same; with ``--unseen-fill``, every ``--occupancy-every`` steps the entries
+    whose Adam second moment is still zero (no sample reached them) take their neighbours'
+    mean, periodic in longitude in the background, and no other entry moves; without it they
+    keep their start."""
+    zero = Trainer(dataset, str(tmp_path / 'zero'),
+                   TrainConfig.from_options(grid_init=0.0, **SMALL))
+    noisy = Trainer(dataset, str(tmp_path / 'noisy'), TrainConfig.from_options(**SMALL))
+    for k in zero.opt.keys():
+        a, b = np.array(zero.opt[k]), np.array(noisy.opt[k])
+        if k.split('.')[-1].startswith('grid'):
+            assert not a.any() and 0.08 < b.std() < 0.12, k
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=k)
+
+    def trained(name, fill):
+        tr = Trainer(dataset, str(tmp_path / name), TrainConfig.from_options(
+            grid_init=0.1, unseen_fill=fill, occupancy_every=4, **SMALL))
+        start = _params(tr.model)
+        for _ in range(9):                  # fills before steps 4 and 8
+            tr.step()
+        return tr, start
+
+    for fill in (False, True):
+        tr, start = trained(str(fill), fill)
+        for k in tr.opt.keys():
+            if not k.split('.')[-1].startswith('grid'):
+                continue
+            free = np.array(tr.opt.state[k][3][2]) == 0
+            assert 0 < free.mean() < 1, k
+            moved = np.array(tr.opt[k]).ravel()[free] != start[k].ravel()[free]
+            assert moved.any() == fill, k
+    # One fill by hand: exactly priors.unseen_fill of the entries with zero moments.
+    before = {k: np.array(tr.opt[k]) for k in tr.opt.keys()}
+    tr._unseen_fill()
+    for k in tr.opt.keys():
+        if not k.split('.')[-1].startswith('grid'):
+            np.testing.assert_array_equal(np.array(tr.opt[k]), before[k], err_msg=k)
+            continue
+        free = tr.opt.state[k][3][2] == 0
+        expected = priors.unseen_fill(mi.TensorXf(before[k].ravel(), before[k].shape), free,
+                                      periodic=k.startswith('bg.'))
+        np.testing.assert_array_equal(np.array(tr.opt[k]), np.array(expected), err_msg=k)

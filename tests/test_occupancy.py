@@ -248,3 +248,38 @@ def test_samples_placed_per_ray_equal_the_wavefront(domain):
     np.testing.assert_array_equal(npf(v_f), npf(ref_f))
     np.testing.assert_array_equal(npf(t_f), npf(vol.parameter(flat_index(n, n_f)[0], ref_f)))
     assert np.all(np.diff(npf(t_f, n_f), axis=1) >= 0)
+
+
+def test_integrator_without_skipping_samples_whole_rays():
+    """``skip_empty=false``: the integrator ignores the model's occupancy grids and samples
+    every interval with the counts of a model without grids (64 + 64 + 128): its render equals
+    that of the model with no grids at all, while with skipping (the default) grids that mark
+    everything empty change the render (the background's last interval alone shows)."""
+    from tests.helpers import scene_dict
+
+    def scene(model, **params):
+        desc = scene_dict(jitter=False, **params)
+        for k in ('fg_samples', 'bg_samples', 'fine_samples'):     # the model's unless given
+            if k not in params:
+                desc['integrator'].pop(k)
+        out = mi.load_dict(desc)
+        out.integrator().set_model(model)
+        return out
+
+    def render(model, **params):
+        return np.array(mi.render(scene(model, **params), spp=1))
+
+    m = tiny_model()
+    m.enable_occupancy(8, 0.3)
+    for grid in m.occupancy.values():
+        grid.density = dr.zeros(mi.Float, dr.width(grid.density))
+        grid.fresh = False
+    skipped = render(m)
+    whole = render(m, skip_empty=False)
+    integrator = scene(m, skip_empty=False).integrator()
+    assert (integrator.sampling.fg_samples, integrator.sampling.bg_samples,
+            integrator.sampling.fine_samples) == (64, 64, 128)
+    bare = tiny_model()                      # the same fields, no occupancy grids
+    reference = render(bare, fg_samples=64, bg_samples=64, fine_samples=128)
+    np.testing.assert_allclose(whole, reference, rtol=1e-5, atol=1e-6)
+    assert np.abs(skipped - reference).max() > 1e-2      # the grids did change the default

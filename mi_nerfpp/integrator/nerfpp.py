@@ -113,6 +113,15 @@ class NeRFPPIntegrator(ADIntegrator):
        - Render the background volume (``false``: foreground over black).
          (Default: whether the model has one, i.e. ``false`` for models trained
          with ``--model nerf``)
+     * - skip_empty
+       - |bool|
+       - Skip the space that the model's occupancy grids mark empty, as training
+         did. Off: every interval of both volumes is sampled, with 64 + 64 + 128
+         samples unless the counts are given: slower, and directions that few
+         training rays constrained (camera paths that leave the captured ring)
+         render without the rectangular cells that the grids' edges cut into the
+         haze there (on the default capture 0.14 dB lower on the test views).
+         (Default: true)
      * - stratified
        - |bool|
        - Jitter sample positions within their strata (using the sampler); off
@@ -210,10 +219,14 @@ class NeRFPPIntegrator(ADIntegrator):
 
     @property
     def sampling(self) -> Sampling:
-        """Samples per ray: the model's (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`)
-        with the ones the XML gives in their place."""
+        """Samples per ray: the model's (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`),
+        or :class:`~mi_nerfpp.render.Sampling`'s defaults without ``skip_empty``, with the ones
+        the XML gives in their place."""
         given = {k: v for k, v in self._sampling.items() if v is not None}
-        return dataclasses.replace(self.model.render_settings.sampling, **given)
+        settings = self.model.render_settings.sampling
+        if not self.skip_empty:     # whole rays: the counts of a model without occupancy grids
+            settings = Sampling(near=settings.near)
+        return dataclasses.replace(settings, **given)
 
     @property
     def background(self) -> bool:

@@ -73,6 +73,7 @@ def read_parameters(props, field_kinds) -> dict:
         'fine_samples': read('fine_samples', int, None, minimum=0),
         'near': read('near', float, None, minimum=0.0)}
     p['_background'] = read('background', bool, None)
+    p['skip_empty'] = read('skip_empty', bool, True)
     p['stratified'] = read('stratified', bool, False)
     p['occluded_background'] = read('occluded_background', bool, False)
     p['chunk_rays'] = read('chunk_rays', int, RENDER_CHUNK_RAYS, minimum=1)

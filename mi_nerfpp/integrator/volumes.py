@@ -41,7 +41,7 @@ class VolumeLayers:
         deep = camera and transform and getattr(self, '_deep', None) is not None
         res = render_rays(*norm.to_model_rays(o, d), fg_field,
                           bg_field if self.background else None, sampling, seed,
-                          occupancy=model.occupancy,
+                          occupancy=model.occupancy if self.skip_empty else None,
                           skip_occluded=primal and not self.occluded_background,
                           far=None if far is None else norm.to_model_distance(far),
                           footprint=footprint if model.antialias else None,

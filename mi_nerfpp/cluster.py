@@ -167,11 +167,11 @@ class FrameWorker:
     :class:`FramePool` (a Ray actor with ``threads`` CPUs), or the renderer of the
     single-process command (``threads=None``)."""
 
-    def __init__(self, checkpoint, threads=None):
+    def __init__(self, checkpoint, threads=None, skip_empty=True):
         import mi_nerfpp  # noqa: F401  (libLLVM, llvm_ad_rgb, the nerfpp plugin)
         if threads:
             set_threads(threads)
-        self.checkpoint, self.renderer = checkpoint, None
+        self.checkpoint, self.renderer, self.skip_empty = checkpoint, None, skip_empty
 
     def load(self, checkpoint_data=None):
         """Build the renderer of the checkpoint: from its path where this process sees it,
@@ -189,7 +189,8 @@ class FrameWorker:
                 with open(local, 'wb') as f:
                     f.write(ray.get(checkpoint_data[0]))
                 model, _, _ = load_checkpoint(local)
-        self.renderer = ViewRenderer(model)         # with the model's render settings
+        # With the model's render settings (whole rays without ``skip_empty``).
+        self.renderer = ViewRenderer(model, skip_empty=self.skip_empty)
         return self.renderer
 
     def pid(self):
@@ -209,7 +210,7 @@ class FramePool:
     """``workers`` Ray actors of ``cpus`` CPUs each rendering frames of the checkpoint at
     ``checkpoint`` (a path on the driver)."""
 
-    def __init__(self, checkpoint, workers, cpus=1):
+    def __init__(self, checkpoint, workers, cpus=1, skip_empty=True):
         ray = import_ray()
         self.ray = ray
         checkpoint = os.path.abspath(checkpoint)
@@ -217,7 +218,7 @@ class FramePool:
             self.data = [ray.put(f.read())]   # fetched only by workers that cannot see the path
         actor = ray.remote(FrameWorker).options(num_cpus=cpus, max_restarts=WORKER_RESTARTS,
                                                 max_task_retries=WORKER_RESTARTS)
-        self.actors = [actor.remote(checkpoint, cpus) for _ in range(workers)]
+        self.actors = [actor.remote(checkpoint, cpus, skip_empty) for _ in range(workers)]
 
     def pids(self):
         """The process ids of the workers (after they started)."""

@@ -121,7 +121,8 @@ def prepare_frames_dir(frames_dir, job: dict):
         with open(manifest) as f:
             held = json.load(f)
         if held != job:
-            changed = ', '.join(f'{k} {held.get(k)!r} -> {job.get(k)!r}' for k in job
+            changed = ', '.join(f'{k} {held.get(k)!r} -> {job.get(k)!r}'
+                                for k in list(job) + [k for k in held if k not in job]
                                 if held.get(k) != job.get(k))
             raise ValueError(f'{frames_dir} holds the frames of another video ({changed}): '
                              f'remove it or choose another --frames-dir')

@@ -119,11 +119,13 @@ class ViewRenderer:
 
     The model is rendered with its own settings
     (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`: the sample counts it was trained
-    with, its background); ``sampling`` and ``background`` override them."""
+    with, its background); ``sampling`` and ``background`` override them. ``skip_empty=False``
+    samples whole rays (the integrator's ``skip_empty``)."""
 
-    def __init__(self, model, sampling: Sampling | None = None, background: bool | None = None):
+    def __init__(self, model, sampling: Sampling | None = None, background: bool | None = None,
+                 skip_empty: bool = True):
         self.model = model
-        integrator = {'type': 'nerfpp'}
+        integrator = {'type': 'nerfpp', 'skip_empty': bool(skip_empty)}
         if sampling is not None:
             integrator.update(fg_samples=sampling.fg_samples, bg_samples=sampling.bg_samples,
                               fine_samples=sampling.fine_samples, near=sampling.near)

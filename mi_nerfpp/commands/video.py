@@ -7,6 +7,7 @@ the same function as in one process. The video is assembled from the PNGs.
 """
 from __future__ import annotations
 
+import argparse
 import os
 
 
@@ -23,6 +24,11 @@ def add_parser(sub):
                    help='WxH (default: the training images)')
     p.add_argument('--exr', action='store_true',
                    help='also write every frame as a multi-layer EXR (all layers) next to its PNG')
+    p.add_argument('--skip-empty', action=argparse.BooleanOptionalAction, default=True,
+                   help='skip the space the occupancy grids mark empty, as training did '
+                        '(default); --no-skip-empty samples whole rays: slower, and paths that '
+                        'leave the captured ring show no rectangular cells where few training '
+                        'rays looked')
     p.add_argument('--frames-dir', metavar='DIR',
                    help='where the frames go (default: the output path without its extension, '
                         'plus _frames); frames already there are not rendered again')
@@ -60,6 +66,8 @@ def cameras_of(args):
     checkpoint = os.path.join(args.run, 'model.npz')
     job = {'checkpoint': os.path.abspath(checkpoint), 'iteration': meta.get('iteration'),
            'path': args.path, 'frames': len(cameras), 'size': [template.width, template.height]}
+    if not args.skip_empty:              # frames of whole rays are another video's
+        job['skip_empty'] = False
     return checkpoint, cameras, job
 
 
@@ -88,15 +96,16 @@ def run(args):
         if pending and args.ray:
             render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar)
         elif pending:
-            render_here(checkpoint, cameras, pending, frames_dir, args.exr, bar)
+            render_here(checkpoint, cameras, pending, frames_dir, args.exr, bar,
+                        args.skip_empty)
     remove_stale_temporaries(frames_dir)
     write_video(out, read_frames(frames_dir, len(cameras)), fps=args.fps)
     print(f'wrote {out} ({len(cameras)} frames; frames in {frames_dir})')
 
 
-def render_here(checkpoint, cameras, pending, frames_dir, exr, bar):
+def render_here(checkpoint, cameras, pending, frames_dir, exr, bar, skip_empty=True):
     from ..cluster import FrameWorker
-    FrameWorker(checkpoint).render({i: cameras[i] for i in pending}, frames_dir, exr,
+    FrameWorker(checkpoint, skip_empty=skip_empty).render({i: cameras[i] for i in pending}, frames_dir, exr,
                                    on_frame=lambda i: bar.update(1))
 
 
@@ -107,7 +116,7 @@ def render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar):
         workers = min(workers, len(pending))
         bar.write(f'rendering {len(pending)} frames on {workers} Ray workers of '
                   f'{args.worker_cpus} CPU(s)')
-        pool = FramePool(checkpoint, workers, args.worker_cpus)
+        pool = FramePool(checkpoint, workers, args.worker_cpus, args.skip_empty)
         try:
             pool.render(cameras, pending, os.path.abspath(frames_dir), args.exr,
                         on_frames=bar.update)

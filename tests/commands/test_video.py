@@ -42,3 +42,25 @@ def test_video_of_another_aspect_ratio_keeps_square_pixels(tiny_run, tmp_path):
     assert main(['video', tiny_run, '-o', str(out), '--frames', '2', '--res', '32x18']) == 0
     import imageio.v3 as iio
     assert iio.imread(out).shape[1:3] == (18, 32)
+
+
+def test_video_without_skipping_renders_whole_rays(tiny_run, tmp_path, capsys):
+    """``--no-skip-empty`` renders through an integrator that ignores the occupancy grids (the
+    frames differ from the default's), and its frames are another video's."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from mi_nerfpp.cluster import FrameWorker
+    whole = FrameWorker(os.path.join(tiny_run, 'model.npz'), skip_empty=False).load()
+    assert whole.scene.integrator().skip_empty is False
+    assert whole.scene.integrator().sampling.bg_samples == 64
+    out = {}
+    for name, extra in (('skipped', []), ('whole', ['--no-skip-empty'])):
+        out[name] = str(tmp_path / f'{name}.gif')
+        assert main(['video', tiny_run, '-o', out[name]] + extra + VIDEO) == 0
+    a = iio.imread(frame_files(str(tmp_path / 'skipped_frames'), 0)[0]).astype(int)
+    b = iio.imread(frame_files(str(tmp_path / 'whole_frames'), 0)[0]).astype(int)
+    assert np.abs(a - b).max() > 0
+    capsys.readouterr()
+    assert main(['video', tiny_run, '-o', out['whole']] + VIDEO) == 1
+    assert 'skip_empty' in capsys.readouterr().err

@@ -83,8 +83,8 @@ def far_field_smoothness(grid):
 
 
 def _neighbours(shape, periodic):
-    """For each entry of a (Z, Y, X, C) grid tensor: its flat index and the flat indices of the
-    same channel in the six neighbouring cells (-x, +x, -y, +y, -z, +z), periodic along X when
+    """For each entry of a (Z, Y, X, C) grid tensor: the flat indices of the same channel in
+    the six neighbouring cells (-x, +x, -y, +y, -z, +z), periodic along X when
     ``periodic`` (the background's longitude), the entry itself past a clamped border."""
     Z, Y, X, C = shape
     i = dr.arange(mi.UInt32, Z * Y * X * C)
@@ -98,9 +98,9 @@ def _neighbours(shape, periodic):
     def at(zz, yy, xx):
         return ((zz * Y + yy) * X + xx) * C + c
 
-    return i, [at(z, y, step(x, X, False, periodic)), at(z, y, step(x, X, True, periodic)),
-               at(z, step(y, Y, False, False), x), at(z, step(y, Y, True, False), x),
-               at(step(z, Z, False, False), y, x), at(step(z, Z, True, False), y, x)]
+    return [at(z, y, step(x, X, False, periodic)), at(z, y, step(x, X, True, periodic)),
+            at(z, step(y, Y, False, False), x), at(z, step(y, Y, True, False), x),
+            at(step(z, Z, False, False), y, x), at(step(z, Z, True, False), y, x)]
 
 
 def dirichlet_energy(grid, periodic=False):
@@ -108,7 +108,7 @@ def dirichlet_energy(grid, periodic=False):
     +x, +y, +z neighbour ``n`` (each pair of neighbouring cells once; periodic along X when
     ``periodic``, no term past a clamped border): the smoothness that :func:`unseen_fill`
     descends on."""
-    i, n = _neighbours(grid.shape, periodic)
+    n = _neighbours(grid.shape, periodic)
     v = grid.array
     total = mi.Float(0.0)
     for j in n[1::2]:
@@ -124,7 +124,7 @@ def unseen_fill(grid, free, periodic=False):
     else pulls, with the constrained entries as the boundary; repeated, it converges to the
     smooth (harmonic) continuation of the constrained cells into the free ones. Returns a new
     tensor."""
-    i, n = _neighbours(grid.shape, periodic)
+    n = _neighbours(grid.shape, periodic)
     v = grid.array
     mean = sum(dr.gather(mi.Float, v, j, free) for j in n) * (1.0 / 6.0)
     return mi.TensorXf(dr.select(free, mean, v), grid.shape)

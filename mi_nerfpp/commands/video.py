@@ -105,8 +105,8 @@ def run(args):
 
 def render_here(checkpoint, cameras, pending, frames_dir, exr, bar, skip_empty=True):
     from ..cluster import FrameWorker
-    FrameWorker(checkpoint, skip_empty=skip_empty).render({i: cameras[i] for i in pending}, frames_dir, exr,
-                                   on_frame=lambda i: bar.update(1))
+    FrameWorker(checkpoint, skip_empty=skip_empty).render(
+        {i: cameras[i] for i in pending}, frames_dir, exr, on_frame=lambda i: bar.update(1))
 
 
 def render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar):

@@ -36,6 +36,45 @@ def is_grid_level(name: str) -> bool:
     return name.rsplit('.', 1)[-1].startswith('grid')
 
 
+class Adam(dr.opt.Adam):
+    """``drjit.opt.Adam`` whose step schedules every parameter's update before evaluating any.
+
+    Dr.Jit's step makes each parameter's step size (learning rate times the debiasing factor)
+    opaque as it reaches the parameter, and evaluating it evaluates everything scheduled so far:
+    the update of the parameter before. Each parameter's update was then a kernel of its own,
+    and a check that reads the new values (:func:`mi_nerfpp.train.flag_non_finite`) one more
+    pass over them. Here the step sizes of all parameters are evaluated first, together; the
+    updates (the same arithmetic as Dr.Jit's Adam) are then evaluated by the caller's next
+    ``dr.eval()``, one kernel per array size, with whatever else reads them fused in."""
+
+    def step(self, *, eval=True, grad_scale=None, active=None):
+        scales = []
+        for value, _, lr, extra in self.state.values():
+            t = extra[0] + 1
+            Base = dr.leaf_t(dr.detach(value).array)
+            High = dr.float64_array_t(Base)
+            debias = Base(-dr.sqrt(1 - High(self.beta_2) ** t) / (1 - High(self.beta_1) ** t))
+            scales.append(debias * (lr if lr is not None else self.lr))
+        dr.eval(scales)
+        self._scales = iter(scales)     # read by _step, parameter by parameter in this order
+        try:
+            super().step(eval=eval, grad_scale=grad_scale, active=active)
+        finally:
+            del self._scales
+
+    def _step(self, cache, value, grad, lr, extra):
+        t_p, m_p, v_p, v_max_p = extra
+        if self.amsgrad or self.uniform:
+            return super()._step(cache, value, grad, lr, extra)
+        m_t = dr.lerp(grad, m_p, self.beta_1)
+        v_t = dr.lerp(dr.square(grad), v_p, self.beta_2)
+        if self.epsilon <= 1e-6:
+            step = m_t * dr.rsqrt(v_t + self.epsilon ** 2)
+        else:
+            step = m_t / (dr.sqrt(v_t) + self.epsilon)
+        return dr.fma(step, next(self._scales), value), (t_p + 1, m_t, v_t, v_max_p)
+
+
 def adam(params: dict, lr: float = LR_MLP, lazy: bool = False, beta_2: float = ADAM_BETA2):
     """An Adam optimizer holding ``params`` (name -> array).
 
@@ -44,7 +83,7 @@ def adam(params: dict, lr: float = LR_MLP, lazy: bool = False, beta_2: float = A
     touched does not keep drifting on stale momentum. ``beta_2``: decay of the second-moment
     estimate (instant-ngp uses 0.99 for its sparsely touched grids).
     """
-    opt = dr.opt.Adam(lr=lr, mask_updates=lazy, beta_2=beta_2)
+    opt = Adam(lr=lr, mask_updates=lazy, beta_2=beta_2)
     for k, v in params.items():
         opt[k] = v
     return opt

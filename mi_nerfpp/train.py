@@ -656,13 +656,20 @@ def flag_non_finite(opt, flag):
     """Set ``flag`` (UInt32 of one entry) to 1 where a parameter of ``opt`` or one of its
     Adam moments is NaN or infinite after a step taken with ``opt.step(eval=False)``: a
     masked scatter that never runs in a healthy step, fused into the kernel of the update
-    (the next ``dr.eval()``), so the guard reads no parameter again."""
+    (the next ``dr.eval()``), so the guard reads no parameter again. Each parameter scatters
+    into a flag of its own: scatters of kernels of different sizes into one array would
+    order them, and split the updates from their checks."""
+    flags = []
     for value, _, _, extra in opt.state.values():
         finite = dr.isfinite(dr.detach(value).array)
         for moment in (extra[1], extra[2]) if isinstance(extra, tuple) and len(extra) > 2 \
                 else ():
             finite &= dr.isfinite(moment)
-        dr.scatter(flag, mi.UInt32(1), mi.UInt32(0), active=~finite)
+        own = dr.zeros(mi.UInt32, 1)
+        dr.scatter(own, mi.UInt32(1), mi.UInt32(0), active=~finite)
+        flags.append(own)
+    if flags:
+        dr.scatter(flag, mi.UInt32(1), mi.UInt32(0), active=sum(flags[1:], flags[0]) > 0)
 
 
 @contextlib.contextmanager

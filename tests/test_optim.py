@@ -67,3 +67,41 @@ def test_unknown_color_loss_is_rejected():
     with pytest.raises(ValueError, match="--color-loss must be 'charbonnier' or 'mse', got l1"):
         TrainConfig.from_options(color_loss='l1')
     assert TrainConfig().losses.color_loss == 'charbonnier'
+
+
+@pytest.mark.parametrize('lazy', [False, True])
+def test_adam_matches_drjit_adam_and_fuses_the_updates(lazy):
+    """optim.Adam takes the steps of drjit.opt.Adam (learning rates as opaque arrays, as in
+    training; a lazy optimizer leaves the entries whose gradient is zero in a step alone), and
+    evaluates the updates of all parameters of one size in one kernel."""
+    rng = np.random.default_rng(0)
+    start = {'grid': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
+             'grid2': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
+             'w': rng.normal(size=96).astype(np.float32)}
+    ours = optim.adam({k: mi.TensorXf(v) if v.ndim > 1 else mi.Float(v) for k, v in start.items()},
+                      lazy=lazy)
+    theirs = dr.opt.Adam(lr=optim.LR_MLP, mask_updates=lazy, beta_2=optim.ADAM_BETA2)
+    for k, v in start.items():
+        theirs[k] = mi.TensorXf(v) if v.ndim > 1 else mi.Float(v)
+    assert type(ours) is optim.Adam and isinstance(ours, dr.opt.Adam)
+    for it in range(5):
+        for opt in (ours, theirs):
+            optim.set_learning_rates(opt, it / 5)
+            x = opt['grid'].array
+            loss = (dr.sum(dr.square(x - 0.3) * dr.select((dr.arange(mi.UInt32, dr.width(x)) + it) % 3 == 0,
+                                                        0.0, 1.0))
+                    + dr.sum(dr.exp(opt['grid2'].array) * 0.1) + dr.sum(dr.sin(opt['w'])))
+            dr.backward(loss)
+            if opt is ours:
+                with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+                    dr.eval()
+                    dr.kernel_history_clear()
+                    opt.step(eval=False)
+                    dr.eval()
+                    sizes = [k['size'] for k in dr.kernel_history() if k.get('size', 0) > 1]
+                assert sorted(sizes) == [96, 128], sizes     # the two grids in one kernel
+            else:
+                opt.step()
+        for k in start:
+            np.testing.assert_allclose(np.array(ours[k]), np.array(theirs[k]), rtol=1e-5,
+                                       atol=1e-6)

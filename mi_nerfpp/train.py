@@ -55,6 +55,13 @@ from .render import distortion, ray_distortion, render_rays
 # against 65.8 ms.
 GRADIENT_EXPAND_THRESHOLD = 1 << 25
 EXPAND_MIN_SAMPLES = 1 << 17
+# Whether a step's atomic gradient sums first add up, within a SIMD packet, the operands that
+# target the same entry (Dr.Jit's JitFlag.ScatterReduceLocal, on by default). Off, measured on
+# the default capture: the grids' gradient kernels 8.8 against 13.6 ms per step (kernel
+# history, two runs one after the other), and steps 1.01-1.06x as fast side by side in five
+# runs (`python benchmarks/versus.py train --base HEAD --rounds 16`): the pre-reduction costs
+# more than the atomic collisions it saves.
+GRADIENT_LOCAL_REDUCTION = False
 
 
 class TrainingError(RuntimeError):
@@ -390,12 +397,15 @@ class Trainer:
         collecting = gc.isenabled()
         gc.disable()
         threshold = dr.expand_threshold()
+        local = dr.flag(dr.JitFlag.ScatterReduceLocal)
+        dr.set_flag(dr.JitFlag.ScatterReduceLocal, GRADIENT_LOCAL_REDUCTION)
         if self.cfg.schedule.batch_rays * self.cfg.samples_per_ray >= EXPAND_MIN_SAMPLES:
             dr.set_expand_threshold(GRADIENT_EXPAND_THRESHOLD)
         try:
             loss, fine = self._compute(inputs)
         finally:
             dr.set_expand_threshold(threshold)
+            dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
             if collecting:
                 gc.enable()
         self._non_finite = inputs['non_finite']   # the step's guard (see parameters_finite)

@@ -509,11 +509,17 @@ class GridField(Field):
         out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves))
         return mi.Color3f(*[sigmoid(o) for o in out])
 
+    def sample_color(self, features, d, ray):
+        """Per-sample colour (``color='sample'``) of samples with ``features`` (one list entry
+        per feature channel, one value per sample) on rays ``ray`` of unit directions ``d``
+        (one per ray)."""
+        out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves), ray)
+        return mi.Color3f(*[sigmoid(o) for o in out])
+
     def __call__(self, x, d, ray, width=None):
         """Per-sample colour (``color='sample'``): the colour MLP at every sample."""
         density, features = self._lookup(x, width)
-        out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves), ray)
-        return ACTIVATIONS[self.density_activation](density), mi.Color3f(*[sigmoid(o) for o in out])
+        return ACTIVATIONS[self.density_activation](density), self.sample_color(features, d, ray)
 
 
 # ----------------------------------------------------------------------------- pure MLP

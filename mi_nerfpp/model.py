@@ -47,6 +47,8 @@ class LinearRadiance:
     def __init__(self, field):
         self.field = field
         self.deferred = getattr(field, 'deferred', False)
+        if hasattr(field, 'sample_color'):     # (a grid field: see render._shade_visible)
+            self.sample_color = lambda f, d, ray: dr.srgb_to_linear(field.sample_color(f, d, ray))
 
     def __call__(self, *args, **kwargs):
         sigma, rgb = self.field(*args, **kwargs)

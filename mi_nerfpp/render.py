@@ -305,9 +305,10 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
     ray; otherwise the field's colour is composited sample by sample.
 
     ``visible_only`` (primal rendering of a field with per-sample colour, with fine samples):
-    both passes take densities only and colour is evaluated at the merged samples that can
-    show (:func:`_shade_visible`). A deferred field's features come with its density at no
-    extra cost, so its render is the same with or without it.
+    colour is evaluated at the merged samples that can show (:func:`_shade_visible`): a grid
+    field's passes keep its features (they come with its density) and only its colour network
+    runs there; other fields' passes take densities only, and the field is evaluated again. A
+    deferred field's render is the same with or without it.
     ``near_gradient`` (training; 0: off): the gradients of samples within this distance of the
     ray's origin are scaled down by :func:`near_gradient_scale`; values are unchanged.
     ``fused`` (primal rendering): the merge and the quadrature in one kernel per ray
@@ -315,13 +316,18 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
     taken at accumulated weight ``level`` (a number or one per ray)."""
     deferred = getattr(field, 'deferred', False)
     lazy = visible_only and n_fine > 0 and not deferred
+    # A grid field's features come with its density: the passes keep them, and the samples
+    # that show need only the colour network (:meth:`~.fields.GridField.sample_color`).
+    keep = lazy and hasattr(field, 'sample_color')
     fused = fused and n_fine > 0 and not lazy
     n_rays = dr.width(volume.lo)
 
     def evaluate(ray, t):
         """Density and the per-sample values to composite (features, or colour) at ``t``."""
         x, width = volume.inputs(ray, t), _footprint(volume.footprint_at(ray, t))
-        if lazy:
+        if keep:
+            out = field.features(x, **width)
+        elif lazy:
             out = (field.density(x, **width), [])
         elif deferred:
             out = field.features(x, **width)
@@ -371,7 +377,8 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
     with stage('quadrature'):
         w, transmittance = weights(volume, v, sigma, n)
         if lazy:
-            rgb = _shade_visible(volume, field, t, w, transmittance, n)
+            rgb = _shade_visible(volume, field, t, w, transmittance, n,
+                                 (order, values_c, values_f) if keep else None)
             parts = [(w, [rgb.x, rgb.y, rgb.z], n)]
         elif order is None:
             parts = [(w, values_c, n)]
@@ -506,22 +513,33 @@ def composite_features(field, features, opacity, d):
     return opacity * field.color([f * scale for f in features], d)
 
 
-def _shade_visible(volume, field, t, w, transmittance, n):
+def _shade_visible(volume, field, t, w, transmittance, n, features=None):
     """Colours of the samples at ray parameters ``t`` (``n`` per ray, weights ``w``), evaluated
     only where they can show and zero elsewhere: not behind the point where a ray's
     transmittance falls below ``HIDDEN_WEIGHT / 2`` (early ray termination: all later weights
     sum to less) and not where a sample's own weight is below ``HIDDEN_WEIGHT / (2n)``. Colours
     lie in [0, 1], so the composite moves by less than ``HIDDEN_WEIGHT``; its opacity and depth
-    are exact."""
+    are exact. ``features``: ``(order, features of the coarse set, of the fine set)`` of a grid
+    field, where ``t`` is in the merged ``order`` (:func:`~.sampling.merge_order`): the shown
+    samples' features are taken from there, and only the colour network runs; without them
+    the field is evaluated anew at the shown samples."""
     dr.eval(w, transmittance)
     shown = dr.compress((transmittance >= 0.5 * HIDDEN_WEIGHT)
                         & (w >= 0.5 * HIDDEN_WEIGHT / n))
     rgb = dr.zeros(mi.Color3f, dr.width(t))
     if dr.width(shown) > 0:
         ray = shown // n
-        t_shown = dr.gather(mi.Float, t, shown)
-        _, rgb_shown = field(volume.inputs(ray, t_shown), volume.d, ray,
-                             **_footprint(volume.footprint_at(ray, t_shown)))
+        if features is not None:
+            order, f_a, f_b = features
+            from_b = dr.gather(mi.Bool, order.from_b, shown)
+            index = dr.gather(mi.UInt32, order.index, shown)
+            f = [dr.select(from_b, dr.gather(mi.Float, b, index, from_b),
+                           dr.gather(mi.Float, a, index, ~from_b)) for a, b in zip(f_a, f_b)]
+            rgb_shown = field.sample_color(f, volume.d, ray)
+        else:
+            t_shown = dr.gather(mi.Float, t, shown)
+            _, rgb_shown = field(volume.inputs(ray, t_shown), volume.d, ray,
+                                 **_footprint(volume.footprint_at(ray, t_shown)))
         dr.scatter(rgb, rgb_shown, shown)
     return rgb
 
@@ -621,7 +639,8 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
     layers are zero), and within a volume whose field has per-sample colour, colour is
     evaluated only at the samples that can show (:func:`_shade_visible`: densities of both
     passes first, then colour where the transmittance and the weight exceed
-    :data:`HIDDEN_WEIGHT`); such fields are then asked for ``density(x)`` too.
+    :data:`HIDDEN_WEIGHT`); a grid field's features are kept from both passes for it, other
+    fields are asked for ``density(x)`` too.
     ``ray_gradients``: let gradients flow to ``o`` and ``d`` (pose refinement, :mod:`.poses`)
     through the sample positions; the samples' distances along the ray stay constants.
     Otherwise the rays are detached.

@@ -499,6 +499,35 @@ def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_
                                atol=2 * HIDDEN_WEIGHT + OCCLUDED_TRANSMITTANCE)
 
 
+@pytest.mark.parametrize('domain', ['ball', 'inverted_sphere'])
+def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(domain):
+    """A grid field with per-sample colour looks its grids up once per sample in a primal
+    render (``visible_only``): the features come with the densities of both passes, and the
+    shown samples only run the colour network on them. The composite is the full render's
+    within HIDDEN_WEIGHT, opacity and depth exactly, and the field takes exactly two lookups
+    (the coarse and the fine pass), not a third at the shown samples."""
+    from mi_nerfpp.fields import GridField
+    from mi_nerfpp.render import HIDDEN_WEIGHT
+    field = GridField(domain, resolutions=(8, 16), color='sample', init=1.0, density_bias=0.0,
+                      seed=3)
+    lookups = []
+    lookup = field._lookup
+    field._lookup = lambda x, width=None: (lookups.append(dr.width(x[0])), lookup(x, width))[1]
+    n_rays, n_c, n_f = 256, 16, 8
+    o, d = rays(n_rays, seed=5)
+    volume = (lambda: Foreground(o, d)) if domain == 'ball' else (lambda: Background(o, d))
+    seed = mi.UInt32(np.arange(n_rays, dtype=np.uint32))
+    full = render_volume(volume(), field, n_c, n_f, seed)
+    lookups.clear()
+    lazy = render_volume(volume(), field, n_c, n_f, seed, visible_only=True)
+    assert lookups == [n_rays * n_c, n_rays * n_f]
+    assert npf(full.fine.opacity).max() > 0.5       # a field that shows
+    np.testing.assert_allclose(npf(lazy.fine.rgb, n_rays), npf(full.fine.rgb, n_rays),
+                               rtol=0, atol=HIDDEN_WEIGHT)
+    np.testing.assert_allclose(npf(lazy.fine.opacity), npf(full.fine.opacity), rtol=1e-6)
+    np.testing.assert_allclose(npf(lazy.fine.depth), npf(full.fine.depth), rtol=1e-6)
+
+
 def test_scale_gradient_keeps_the_value_and_scales_the_gradient():
     from mi_nerfpp.render import scale_gradient
     x = mi.Float(0.3, -1.2, 2.5)

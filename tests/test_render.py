@@ -526,6 +526,12 @@ def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(
                                rtol=0, atol=HIDDEN_WEIGHT)
     np.testing.assert_allclose(npf(lazy.fine.opacity), npf(full.fine.opacity), rtol=1e-6)
     np.testing.assert_allclose(npf(lazy.fine.depth), npf(full.fine.depth), rtol=1e-6)
+    # The same through the linear-radiance wrapper of an sRGB model (how renders see it).
+    from mi_nerfpp.model import LinearRadiance
+    lookups.clear()
+    linear = render_volume(volume(), LinearRadiance(field), n_c, n_f, seed, visible_only=True)
+    assert lookups == [n_rays * n_c, n_rays * n_f]
+    np.testing.assert_allclose(npf(linear.fine.opacity), npf(full.fine.opacity), rtol=1e-6)
 
 
 def test_scale_gradient_keeps_the_value_and_scales_the_gradient():

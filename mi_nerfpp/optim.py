@@ -48,6 +48,8 @@ class Adam(dr.opt.Adam):
     ``dr.eval()``, one kernel per array size, with whatever else reads them fused in."""
 
     def step(self, *, eval=True, grad_scale=None, active=None):
+        if self.amsgrad or self.uniform:        # (variants not used here: Dr.Jit's own step)
+            return super().step(eval=eval, grad_scale=grad_scale, active=active)
         scales = []
         for value, _, lr, extra in self.state.values():
             t = extra[0] + 1
@@ -63,9 +65,9 @@ class Adam(dr.opt.Adam):
             del self._scales
 
     def _step(self, cache, value, grad, lr, extra):
-        t_p, m_p, v_p, v_max_p = extra
         if self.amsgrad or self.uniform:
             return super()._step(cache, value, grad, lr, extra)
+        t_p, m_p, v_p, v_max_p = extra
         m_t = dr.lerp(grad, m_p, self.beta_1)
         v_t = dr.lerp(dr.square(grad), v_p, self.beta_2)
         if self.epsilon <= 1e-6:

@@ -168,10 +168,13 @@ def test_refinement_shrinks_the_rotation_error_of_perturbed_poses(perturbed, tmp
     # (3 degrees are 1.5 pixels), seeds 0-3 of the training: rotation error mean 2.62-2.66
     # degrees, 11-13 of the 15 cameras improved (with the defaults' slower rate, 2.90-2.95 and
     # 9-12: too close to 3 to test); the translation error does not measurably change at
-    # this size.
+    # this size, so it is only held from drifting: seeds 0-3, twice each, measured 3.08-3.28 %
+    # of the radius, and the same seed differs by up to 0.04 points between runs (the order of
+    # the atomic gradient sums; 3.30 % once in CI, against a limit of 3.3 % then), 2026-11-26,
+    # /tmp/s6/pose.py.
     assert rot[1:].mean() < 0.93 * 3.0, rot
     assert np.sum(rot[1:] < 3.0) >= 10, rot
-    assert trans[1:].mean() / record['radius'] < 0.03 * 1.1, trans / record['radius']
+    assert trans[1:].mean() / record['radius'] < 0.03 * 1.15, trans / record['radius']
 
 
 EXACT = dict(FAST, refine_poses=True, poses_start=0.0)

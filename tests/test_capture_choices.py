@@ -158,3 +158,82 @@ def test_a_resumed_run_keeps_the_resolution_it_was_trained_at(capture, tmp_path,
     assert trainer.iteration == 2 and trainer.rays.size == len(resumed.dataset.train) * 32 * 24
     with pytest.raises(DatasetError, match='choose a --downscale'):
         run.prepare(capture, config, str(tmp_path / 'new'), observer=observer)
+
+
+def test_the_foreground_warp_magnifies_in_proportion_to_the_pixels_per_cell_within_bounds():
+    from mi_nerfpp.config import MAX_FG_MAGNIFICATION, WARP_FROM_PIXELS, default_fg_warp
+    from mi_nerfpp.geometry import BALL_WARP_SHARE
+    assert default_fg_warp(0.0) == default_fg_warp(2.5) == default_fg_warp(WARP_FROM_PIXELS) == 0
+    assert default_fg_warp(10.0) == default_fg_warp(1e6) == 0.3 == \
+        round(BALL_WARP_SHARE / MAX_FG_MAGNIFICATION, 3)
+    assert default_fg_warp(1.5 * WARP_FROM_PIXELS) == round(BALL_WARP_SHARE / 1.5, 3)
+    # The magnification rises from 1 (a warp of radius BALL_WARP_SHARE is the identity, so the
+    # linear grid continues it) without jumps.
+    pixels = np.linspace(0.0, 20.0, 401)
+    magnification = [BALL_WARP_SHARE / r if r else 1.0 for r in map(default_fg_warp, pixels)]
+    assert magnification == sorted(magnification)
+    assert np.max(np.diff(magnification)) < 0.02        # slope 1/4 per pixel, steps of 0.05
+
+
+def test_pixels_per_cell_at_the_centre_is_the_median_camera_s_closed_form():
+    from mi_nerfpp.config import centre_pixels_per_cell
+    from mi_nerfpp.data.cameras import Camera
+
+    def camera(distance, focal):
+        c2w = np.eye(4)
+        c2w[:3, 3] = distance * np.array([0.6, 0.0, 0.8])
+        return Camera(K=[[focal, 0, 64], [0, focal, 48], [0, 0, 1]], c2w=c2w, width=128,
+                      height=96)
+    cameras = [camera(0.8, 500.0), camera(0.5, 100.0), camera(0.9, 900.0)]
+    # Per pixel at the centre: 0.8/500, 0.5/100, 0.9/900 -> median 0.0016.
+    assert centre_pixels_per_cell(cameras, 2 / 128) == pytest.approx((2 / 128) / 0.0016)
+
+
+FINE_CELLS = dict(grid_levels=(4, 8), bg_grid_levels=(4, 8), iterations=2, checkpoint_every=0,
+                  preview_every=0, batch_rays=64, fg_samples=4, bg_samples=4, fine_samples=4)
+
+
+def test_a_capture_finer_than_the_foreground_grid_gets_a_warp_announced_stored_and_kept(
+        capture, tmp_path):
+    from mi_nerfpp.config import centre_pixels_per_cell, default_fg_warp
+    from mi_nerfpp.train import Trainer, TrainingError
+    # Cells of 2/8 of the ball span ~10 pixels of the test capture's 32x24 images at its centre.
+    observer = Recorder()
+    inputs = run.prepare(capture, TrainConfig.from_options(**FINE_CELLS), str(tmp_path / 'run'),
+                         observer=observer)
+    assert inputs.config.model.fg_warp is None
+    trainer = run.start(inputs, observer=observer)
+    pixels = centre_pixels_per_cell(trainer.train.cameras, 2 / 8)
+    warp = default_fg_warp(pixels)
+    assert pixels > 6.0 and warp == 0.3
+    assert trainer.cfg.model.fg_warp == trainer.model.fg.warp_radius == warp
+    assert observer.of('notice')[-1] == (
+        f'foreground grid: centre magnified 1.67x (--fg-warp 0.3), because its finest cells '
+        f'span {pixels:.1f} pixels of the images at the scene centre (--fg-warp 0 for a linear '
+        f'grid)')
+    trainer.run()
+    # Resumed without --fg-warp: the warp it was trained with; with another one: refused.
+    dataset = load_dataset(capture)
+    again = Trainer(dataset, str(tmp_path / 'run'), TrainConfig.from_options(**FINE_CELLS),
+                    resume=True)
+    assert again.cfg.model.fg_warp == again.model.fg.warp_radius == warp
+    with pytest.raises(TrainingError, match=r'--fg-warp: the checkpoint has 0.3, this run asks '
+                                            r'for 0.0'):
+        Trainer(dataset, str(tmp_path / 'run'),
+                TrainConfig.from_options(**dict(FINE_CELLS, fg_warp=0.0)), resume=True)
+    # Given, it is kept and nothing is announced.
+    observer = Recorder()
+    inputs = run.prepare(capture, TrainConfig.from_options(**dict(FINE_CELLS, fg_warp=0.2)),
+                         str(tmp_path / 'given'), observer=observer)
+    assert run.start(inputs, observer=observer).model.fg.warp_radius == 0.2
+    assert not any(n.startswith('foreground grid') for n in observer.of('notice'))
+
+
+def test_a_capture_within_the_foreground_cells_keeps_the_linear_grid(capture, tmp_path):
+    from mi_nerfpp.train import Trainer
+    trainer = Trainer(load_dataset(capture), str(tmp_path), TrainConfig.from_options(
+        **dict(FINE_CELLS, grid_levels=(4, 32))))
+    assert trainer.cfg.model.fg_warp == trainer.model.fg.warp_radius == 0.0
+    nerf = Trainer(load_dataset(capture), str(tmp_path / 'mlp'), TrainConfig.from_options(
+        **dict(FINE_CELLS, field='nerf')))
+    assert nerf.cfg.model.fg_warp == 0.0                      # no grid in the foreground

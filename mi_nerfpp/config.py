@@ -69,39 +69,6 @@ def default_minutes(train_pixels: int) -> float:
     return float(min(max(round(minutes), low), high))
 
 
-# The foreground grid's warp of a capture given no --fg-warp (:func:`default_fg_warp`): the
-# linear grid while a cell of its finest level spans at most WARP_FROM_PIXELS pixels of the
-# training images at the scene centre, else the centre magnified in proportion, at most
-# MAX_FG_MAGNIFICATION times. Measured on gt_plaza (2026-11-26, CHANGELOG): at 128x96 (2.5
-# pixels per cell) the warp gains nothing; at 512x384 (10 pixels per cell) magnifications of
-# 1.67 / 2.5 (--fg-warp 0.3 / 0.2) gained 0.57 / 0.29 dB after 10 minutes.
-WARP_FROM_PIXELS = 4.0
-MAX_FG_MAGNIFICATION = 5.0 / 3.0
-
-
-def centre_pixels_per_cell(cameras, cell: float) -> float:
-    """How many pixels of the training images a length ``cell`` (model units) spans at the
-    scene centre (the model frame's origin): the median over ``cameras`` (in the model frame)
-    of ``cell · f / distance``, ``f`` the focal length in pixels."""
-    import numpy as np
-    per_pixel = [np.linalg.norm(c.c2w[:3, 3]) / c.K[0, 0] for c in cameras]
-    return float(cell / max(np.median(per_pixel), 1e-12))
-
-
-def default_fg_warp(pixels_per_cell: float) -> float:
-    """The foreground grid's warp radius (``--fg-warp``) for a capture whose finest
-    foreground cells span ``pixels_per_cell`` pixels at the scene centre
-    (:func:`centre_pixels_per_cell`): 0 (a linear grid) up to :data:`WARP_FROM_PIXELS`, beyond
-    it the inner ball magnified ``pixels_per_cell / WARP_FROM_PIXELS`` times, at most
-    :data:`MAX_FG_MAGNIFICATION` (:func:`~mi_nerfpp.geometry.ball_warp` magnifies the ball of
-    radius ``BALL_WARP_SHARE / m`` ``m`` times). Where the images resolve finer than the grid,
-    its cells go where a 360° capture's cameras look; the shell near the cameras gets coarser
-    cells."""
-    from .geometry import BALL_WARP_SHARE
-    m = min(pixels_per_cell / WARP_FROM_PIXELS, MAX_FG_MAGNIFICATION)
-    return 0.0 if m <= 1.0 else round(BALL_WARP_SHARE / m, 3)
-
-
 def _grid_default(name):
     """A default of the grid field, read from :class:`~mi_nerfpp.fields.GridField` (its home)."""
     return inspect.signature(GridField.__init__).parameters[name].default
@@ -212,13 +179,9 @@ class ModelOptions(_Options):
                                           shapes_model=True)
     grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
                                 shapes_model=True)
-    fg_warp: float | None = option(None, 'grid field: radius of the inner ball that the '
-                                   "foreground grid magnifies (it fills half the grid's "
-                                   'radius; 0: a linear grid)', type=float,
-                                   default_help='(default: chosen from the capture: the '
-                                   "linear grid unless the finest cells span more than "
-                                   f'{WARP_FROM_PIXELS:g} pixels at the scene centre)',
-                                   shapes_model=True)
+    fg_warp: float = option(_grid_default('warp_radius'), 'grid field: radius of the inner ball '
+                            "that the foreground grid magnifies (it fills half the grid's "
+                            'radius; 0: a linear grid)', shapes_model=True)
     bg_s_ratio: tuple = option((_grid_default('s_ratio'),), 'grid field: cells along s (inverse '
                                'radius) per cell of colatitude in the background grid: one '
                                'ratio, or one per background level', type=float, nargs='+',
@@ -290,8 +253,8 @@ class ModelOptions(_Options):
         for name in ('grid_planes', 'bg_grid_planes'):
             if any(r < 2 for r in getattr(self, name) or ()):
                 self._bad(name, 'resolutions of at least 2')
-        if self.fg_warp is not None and not (_finite(self.fg_warp) and 0 <= self.fg_warp < 1):
-            self._bad('fg_warp', 'a radius in [0, 1)')          # None: chosen from the capture
+        if not (_finite(self.fg_warp) and 0 <= self.fg_warp < 1):
+            self._bad('fg_warp', 'a radius in [0, 1)')
         self.bg_s_ratio = _as_tuple(self.bg_s_ratio)
         if (not self.bg_s_ratio or not all(_finite(q) and 0 < q <= 1 for q in self.bg_s_ratio)
                 or len(self.bg_s_ratio) not in (1, len(self.levels('inverted_sphere')))):
@@ -550,30 +513,16 @@ class TrainConfig:
         options it does not store take today's defaults."""
         return cls.from_options(**cls.stored_options(stored))
 
-    def for_capture(self, cameras):
-        """This config with what it leaves to the capture chosen from its training
-        ``cameras`` (in the model frame): the foreground grid's warp (``fg_warp=None``:
-        :func:`default_fg_warp` of :func:`centre_pixels_per_cell` of the finest foreground
-        level; 0 without a grid field in the foreground)."""
-        m = self.model
-        if m.fg_warp is not None:
-            return self
-        warp = 0.0
-        if m.field == 'grid':
-            warp = default_fg_warp(centre_pixels_per_cell(cameras, 2.0 / max(m.grid_levels)))
-        return self.replace(fg_warp=warp)
-
     # ------------------------------------------------------------------ derived
     def field_config(self, kind, domain):
-        """The field config of one volume: the grid options apply to grid fields only (a
-        warp not yet chosen for a capture, :meth:`for_capture`, is the linear grid)."""
+        """The field config of one volume: the grid options apply to grid fields only."""
         if kind != 'grid':
             return default_field_config(kind, domain)
         m = self.model
         start = [max(r >> len(self.schedule.coarse_to_fine), 4) for r in m.levels(domain)]
         ratio = m.bg_s_ratio[0] if len(m.bg_s_ratio) == 1 else list(m.bg_s_ratio)
         extra = ({'s_ratio': ratio} if domain == 'inverted_sphere' else
-                 {'warp_radius': m.fg_warp or 0.0})
+                 {'warp_radius': m.fg_warp})
         return dict(kind='grid', domain=domain, resolutions=start,
                     channels=m.grid_channels, dir_octaves=m.dir_octaves,
                     color_layers=m.color_layers, hidden=m.color_width,

@@ -362,24 +362,9 @@ def start(inputs: RunInputs, resume: bool = False, observer: RunObserver | None 
     """The :class:`~mi_nerfpp.train.Trainer` of the inputs: new, or (``resume``) continued
     from ``OUT/model.npz``."""
     from .train import Trainer
-    observer = observer or RunObserver()
     trainer = Trainer(inputs.dataset, inputs.out, inputs.config, resume=resume)
-    if inputs.config.model.fg_warp is None and trainer.cfg.model.fg_warp > 0 and not resume:
-        observer.notice(warp_line(trainer))
-    observer.started(trainer, inputs)
+    (observer or RunObserver()).started(trainer, inputs)
     return trainer
-
-
-def warp_line(trainer) -> str:
-    """The foreground grid's warp that :meth:`~mi_nerfpp.config.TrainConfig.for_capture`
-    chose for the trainer's capture, and why, in one line."""
-    from .config import centre_pixels_per_cell
-    from .geometry import BALL_WARP_SHARE
-    m = trainer.cfg.model
-    pixels = centre_pixels_per_cell(trainer.train.cameras, 2.0 / max(m.grid_levels))
-    return (f'foreground grid: centre magnified {BALL_WARP_SHARE / m.fg_warp:.2f}x (--fg-warp '
-            f'{m.fg_warp:g}), because its finest cells span {pixels:.1f} pixels of the images '
-            f'at the scene centre (--fg-warp 0 for a linear grid)')
 
 
 @dataclass

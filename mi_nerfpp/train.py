@@ -284,9 +284,6 @@ class Trainer:
         if resume and os.path.exists(self.checkpoint_path):
             self.model, meta, state = load_checkpoint(self.checkpoint_path)
             stored = meta.get('config', {})
-            if config.model.fg_warp is None:          # chosen from the capture: as trained
-                self.cfg = config = config.replace(
-                    fg_warp=TrainConfig.stored_options(stored).get('fg_warp') or 0.0)
             conflicts = (config.resume_conflicts(stored)
                          + data_conflicts(meta.get('data', {}), self.data_summary()))
             if (self.model.composite != config.model.composite
@@ -305,7 +302,6 @@ class Trainer:
         elif resume:
             raise TrainingError(f'--resume: no checkpoint at {self.checkpoint_path}')
         else:
-            self.cfg = config = config.for_capture(self.train.cameras)
             m, s = config.model, config.sampling
             self.model = NeRFPPModel.create(
                 background=m.kind == 'nerfpp', seed=config.schedule.seed,

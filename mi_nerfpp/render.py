@@ -531,10 +531,7 @@ def _shade_visible(volume, field, t, w, transmittance, n, features=None):
         ray = shown // n
         if features is not None:
             order, f_a, f_b = features
-            from_b = dr.gather(mi.Bool, order.from_b, shown)
-            index = dr.gather(mi.UInt32, order.index, shown)
-            f = [dr.select(from_b, dr.gather(mi.Float, b, index, from_b),
-                           dr.gather(mi.Float, a, index, ~from_b)) for a, b in zip(f_a, f_b)]
+            f = [gather_merged(order, a, b, at=shown) for a, b in zip(f_a, f_b)]
             rgb_shown = field.sample_color(f, volume.d, ray)
         else:
             t_shown = dr.gather(mi.Float, t, shown)

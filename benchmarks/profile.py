@@ -19,7 +19,8 @@ kernel launches and kernel time per step, and the cores busy (process CPU time o
 ``--base REV`` measures the same for git revision ``REV`` too (exported with ``git archive``,
 run in its own process with this checkout's :mod:`mi_nerfpp.profiling` copied in; code without
 stage marks shows its kernels by kind only), one version after the other; ``--base-run`` is the
-base version's run to render. Prints tables; writes ``benchmarks/results/profile.json``.
+base version's run to render. Prints tables; writes ``benchmarks/results/profile.json``
+(``--name NAME``: ``NAME.json``).
 """
 from __future__ import annotations
 
@@ -173,6 +174,8 @@ def main():
     ap.add_argument('--height', type=int, default=720)
     ap.add_argument('--base', help='also measure this git revision')
     ap.add_argument('--base-run', help="the base revision's run folder to render")
+    ap.add_argument('--name', default='profile',
+                    help='results file name (benchmarks/results/NAME.json)')
     ap.add_argument('options', nargs='*', help='training options as name=value (this version)')
     a = ap.parse_intermixed_args()
     common = {'data': a.data and os.path.abspath(a.data), 'steps': a.steps,
@@ -223,7 +226,8 @@ def main():
                 tables.append({'title': title, 'columns': ['stage', 'kind', 'ms', 'launches'],
                                'rows': v['render']['stages']})
     from mi_nerfpp.bench import write_results
-    write_results('profile', 'Where the time goes', tables, raw=versions,
+    title = 'Where the time goes' + (f" ({', '.join(a.options)})" if a.options else '')
+    write_results(a.name, title, tables, raw=versions,
                   notes='Kernels are attributed to the stage that launched them (Dr.Jit '
                         'evaluates lazily; while profiling, stages evaluate their outputs '
                         'before they end). Cores busy: process CPU time over wall time. '

@@ -17,8 +17,8 @@ centre), and these are timed, each as the median of ``--rounds`` warm repetition
 - the dense Adam update of every entry (:class:`mi_nerfpp.optim.Adam`, as training);
 - the sparse alternative: the same arithmetic on the entries with a nonzero gradient only,
   read and written in place by masked gathers and scatters (what a step would save if it
-  paid only for the cells it touched), with the copies Dr.Jit makes of arrays that are
-  written while referenced elsewhere.
+  paid only for the cells it touched), with the copies Dr.Jit makes of the arrays a kernel
+  writes when the same kernel reads them.
 
 The samples are the same at every resolution, so what grows with ``R`` is what the level's size
 costs. Prints a table; writes ``benchmarks/results/grid_costs.json``.
@@ -113,7 +113,8 @@ class Level:
             touched = g != 0
             m_t = dr.lerp(g, dr.gather(mi.Float, m, i, touched), beta_1)
             v_t = dr.lerp(dr.square(g), dr.gather(mi.Float, v, i, touched), beta_2)
-            new = dr.fma(m_t * dr.rsqrt(v_t + 1e-16), -lr, dr.gather(mi.Float, value, i, touched))
+            step = m_t * dr.rsqrt(v_t + self.opt.epsilon ** 2)          # as optim.Adam
+            new = dr.fma(step, -lr, dr.gather(mi.Float, value, i, touched))
             dr.scatter(m, m_t, i, touched)
             dr.scatter(v, v_t, i, touched)
             dr.scatter(value, new, i, touched)

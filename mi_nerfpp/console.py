@@ -3,7 +3,23 @@ benchmarks and the experiments): a progress bar, and the run's notices and evalu
 it."""
 from __future__ import annotations
 
+import sys
+
 from .run import RunObserver
+
+# Seconds between redraws of a progress bar: on a terminal tqdm's own default; written to a
+# file or a pipe (a cluster job's log, CI), each redraw is a line's worth of text, and the bar
+# of a 10-minute run redrawn 4 times a second filled a log with ~250 KB of them.
+TERMINAL_REFRESH = 0.1
+LOG_REFRESH = 60.0
+
+
+def refresh_interval(stream=None) -> float:
+    """Seconds between a progress bar's redraws on ``stream`` (default: standard error, where
+    tqdm draws): :data:`TERMINAL_REFRESH` on a terminal, :data:`LOG_REFRESH` otherwise."""
+    stream = sys.stderr if stream is None else stream
+    isatty = getattr(stream, 'isatty', None)
+    return TERMINAL_REFRESH if isatty is not None and isatty() else LOG_REFRESH
 
 
 class ConsoleObserver(RunObserver):
@@ -33,13 +49,16 @@ class ConsoleObserver(RunObserver):
         self.by_time = schedule.iterations is None
         self.bar = tqdm(total=round(60 * schedule.minutes) if self.by_time else
                         schedule.iterations, unit='s' if self.by_time else 'it',
-                        desc=self.desc, dynamic_ncols=True,
+                        desc=self.desc, dynamic_ncols=True, mininterval=refresh_interval(),
                         initial=round(trainer.elapsed) if self.by_time else trainer.iteration)
 
     def step(self, trainer, loss, psnr):
         self.bar.update(round(trainer.elapsed) - self.bar.n if self.by_time else 1)
         if trainer.iteration % 10 == 0:
-            self.bar.set_postfix(it=trainer.iteration, loss=f'{loss:.4f}', psnr=f'{psnr:.2f}')
+            # Shown at the bar's next redraw (set_postfix would redraw it at once, ignoring
+            # the interval).
+            self.bar.set_postfix(it=trainer.iteration, loss=f'{loss:.4f}', psnr=f'{psnr:.2f}',
+                                 refresh=False)
 
     def evaluated(self, point):
         from .run import evaluation_line
@@ -52,4 +71,4 @@ class ConsoleObserver(RunObserver):
 
     def track(self, iterable, desc='', unit='it', leave=True):
         from tqdm import tqdm
-        return tqdm(iterable, desc=desc, unit=unit, leave=leave)
+        return tqdm(iterable, desc=desc, unit=unit, leave=leave, mininterval=refresh_interval())

@@ -7,19 +7,22 @@ import sys
 
 from .run import RunObserver
 
-# Seconds between redraws of a progress bar: on a terminal tqdm's own default; written to a
-# file or a pipe (a cluster job's log, CI), each redraw is a line's worth of text, and the bar
-# of a 10-minute run redrawn 4 times a second filled a log with ~250 KB of them.
-TERMINAL_REFRESH = 0.1
+# Seconds between redraws of a progress bar written to a file or a pipe (a cluster job's log,
+# CI), where each redraw is a line's worth of text: the bar of a 10-minute run redrawn 3-4 times
+# a second made a 273 KB log. On a terminal, tqdm's own intervals.
 LOG_REFRESH = 60.0
 
 
-def refresh_interval(stream=None) -> float:
-    """Seconds between a progress bar's redraws on ``stream`` (default: standard error, where
-    tqdm draws): :data:`TERMINAL_REFRESH` on a terminal, :data:`LOG_REFRESH` otherwise."""
+def bar_refresh(stream=None) -> dict:
+    """tqdm's redraw intervals for a bar drawn on ``stream`` (default: standard error, where
+    tqdm draws): its defaults on a terminal; elsewhere at most one redraw per
+    :data:`LOG_REFRESH` seconds (``maxinterval`` too: tqdm's monitor thread would otherwise
+    redraw a slow bar every 10 seconds)."""
     stream = sys.stderr if stream is None else stream
     isatty = getattr(stream, 'isatty', None)
-    return TERMINAL_REFRESH if isatty is not None and isatty() else LOG_REFRESH
+    if isatty is not None and isatty():
+        return {}
+    return {'mininterval': LOG_REFRESH, 'maxinterval': LOG_REFRESH}
 
 
 class ConsoleObserver(RunObserver):
@@ -49,7 +52,7 @@ class ConsoleObserver(RunObserver):
         self.by_time = schedule.iterations is None
         self.bar = tqdm(total=round(60 * schedule.minutes) if self.by_time else
                         schedule.iterations, unit='s' if self.by_time else 'it',
-                        desc=self.desc, dynamic_ncols=True, mininterval=refresh_interval(),
+                        desc=self.desc, dynamic_ncols=True, **bar_refresh(),
                         initial=round(trainer.elapsed) if self.by_time else trainer.iteration)
 
     def step(self, trainer, loss, psnr):
@@ -71,4 +74,4 @@ class ConsoleObserver(RunObserver):
 
     def track(self, iterable, desc='', unit='it', leave=True):
         from tqdm import tqdm
-        return tqdm(iterable, desc=desc, unit=unit, leave=leave, mininterval=refresh_interval())
+        return tqdm(iterable, desc=desc, unit=unit, leave=leave, **bar_refresh())

@@ -84,13 +84,12 @@ class Level:
             dr.backward(dr.sum(density) + sum(dr.sum(f) for f in features))
             self.gradient = dr.grad(self.opt['grid0']).array
             dr.eval(self.gradient)
-        threshold, local = dr.expand_threshold(), dr.flag(dr.JitFlag.ScatterReduceLocal)
+        local = dr.flag(dr.JitFlag.ScatterReduceLocal)
         dr.set_flag(dr.JitFlag.ScatterReduceLocal, T.GRADIENT_LOCAL_REDUCTION)
         try:
             return timed(backward)
         finally:
             dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
-            dr.set_expand_threshold(threshold)
 
     def dense_adam(self):
         def step():

@@ -6,7 +6,7 @@ ten minutes. Same as ``python -m mi_nerfpp optimize``; ``--help`` lists the opti
 """
 import sys
 
-from mi_nerfpp.cli import main
+from mi_nerfpp.commands.cli import main
 
 if __name__ == '__main__':
     sys.exit(main(['optimize'] + sys.argv[1:]))

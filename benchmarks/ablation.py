@@ -10,7 +10,7 @@ truth held-out PSNR over the pixels that meet no surface (the environment map: t
 mean over the test views that have such pixels), PSNR of every 8th
 training view (the generalization gap; with the synthetic ground truth also split into the
 pixels whose true foreground mask is 1 and 0, to see which volume's fit stalls), foreground/background
-separation against the synthetic ground truth (``mi_nerfpp.metrics.separation``: mean
+separation against the synthetic ground truth (``mi_nerfpp.training.metrics.separation``: mean
 |alpha - alpha_gt|, foreground opacity where the true mask is 0, fraction of soft alpha) and
 the fraction of occupied cells. A fixed step count makes settings comparable however busy the
 machine is; time-based quality is ``benchmarks/quality.py``. Without DATA, the embedded
@@ -24,21 +24,21 @@ import os
 import numpy as np
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp import bench, run
-from mi_nerfpp.config import TrainConfig
-from mi_nerfpp.console import ConsoleObserver
+from mi_nerfpp.jobs import bench, run
+from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.jobs.console import ConsoleObserver
 from mi_nerfpp.data import direction_coverage
-from mi_nerfpp.exr import read_exr
-from mi_nerfpp.metrics import SEEN_BY, masked_psnr, psnr, separation
-from mi_nerfpp.options import add_options, values
-from mi_nerfpp.synth import default_capture
-from mi_nerfpp.views import ViewRenderer, encoded_rgb
+from mi_nerfpp.files.exr import read_exr
+from mi_nerfpp.training.metrics import SEEN_BY, masked_psnr, psnr, separation
+from mi_nerfpp.training.options import add_options, values
+from mi_nerfpp.data.synth import default_capture
+from mi_nerfpp.output.views import ViewRenderer, encoded_rgb
 
 
 def _picture(folder, i, layers, gt, space):
     """One PNG row per test view: what a person looks at to see where the error is."""
     import imageio.v3 as iio
-    from mi_nerfpp.color import to_srgb8
+    from mi_nerfpp.core.color import to_srgb8
     pred = np.clip(encoded_rgb(layers, space), 0, 1)
     enc = 'srgb' if space == 'srgb' else 'linear'
     fg = np.stack([layers[f'fg.{c}'] for c in 'RGB'], axis=-1)

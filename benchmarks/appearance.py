@@ -3,7 +3,7 @@
     python benchmarks/appearance.py DATA OUT [--iterations N] [any optimize training option]
 
 Copies the NeRF++-layout capture ``DATA`` to ``OUT/exposed`` with a different exposure and
-white balance per image (:func:`mi_nerfpp.synth.vary_exposure`, ±0.5 / ±0.1 stops; training
+white balance per image (:func:`mi_nerfpp.data.synth.vary_exposure`, ±0.5 / ±0.1 stops; training
 image 0 untouched), trains ``--iterations`` steps (default 150) from scratch without and with
 ``--appearance`` (otherwise the same options), and prints for each: held-out PSNR scored NeRF-W
 style (each test image's transform fitted on its left half, right half scored), the neutral
@@ -16,12 +16,13 @@ import os
 import numpy as np
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp import appearance as app, bench
-from mi_nerfpp.config import TrainConfig
-from mi_nerfpp.console import ConsoleObserver
+from mi_nerfpp.core import appearance as app
+from mi_nerfpp.jobs import bench
+from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.jobs.console import ConsoleObserver
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.options import add_options, values
-from mi_nerfpp.synth import vary_exposure
+from mi_nerfpp.training.options import add_options, values
+from mi_nerfpp.data.synth import vary_exposure
 
 
 def main():

@@ -24,8 +24,8 @@ import tempfile
 import time
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp import bench
-from mi_nerfpp.cli import main as cli
+from mi_nerfpp.jobs import bench
+from mi_nerfpp.commands.cli import main as cli
 
 
 def video(run, frames, res, out, extra):

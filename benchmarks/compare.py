@@ -21,9 +21,9 @@ import numpy as np
 def train(data, out, model, minutes, every, extra):
     """Train ``model`` for ``minutes`` into ``out`` (held-out views every ``every`` minutes);
     its metrics."""
-    from mi_nerfpp import bench, run
-    from mi_nerfpp.config import TrainConfig
-    from mi_nerfpp.console import ConsoleObserver
+    from mi_nerfpp.jobs import bench, run
+    from mi_nerfpp.training.config import TrainConfig
+    from mi_nerfpp.jobs.console import ConsoleObserver
     options = dict(bench.training_options(extra), model=model, minutes=minutes, iterations=None,
                    preview_every=0,
                    eval_at=tuple(float(m) for m in np.arange(every, minutes, every)))
@@ -38,8 +38,8 @@ def picture(data, runs, path, view=0):
     import imageio.v3 as iio
 
     from mi_nerfpp.data import load_dataset
-    from mi_nerfpp.exr import read_exr
-    from mi_nerfpp.color import to_srgb8
+    from mi_nerfpp.files.exr import read_exr
+    from mi_nerfpp.core.color import to_srgb8
     test = load_dataset(data).test
     gt = (np.clip(test.images[view], 0, 1) * 255).astype(np.uint8)
     nerf = read_exr(os.path.join(runs['nerf'], 'test', f'test_{view:03d}.exr'))
@@ -61,7 +61,7 @@ def main():
     a, extra = ap.parse_known_args()
 
     import mi_nerfpp  # noqa: F401
-    from mi_nerfpp.synth import default_capture
+    from mi_nerfpp.data.synth import default_capture
     data = a.data or default_capture()
     runs = {m: os.path.join(a.out, m) for m in ('nerf', 'nerfpp')}
     metrics = {m: train(data, runs[m], m, a.minutes, a.every, extra) for m in runs}
@@ -91,7 +91,7 @@ def main():
     picture(data, runs, os.path.join(a.out, 'side_by_side.png'), a.view)
     print(f'plot: {a.out}/psnr_vs_time.png, picture: {a.out}/side_by_side.png '
           f'(GT / NeRF / NeRF++ / NeRF++ fg / NeRF++ bg)')
-    from mi_nerfpp import bench
+    from mi_nerfpp.jobs import bench
     bench.write_results('compare', 'NeRF versus NeRF++ at the same wall-time budget', [
         bench.table(f'{a.minutes:g} min of training each',
                     ['model', 'PSNR (dB)', 'SSIM', 'iterations', 'training time (s)',

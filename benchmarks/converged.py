@@ -13,7 +13,7 @@ in the 8-bit sRGB encoding of the capture:
 * ``model``: PSNR of the model's render against the converged image, also over the pixels
   inside and outside the true foreground mask (``gt/*.exr``'s ``fg.A``);
 * ``blur``: the standard deviation, in pixels, of the Gaussian blur of the converged image
-  that scores the same PSNR as the model (``mi_nerfpp.metrics.equivalent_blur``: how blurred
+  that scores the same PSNR as the model (``mi_nerfpp.training.metrics.equivalent_blur``: how blurred
   the reconstruction is, as one number; ``inf`` where errors other than blur dominate);
 * ``far`` and ``near``: where the background is, over the pixels outside the true mask whose
   ray hits a surface (not the sky): the share whose rendered ``depth.Z`` is more than
@@ -31,12 +31,12 @@ import numpy as np
 
 import mi_nerfpp  # noqa: F401
 import mitsuba as mi
-from mi_nerfpp import bench
-from mi_nerfpp.bench import render_encoded
-from mi_nerfpp.exr import read_exr
-from mi_nerfpp.metrics import equivalent_blur, masked_psnr, psnr
-from mi_nerfpp.run import open_run
-from mi_nerfpp.views import ViewRenderer, encoded_rgb
+from mi_nerfpp.jobs import bench
+from mi_nerfpp.jobs.bench import render_encoded
+from mi_nerfpp.files.exr import read_exr
+from mi_nerfpp.training.metrics import equivalent_blur, masked_psnr, psnr
+from mi_nerfpp.jobs.run import open_run
+from mi_nerfpp.output.views import ViewRenderer, encoded_rgb
 
 FAR = 4.0      # a depth more than this many times the truth counts as 'at infinity'
 NEAR = 0.25    # relative depth error that counts as 'right'

@@ -31,12 +31,12 @@ import argparse
 import numpy as np
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp import bench
+from mi_nerfpp.jobs import bench
 from mi_nerfpp.data.cameras import direction_coverage
-from mi_nerfpp.metrics import SEEN_BY, masked_psnr, psnr
-from mi_nerfpp.render import Sampling
-from mi_nerfpp.run import open_run
-from mi_nerfpp.views import ViewRenderer, encoded_rgb
+from mi_nerfpp.training.metrics import SEEN_BY, masked_psnr, psnr
+from mi_nerfpp.core.render import Sampling
+from mi_nerfpp.jobs.run import open_run
+from mi_nerfpp.output.views import ViewRenderer, encoded_rgb
 
 # Samples per volume (coarse, coarse, fine) of a render without empty-space skipping.
 WHOLE_RAY = (64, 64, 128)

@@ -20,10 +20,10 @@ import time
 import mi_nerfpp  # noqa: F401
 import drjit as dr
 
-import mi_nerfpp.train as T
-from mi_nerfpp import bench
-from mi_nerfpp.checkpoint import load_checkpoint
-from mi_nerfpp.config import TrainConfig
+import mi_nerfpp.training.train as T
+from mi_nerfpp.jobs import bench
+from mi_nerfpp.files.checkpoint import load_checkpoint
+from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.data import load_dataset
 
 MODES = {'atomic adds': 1 << 62, 'expand (a copy per thread)': 0}   # EXPAND_MIN_SAMPLES

@@ -4,7 +4,7 @@ update, and the sparse update that would touch only the entries a step reached.
     python benchmarks/grid_costs.py [--resolutions 32 64 96 128] [--rays 1024] [--samples 40]
                                     [--rounds 20]
 
-For each resolution ``R``, a ball :class:`~mi_nerfpp.fields.GridField` of that one level
+For each resolution ``R``, a ball :class:`~mi_nerfpp.core.fields.GridField` of that one level
 (``R³`` cells of 4 channels, as the foreground's levels) is looked up at ``--rays`` rays of
 ``--samples`` samples each, drawn as a training batch sees them (cameras on a sphere of radius
 1.5 looking at points within 0.3 of the centre, the samples spread around the depth of the
@@ -12,9 +12,9 @@ centre), and these are timed, each as the median of ``--rounds`` warm repetition
 
 - the gradient sum: ``drjit.backward`` of the features' sum and the evaluation of the level's
   gradient (zeroing it included), with a training step's scatter settings
-  (:data:`mi_nerfpp.train.GRADIENT_LOCAL_REDUCTION`; atomic adds above Dr.Jit's expand
+  (:data:`mi_nerfpp.training.train.GRADIENT_LOCAL_REDUCTION`; atomic adds above Dr.Jit's expand
   threshold, a copy per thread at or below it);
-- the dense Adam update of every entry (:class:`mi_nerfpp.optim.Adam`, as training);
+- the dense Adam update of every entry (:class:`mi_nerfpp.training.optim.Adam`, as training);
 - the sparse alternative: the same arithmetic on the entries with a nonzero gradient only,
   read and written in place by masked gathers and scatters (what a step would save if it
   paid only for the cells it touched), with the copies Dr.Jit makes of the arrays a kernel
@@ -35,9 +35,10 @@ import mi_nerfpp  # noqa: F401  (libLLVM, variant)
 import drjit as dr
 import mitsuba as mi
 
-import mi_nerfpp.train as T
-from mi_nerfpp import bench, optim
-from mi_nerfpp.fields import GridField
+import mi_nerfpp.training.train as T
+from mi_nerfpp.jobs import bench
+from mi_nerfpp.training import optim
+from mi_nerfpp.core.fields import GridField
 
 CAMERA_RADIUS = 1.5     # the cameras' distance from the centre, in units of the ball
 TARGET_RADIUS = 0.3     # the points they look at lie within this of the centre

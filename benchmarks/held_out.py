@@ -15,7 +15,7 @@ import json
 import os
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp import bench
+from mi_nerfpp.jobs import bench
 
 
 def read_run(run):

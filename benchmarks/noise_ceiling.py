@@ -18,11 +18,11 @@ import numpy as np
 
 import mi_nerfpp  # noqa: F401
 import mitsuba as mi
-from mi_nerfpp import bench
-from mi_nerfpp.bench import render_encoded
+from mi_nerfpp.jobs import bench
+from mi_nerfpp.jobs.bench import render_encoded
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.metrics import psnr
-from mi_nerfpp.synth import default_capture
+from mi_nerfpp.training.metrics import psnr
+from mi_nerfpp.data.synth import default_capture
 
 
 def main():

@@ -16,7 +16,7 @@ import time
 import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
 import drjit as dr
 import mitsuba as mi
-from mi_nerfpp import bench
+from mi_nerfpp.jobs import bench
 
 
 def main():
@@ -26,7 +26,7 @@ def main():
     p.add_argument('-D', '--define', action='append', default=[], metavar='NAME=VALUE')
     args = p.parse_args()
     defines = dict(d.split('=', 1) for d in args.define)
-    from mi_nerfpp.synth import scene_file
+    from mi_nerfpp.data.synth import scene_file
     scenes = list(bench.object_scenes(args.checkpoint, defines,
                                       scene=scene_file('insert_objects.xml')))
     times = {label: [] for label, _ in scenes}

@@ -25,7 +25,7 @@ def write_photo_set(out, views, width, height):
 
     from mi_nerfpp.data import Camera
     from mi_nerfpp.data.nerfpp import write_camera
-    from mi_nerfpp.synth import intrinsics_from_fov, look_at
+    from mi_nerfpp.data.synth import intrinsics_from_fov, look_at
     if os.path.isdir(os.path.join(out, 'train', 'rgb')):
         return
     rng = np.random.default_rng(0)
@@ -59,7 +59,7 @@ def main():
            '--preview-every', '0', '--checkpoint-every', '0', '--eval-at'] + extra
     t = time.perf_counter()
     subprocess.run(cmd, check=True)
-    from mi_nerfpp import bench
+    from mi_nerfpp.jobs import bench
     peak, seconds = bench.peak_rss_mib(children=True), time.perf_counter() - t
     print(f'{args.views} photos of {width}x{height}: optimize peak RSS {peak:.0f} MiB, '
           f'{seconds:.0f} s ({" ".join(cmd[3:])})')

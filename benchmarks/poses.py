@@ -4,7 +4,7 @@
                                [any optimize training option]
 
 Copies the NeRF++-layout capture ``DATA`` to ``OUT/perturbed`` with perturbed training poses
-(:func:`mi_nerfpp.synth.perturb_poses`: each training camera but image 0 rotated by
+(:func:`mi_nerfpp.data.synth.perturb_poses`: each training camera but image 0 rotated by
 ``--degrees`` about a random axis and moved by ``--fraction`` of the scene radius; held-out
 poses exact), trains ``--iterations`` steps (default 300) from scratch without and with
 ``--refine-poses`` (otherwise the same options), and prints for each the held-out PSNR (test
@@ -17,12 +17,13 @@ import argparse
 import os
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp import bench, poses
-from mi_nerfpp.config import TrainConfig
-from mi_nerfpp.console import ConsoleObserver
+from mi_nerfpp.jobs import bench
+from mi_nerfpp.core import poses
+from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.jobs.console import ConsoleObserver
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.options import add_options, values
-from mi_nerfpp.synth import perturb_poses
+from mi_nerfpp.training.options import add_options, values
+from mi_nerfpp.data.synth import perturb_poses
 
 
 def errors(c2w, record):

@@ -7,7 +7,7 @@
 Training (the default capture without DATA, default options; ``name=value`` sets options of the
 training config), at fraction ``--at`` of a run (0.6: past the schedule's phases, as
 ``benchmarks/versus.py train``): after ``--warmup`` steps, ``--steps`` steps are traced without
-``drjit.freeze`` under a :class:`mi_nerfpp.profiling.KernelProfile`, which attributes every
+``drjit.freeze`` under a :class:`mi_nerfpp.core.profiling.KernelProfile`, which attributes every
 kernel to the stage that launched it (occupancy refresh and sampling, field evaluations, the
 merge of coarse and fine samples, quadrature, deferred colour, losses and the reverse pass,
 Adam) and tells kernels apart by kind (gradient scatters, memsets, block reductions, matrix
@@ -17,7 +17,7 @@ kernel launches and kernel time per step, and the cores busy (process CPU time o
 ``--width x --height`` (1 spp) is profiled the same way.
 
 ``--base REV`` measures the same for git revision ``REV`` too (exported with ``git archive``,
-run in its own process with this checkout's :mod:`mi_nerfpp.profiling` copied in; code without
+run in its own process with this checkout's :mod:`mi_nerfpp.core.profiling` copied in; code without
 stage marks shows its kernels by kind only), one version after the other; ``--base-run`` is the
 base version's run to render. Prints tables; writes ``benchmarks/results/profile.json``
 (``--name NAME``: ``NAME.json``).
@@ -60,7 +60,7 @@ def stage_rows(profile, per):
 
 def training_config(options, freeze):
     """A training config of this version (flat TrainConfig before the option groups)."""
-    import mi_nerfpp.train as T
+    import mi_nerfpp.training.train as T
     make = getattr(T.TrainConfig, 'from_options', T.TrainConfig)
     cfg = make(iterations=10 ** 9, checkpoint_every=0, preview_every=0,
                **dict(options, freeze=freeze))
@@ -71,9 +71,9 @@ def training_config(options, freeze):
 def profile_training(data, options, steps, warmup, at):
     import drjit as dr
     from mi_nerfpp.data import load_dataset
-    from mi_nerfpp.profiling import KernelProfile
-    from mi_nerfpp.synth import default_capture
-    from mi_nerfpp.train import Trainer
+    from mi_nerfpp.core.profiling import KernelProfile
+    from mi_nerfpp.data.synth import default_capture
+    from mi_nerfpp.training.train import Trainer
     dataset = load_dataset(data or default_capture(progress=False))
     out = {}
     for freeze in (False, True):
@@ -112,7 +112,7 @@ def profile_render(run, width, height):
 
     import drjit as dr
     import mitsuba as mi
-    from mi_nerfpp.profiling import KernelProfile
+    from mi_nerfpp.core.profiling import KernelProfile
     with open(os.path.join(run, 'render.xml')) as f:
         xml = f.read()
     for name, value in (('width', width), ('height', height), ('sample_count', 1)):
@@ -225,7 +225,7 @@ def main():
                 print_table(title, ['stage', 'kind', 'ms', 'launches'], v['render']['stages'])
                 tables.append({'title': title, 'columns': ['stage', 'kind', 'ms', 'launches'],
                                'rows': v['render']['stages']})
-    from mi_nerfpp.bench import write_results
+    from mi_nerfpp.jobs.bench import write_results
     title = 'Where the time goes' + (f" ({', '.join(a.options)})" if a.options else '')
     write_results(a.name, title, tables, raw=versions,
                   notes='Kernels are attributed to the stage that launched them (Dr.Jit '

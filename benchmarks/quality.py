@@ -11,7 +11,7 @@ ground truth (``DATA/test/gt/*.exr`` from ``synth``):
 * held-out PSNR (mean and the worst view) and SSIM; the same PSNR over the pixels whose
   direction at least ``SEEN_BY`` training views saw ('seen': the rest is extrapolation that
   no method recovers from the capture, ``mi_nerfpp.data.direction_coverage``);
-* foreground/background separation (``mi_nerfpp.metrics.separation``): mean
+* foreground/background separation (``mi_nerfpp.training.metrics.separation``): mean
   |alpha - alpha_gt|, the foreground opacity where the true mask is 0 (leak), the
   fraction of pixels with 0.05 < alpha < 0.95, median relative depth error where the
   mask is 1;
@@ -33,9 +33,9 @@ import numpy as np
 
 def score(data, test_dir):
     from mi_nerfpp.data import direction_coverage, load_dataset
-    from mi_nerfpp.exr import read_exr
-    from mi_nerfpp.metrics import SEEN_BY, masked_psnr, psnr, separation, ssim
-    from mi_nerfpp.views import encoded_rgb
+    from mi_nerfpp.files.exr import read_exr
+    from mi_nerfpp.training.metrics import SEEN_BY, masked_psnr, psnr, separation, ssim
+    from mi_nerfpp.output.views import encoded_rgb
     dataset = load_dataset(data)
     test, test_color_space = dataset.test, dataset.color_space
     gts = sorted(glob.glob(os.path.join(data, 'test', 'gt', '*.exr')))
@@ -74,8 +74,8 @@ def main():
     a = ap.parse_args(argv)
 
     import mi_nerfpp  # noqa: F401
-    from mi_nerfpp import bench
-    from mi_nerfpp.synth import default_capture
+    from mi_nerfpp.jobs import bench
+    from mi_nerfpp.data.synth import default_capture
     data = a.data or default_capture()
     eval_at = [m for m in a.eval_at if m < a.minutes]
     cmd = [sys.executable, '-m', 'mi_nerfpp', 'optimize', data, '--out', a.out, '--minutes',

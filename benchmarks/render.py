@@ -21,8 +21,8 @@ import time
 import mi_nerfpp  # noqa: F401
 import drjit as dr
 import mitsuba as mi
-from mi_nerfpp import bench
-from mi_nerfpp.render import Sampling
+from mi_nerfpp.jobs import bench
+from mi_nerfpp.core.render import Sampling
 
 
 def main():

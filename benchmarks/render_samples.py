@@ -14,9 +14,9 @@ import dataclasses
 import tempfile
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp import bench
-from mi_nerfpp.evaluate import evaluate_split
-from mi_nerfpp.run import open_run
+from mi_nerfpp.jobs import bench
+from mi_nerfpp.training.evaluate import evaluate_split
+from mi_nerfpp.jobs.run import open_run
 
 
 def main():

@@ -6,7 +6,7 @@ For each finished run (a folder written by ``optimize``; runs of older revisions
 renders, with the code of this checkout:
 
 * every test view at the capture's full resolution, scored against the test images (PSNR, SSIM,
-  and the equivalent blur in pixels, :func:`mi_nerfpp.metrics.equivalent_blur`);
+  and the equivalent blur in pixels, :func:`mi_nerfpp.training.metrics.equivalent_blur`);
 * every test view at the resolution the run *trained* at (a run that shrank the photos),
   upsampled bilinearly to full resolution and scored the same way: what a thumbnail model
   gives at plate size;
@@ -27,13 +27,13 @@ import tempfile
 import numpy as np
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp import bench
+from mi_nerfpp.jobs import bench
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.data.images import downscale_image
-from mi_nerfpp.metrics import equivalent_blur, psnr, ssim
-from mi_nerfpp.run import open_run
-from mi_nerfpp.train import in_model_frame
-from mi_nerfpp.views import ViewRenderer, encoded_rgb
+from mi_nerfpp.training.metrics import equivalent_blur, psnr, ssim
+from mi_nerfpp.jobs.run import open_run
+from mi_nerfpp.training.train import in_model_frame
+from mi_nerfpp.output.views import ViewRenderer, encoded_rgb
 
 
 def trained_factor(meta, cfg, dataset):

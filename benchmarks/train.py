@@ -24,10 +24,10 @@ import time
 import mi_nerfpp  # noqa: F401
 import drjit as dr
 
-from mi_nerfpp import bench, run
-from mi_nerfpp.config import TrainConfig
-from mi_nerfpp.options import add_options, values
-from mi_nerfpp.synth import default_capture
+from mi_nerfpp.jobs import bench, run
+from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.training.options import add_options, values
+from mi_nerfpp.data.synth import default_capture
 
 # Set by this benchmark for every run (not a setting it measures).
 RUN_OPTIONS = ('checkpoint_every', 'preview_every', 'iterations', 'minutes', 'eval_at',

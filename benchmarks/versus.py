@@ -36,8 +36,12 @@ TRAIN_WORKER = r'''
 import json, resource, sys, time
 import mi_nerfpp, drjit as dr
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.synth import default_capture
-import mi_nerfpp.train as T
+try:                        # the layered package (issue 48), or the flat one of older revisions
+    from mi_nerfpp.data.synth import default_capture
+    import mi_nerfpp.training.train as T
+except ImportError:
+    from mi_nerfpp.synth import default_capture
+    import mi_nerfpp.train as T
 args = json.loads(sys.argv[1])
 dataset = load_dataset(default_capture(progress=False))
 # The flat config of older versions, or the option groups of newer ones (from_options).
@@ -191,7 +195,7 @@ def main():
     ratio = result['new']['per_second'] / result['base']['per_second']
     result['ratio'] = ratio
     print(f'new / base: {ratio:.2f}x')
-    from mi_nerfpp.bench import table, write_results
+    from mi_nerfpp.jobs.bench import table, write_results
     unit = 'rays/s (training)' if a.mode == 'train' else 'rays/s (render)'
     what = 'step' if a.mode == 'train' else 'frame'
     rows = [[f'{name} ({a.base if name == "base" else "this checkout"})',

@@ -13,9 +13,9 @@ import numpy as np
 import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
 import mitsuba as mi
 
-from mi_nerfpp.bench import object_variant_xml
-from mi_nerfpp.color import to_srgb8
-from mi_nerfpp.synth import scene_file
+from mi_nerfpp.jobs.bench import object_variant_xml
+from mi_nerfpp.core.color import to_srgb8
+from mi_nerfpp.data.synth import scene_file
 
 SCENE = scene_file('insert_objects.xml')
 

@@ -30,7 +30,7 @@ def parser(doc, name):
 
 def capture(cache, name, **synth):
     """Render (or reuse) the capture ``name`` of the bounded still life under ``cache``."""
-    from mi_nerfpp.synth import scene_file, synthesize
+    from mi_nerfpp.data.synth import scene_file, synthesize
     out = os.path.join(cache, name)
     synthesize(scene_file('gt_bounded.xml'), out, **synth)
     return out
@@ -45,14 +45,14 @@ def subset(split, indices):
 
 def object_masks(data, split_name):
     """Per-view ground-truth masks of the still life (``fg.A`` of the synthetic capture)."""
-    from mi_nerfpp.exr import read_exr
+    from mi_nerfpp.files.exr import read_exr
     folder = os.path.join(data, split_name, 'gt')
     return [read_exr(os.path.join(folder, f))['fg.A'] > 0.5 for f in sorted(os.listdir(folder))]
 
 
 def score(preds, images, masks=None):
     """Mean PSNR / SSIM over views; ``masks``: also PSNR over the object's pixels only."""
-    from mi_nerfpp.metrics import psnr, ssim
+    from mi_nerfpp.training.metrics import psnr, ssim
     preds = [np.clip(p, 0.0, 1.0) for p in preds]
     out = {'psnr': float(np.mean([psnr(p, g) for p, g in zip(preds, images)])),
            'ssim': float(np.mean([ssim(p, g) for p, g in zip(preds, images)])),
@@ -64,15 +64,15 @@ def score(preds, images, masks=None):
 
 
 def train(dataset, out, cfg):
-    """Train a NeRF++ model (:mod:`mi_nerfpp.run`) with a progress bar; returns the Trainer.
+    """Train a NeRF++ model (:mod:`mi_nerfpp.jobs.run`) with a progress bar; returns the Trainer.
 
     A finished run of the same configuration in ``out`` is reused (its checkpoint is loaded,
     nothing is trained), so a script re-run only re-evaluates; ``trainer.elapsed`` is the
     training time either way. An unfinished or different run there is trained afresh.
     """
-    from mi_nerfpp import run
-    from mi_nerfpp.checkpoint import load_checkpoint
-    from mi_nerfpp.console import ConsoleObserver
+    from mi_nerfpp.jobs import run
+    from mi_nerfpp.files.checkpoint import load_checkpoint
+    from mi_nerfpp.jobs.console import ConsoleObserver
     path = os.path.join(out, 'model.npz')
     reuse = False
     if os.path.exists(path):
@@ -93,7 +93,7 @@ def render_views(model, split):
     """RGB renders of every view of a split through the ``nerfpp`` integrator (with the
     model's render settings: the sample counts it was trained with), in the encoding of the
     model's training images (comparable with them)."""
-    from mi_nerfpp.views import ViewRenderer, encoded_rgb
+    from mi_nerfpp.output.views import ViewRenderer, encoded_rgb
     renderer = ViewRenderer(model)
     return [encoded_rgb(renderer.render(cam), model.color_space) for cam in split.cameras]
 

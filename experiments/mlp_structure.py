@@ -9,7 +9,7 @@ cameras (``synth --trajectory arc``: distance 3.5, 128x96 pixels, 30 degree fiel
 validation split); **extrapolation** test views: 5 views at |azimuth| 65..90 degrees on either
 side, same elevations (its test split).
 
-The models, all trained from scratch with NeRF++ (``mi_nerfpp.train.Trainer``), the background
+The models, all trained from scratch with NeRF++ (``mi_nerfpp.training.train.Trainer``), the background
 volume a grid field in every run so that only the foreground field differs:
 
 * pure MLPs (depth 4, width 64), ``--mlp-iterations`` steps each:
@@ -58,8 +58,8 @@ def main():
     import numpy as np
 
     from mi_nerfpp.data import load_dataset
-    from mi_nerfpp.metrics import psnr
-    from mi_nerfpp.config import TrainConfig
+    from mi_nerfpp.training.metrics import psnr
+    from mi_nerfpp.training.config import TrainConfig
 
     data = common.capture(a.data_cache, 'arc', views=a.views, res=a.res, fov=30.0, spp=a.spp,
                           trajectory='arc', seed=0)

@@ -8,7 +8,7 @@ cameras placed at random on the upper hemisphere (``synth --trajectory hemispher
 Every camera ray meets the sphere below (it subtends 16.6 degrees, half the view 12.5).
 
 The wrong shape: the opacity is fixed to an opaque sphere of world radius 1 around the origin
-(it encloses the still life; :mod:`mi_nerfpp.ambiguity`) and only the radiance c(x, d) is fitted,
+(it encloses the still life; :mod:`mi_nerfpp.training.ambiguity`) and only the radiance c(x, d) is fitted,
 for ``--iterations`` Adam steps each, with three radiance models: the grid + MLP field (grid
 features, γ^4(d) late; 4096 rays a step, learning rates 0.1 grid / 5e-3 MLP), the NeRF-MLP at
 the paper's size (depth 8, width 256, γ^10(x) trunk, γ^4(d) injected late) and the vanilla MLP
@@ -41,12 +41,12 @@ def main():
     import numpy as np
     from tqdm import tqdm
 
-    from mi_nerfpp.ambiguity import OpaqueSphere, fit_radiance
+    from mi_nerfpp.training.ambiguity import OpaqueSphere, fit_radiance
     from mi_nerfpp.data import load_dataset
-    from mi_nerfpp.fields import make_field
-    from mi_nerfpp.model import default_field_config
-    from mi_nerfpp.config import TrainConfig
-    from mi_nerfpp.train import RayBank
+    from mi_nerfpp.core.fields import make_field
+    from mi_nerfpp.core.model import default_field_config
+    from mi_nerfpp.training.config import TrainConfig
+    from mi_nerfpp.training.train import RayBank
 
     data = common.capture(a.data_cache, 'hemisphere', views=a.views, res=a.res, fov=25.0, spp=a.spp,
                           trajectory='hemisphere', seed=0)
@@ -111,7 +111,7 @@ def main():
     with open(os.path.join(a.figures, 'shape_radiance.md'), 'w') as f:
         f.write(table + '\n')
 
-    from mi_nerfpp.metrics import psnr
+    from mi_nerfpp.training.metrics import psnr
     tv, sv = 0, 0
     panels = []
     for name in results:

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import sys
 
-from . import _llvm
-from ._llvm import LLVMNotFoundError
+from mi_nerfpp import _llvm
+from mi_nerfpp._llvm import LLVMNotFoundError
 
 __version__ = '0.1.0'
 DEFAULT_VARIANT = 'llvm_ad_rgb'
@@ -35,7 +35,7 @@ def _setup():
     chosen = _chosen_variant()
     if chosen is None or chosen.startswith('llvm'):
         _llvm.configure()
-    import mitsuba as mi
+    import mitsuba as mi  # deferred: Dr.Jit reads DRJIT_LIBLLVM_PATH (set above) when it loads
     if chosen is None:
         mi.set_variant(DEFAULT_VARIANT)
     variant = mi.variant()
@@ -44,13 +44,15 @@ def _setup():
             f"mi_nerfpp needs a differentiable RGB Mitsuba variant (llvm_ad_rgb or "
             f"cuda_ad_rgb), but '{variant}' is selected. Call "
             f"mi.set_variant('{DEFAULT_VARIANT}') before importing mi_nerfpp.")
-    from .integrator import register
+    from mi_nerfpp.integrator import \
+        register  # deferred: its module needs the variant set
     register()
 
 
 _setup()
 
-from .checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
-from .integrator import NeRFPPIntegrator  # noqa: E402
+from mi_nerfpp.files.checkpoint import load_checkpoint  # noqa: E402
+from mi_nerfpp.files.checkpoint import save_checkpoint
+from mi_nerfpp.integrator import NeRFPPIntegrator  # noqa: E402
 
 __all__ = ['NeRFPPIntegrator', 'LLVMNotFoundError', 'load_checkpoint', 'save_checkpoint']

@@ -8,7 +8,7 @@ XML parameters and the package's modules.
 The page has two parts, both generated, nothing hand-written:
 
 * the help of ``python -m mi_nerfpp`` and of each of its subcommands, exactly as argparse
-  prints it (``mi_nerfpp.cli.build_parser()``), at a fixed terminal width (``COLUMNS``) so that
+  prints it (``mi_nerfpp.commands.cli.build_parser()``), at a fixed terminal width (``COLUMNS``) so that
   the output does not depend on the terminal the script runs in. Option groups, new commands
   and new options appear as argparse prints them;
 * the parameters of ``<integrator type="nerfpp">``, parsed from the ``.. pluginparameters::``
@@ -70,7 +70,7 @@ def _subcommands(parser: argparse.ArgumentParser):
 def command_helps() -> list[tuple[str, str]]:
     """(command, help text) for ``python -m mi_nerfpp`` and every subcommand."""
     sys.path.insert(0, str(ROOT))
-    from mi_nerfpp.cli import build_parser
+    from mi_nerfpp.commands.cli import build_parser
     with _fixed_terminal():
         parser = build_parser()
         helps = [('', parser.format_help())]

@@ -23,7 +23,7 @@ def capture(tmp_path_factory):
 @pytest.fixture(scope='session')
 def tiny_run(capture, tmp_path_factory):
     """A run folder of ``optimize`` on the capture, trained for a few steps."""
-    from mi_nerfpp.cli import main
+    from mi_nerfpp.commands.cli import main
     out = str(tmp_path_factory.mktemp('run') / 'tiny')
     assert main(['optimize', capture, '--out', out] + TINY_RUN) == 0
     return out

@@ -10,7 +10,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_nerfpp.model import NeRFPPModel
+from mi_nerfpp.core.model import NeRFPPModel
 
 # Optimize options of a run that trains in seconds (for the commands that read a run).
 TINY_RUN = ['--iterations', '5', '--batch-rays', '256', '--samples', '8', '8', '8',
@@ -20,7 +20,7 @@ TINY_GRID = dict(kind='grid', resolutions=[4, 8], channels=3, hidden=8, dir_octa
 
 
 class AnalyticField:
-    """A closed-form field with the interface of :class:`mi_nerfpp.fields.Field`: ``sigma`` and
+    """A closed-form field with the interface of :class:`mi_nerfpp.core.fields.Field`: ``sigma`` and
     ``rgb`` are constants or functions of the field inputs ``x`` (the point for the foreground,
     ``(x̂, s)`` for the background; ``rgb`` returns a Color3f or three Floats). ``shaded``
     counts the samples whose colour was evaluated; with ``record=True``, ``shaded_x`` keeps
@@ -106,7 +106,7 @@ def make_capture(root, views=24, width=32, height=24, spp=8):
     """
     import numpy as np
     from mi_nerfpp.data import mitsuba_sensor_dict, write_nerfpp
-    from mi_nerfpp.color import to_srgb8
+    from mi_nerfpp.core.color import to_srgb8
     scene = mi.load_dict({
         'type': 'scene', 'integrator': {'type': 'path', 'max_depth': 3},
         'sky': {'type': 'constant', 'radiance': {'type': 'rgb', 'value': [0.6, 0.7, 0.9]}},
@@ -174,7 +174,7 @@ def straight_and_resumed(dataset, tmp_path, config, stop_at):
     """Train ``config`` straight in ``tmp_path/a``, and in ``tmp_path/b`` interrupted after step
     ``stop_at`` and resumed (:func:`interrupted_then_resumed`), both on one thread (see
     :func:`one_thread`); returns the two Trainers."""
-    from mi_nerfpp.train import Trainer
+    from mi_nerfpp.training.train import Trainer
     with one_thread():
         straight = Trainer(dataset, str(tmp_path / 'a'), config)
         straight.run()
@@ -185,7 +185,7 @@ def straight_and_resumed(dataset, tmp_path, config, stop_at):
 def interrupted_then_resumed(dataset, out, config, stop_at):
     """Train ``config`` in ``out``, interrupted after step ``stop_at`` as by Ctrl-C, then resume
     it in a new Trainer to the end; returns that Trainer."""
-    from mi_nerfpp.train import Trainer
+    from mi_nerfpp.training.train import Trainer
 
     def interrupt(trainer, loss, psnr):
         if trainer.iteration == stop_at:
@@ -207,9 +207,9 @@ def per_image_parameters_resume_exactly(dataset, tmp_path, exact, plain, name, f
     import numpy as np
     import pytest
 
-    from mi_nerfpp.checkpoint import load_checkpoint
-    from mi_nerfpp.config import TrainConfig
-    from mi_nerfpp.train import Trainer
+    from mi_nerfpp.files.checkpoint import load_checkpoint
+    from mi_nerfpp.training.config import TrainConfig
+    from mi_nerfpp.training.train import Trainer
     straight, resumed = straight_and_resumed(dataset, tmp_path,
                                              TrainConfig.from_options(iterations=10, **exact),
                                              stop_at=5)

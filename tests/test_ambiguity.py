@@ -1,15 +1,15 @@
-"""The opaque-sphere reconstruction of paper §3 (mi_nerfpp.ambiguity)."""
+"""The opaque-sphere reconstruction of paper §3 (mi_nerfpp.training.ambiguity)."""
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
 from tests.helpers import make_capture
-from mi_nerfpp.ambiguity import OpaqueSphere, fit_radiance, sphere_hit
+from mi_nerfpp.training.ambiguity import OpaqueSphere, fit_radiance, sphere_hit
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.fields import MLPField
-from mi_nerfpp.metrics import psnr
-from mi_nerfpp.train import RayBank
+from mi_nerfpp.core.fields import MLPField
+from mi_nerfpp.training.metrics import psnr
+from mi_nerfpp.training.train import RayBank
 
 
 def _rays(n, seed, spread):

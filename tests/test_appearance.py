@@ -8,15 +8,15 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp import appearance as app
-from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
+from mi_nerfpp.core import appearance as app
+from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.evaluate import evaluate_split
-from mi_nerfpp.views import render_layers
-from mi_nerfpp.color import srgb_eotf
-from mi_nerfpp.synth import APPEARANCE_FILE, vary_exposure
-from mi_nerfpp.config import TrainConfig
-from mi_nerfpp.train import Trainer
+from mi_nerfpp.training.evaluate import evaluate_split
+from mi_nerfpp.output.views import render_layers
+from mi_nerfpp.core.color import srgb_eotf
+from mi_nerfpp.data.synth import APPEARANCE_FILE, vary_exposure
+from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.training.train import Trainer
 from tests.helpers import per_image_parameters_resume_exactly, scene_dict, tiny_model
 
 # Small and fast, the same for both runs; 300 steps at a fixed seed.

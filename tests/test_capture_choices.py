@@ -1,22 +1,23 @@
 """What a run chooses from the capture when the options leave it open (issue 34): the
-resolution (the images' own unless they do not fit in memory, mi_nerfpp.memory) and the time
-budget (mi_nerfpp.config.default_minutes), each announced in one line and respected."""
+resolution (the images' own unless they do not fit in memory, mi_nerfpp.core.budget) and the time
+budget (mi_nerfpp.training.config.default_minutes), each announced in one line and respected."""
 import re
 
 import numpy as np
 import pytest
 
-from mi_nerfpp import memory, run
-from mi_nerfpp.config import DEFAULT_JOB_MINUTES, DEFAULT_MINUTES_RANGE, TrainConfig, \
-    default_minutes
+from mi_nerfpp.core import budget
+from mi_nerfpp.jobs import run
+from mi_nerfpp.training.config import (DEFAULT_JOB_MINUTES, DEFAULT_MINUTES_RANGE, TrainConfig,
+                                       default_minutes)
 from mi_nerfpp.data import DatasetError, load_dataset
-from mi_nerfpp.model import NeRFPPModel
+from mi_nerfpp.core.model import NeRFPPModel
 from tests.test_run import Recorder
 
 
 def test_the_default_capture_keeps_its_minutes_and_larger_ones_get_more_within_bounds():
-    from mi_nerfpp.synth.capture import DEFAULT_RES, DEFAULT_TRAJECTORY, DEFAULT_VIEWS
-    from mi_nerfpp.synth.trajectories import make_cameras
+    from mi_nerfpp.data.synth.capture import DEFAULT_RES, DEFAULT_TRAJECTORY, DEFAULT_VIEWS
+    from mi_nerfpp.data.synth.trajectories import make_cameras
     train = make_cameras(DEFAULT_TRAJECTORY, DEFAULT_VIEWS, DEFAULT_RES)['train']
     pixels = len(train) * DEFAULT_RES[0] * DEFAULT_RES[1]
     assert default_minutes(pixels) == DEFAULT_JOB_MINUTES == 10
@@ -40,12 +41,12 @@ def notices_of(capture, tmp_path, **options):
 def test_the_chosen_resolution_and_budget_are_announced_and_respected(capture, tmp_path):
     inputs, notices = notices_of(capture, tmp_path)
     n = len(inputs.dataset.train)
-    resolution, budget = notices
+    resolution, schedule_line = notices
     assert resolution.startswith(f"training at the images' own resolution, {n} views of "
                                  f'32x24 (images ')
     assert resolution.endswith('available; --downscale to shrink)')
     minutes = default_minutes(n * 32 * 24)
-    assert budget == (f'training for {minutes:g} minutes (chosen from {n} views of 32x24; '
+    assert schedule_line == (f'training for {minutes:g} minutes (chosen from {n} views of 32x24; '
                       f'--minutes to change)')
     config = inputs.config
     assert config.data.downscale == 1 and inputs.dataset.downscale == 1
@@ -60,7 +61,7 @@ def test_the_chosen_resolution_and_budget_are_announced_and_respected(capture, t
 
 
 def test_a_trainer_given_no_budget_takes_the_default_one(capture, tmp_path):
-    from mi_nerfpp.train import Trainer
+    from mi_nerfpp.training.train import Trainer
     dataset = load_dataset(capture)
     trainer = Trainer(dataset, str(tmp_path), TrainConfig())
     pixels = len(dataset.train) * 32 * 24
@@ -87,25 +88,25 @@ def test_a_capture_too_large_for_the_memory_is_downscaled_and_the_message_says_w
     # 8-bit images, the training ones counted twice: at 32x24 3 bytes per pixel, at 16x12
     # 6 (exact box sums): half the memory.
     full = (2 * n + held_out) * 32 * 24 * 3
-    step = memory.training_working_set(TrainConfig())
-    available = int((step + 0.75 * full) / memory.USABLE_FRACTION) + 1
-    monkeypatch.setattr(memory, 'available_bytes', lambda: available)
-    inputs, (resolution, budget) = notices_of(capture, tmp_path)
+    step = budget.plan(TrainConfig()).total
+    available = int((step + 0.75 * full) / budget.USABLE_FRACTION) + 1
+    monkeypatch.setattr(budget, 'available_bytes', lambda: available)
+    inputs, (resolution, minutes) = notices_of(capture, tmp_path)
     size = run.bytes_text
     assert resolution == (
         f'downscale 2 chosen: {n} views of 16x12, because at their own 32x24 the images would '
         f'take {size(full)} + training ~{size(step)}, more than the '
-        f'{size(memory.USABLE_FRACTION * available)} usable of {size(available)} available '
+        f'{size(budget.USABLE_FRACTION * available)} usable of {size(available)} available '
         f'(--downscale to choose)')
     assert inputs.config.data.downscale == inputs.dataset.downscale == 2
-    assert budget.startswith(f'training for {default_minutes(n * 16 * 12):g} minutes (chosen '
+    assert minutes.startswith(f'training for {default_minutes(n * 16 * 12):g} minutes (chosen '
                              f'from {n} views of 16x12;')
     assert run.start(inputs).rays.size == n * 16 * 12           # trained at what it chose
     # Memory for the images at their own size: kept.
-    monkeypatch.setattr(memory, 'available_bytes', lambda: available + full)
+    monkeypatch.setattr(budget, 'available_bytes', lambda: available + full)
     assert notices_of(capture, tmp_path)[0].config.data.downscale == 1
     # No memory left for any size: refused, unless a downscale is given.
-    monkeypatch.setattr(memory, 'available_bytes', lambda: step)
+    monkeypatch.setattr(budget, 'available_bytes', lambda: step)
     with pytest.raises(DatasetError, match=re.escape('choose a --downscale to train anyway')):
         notices_of(capture, tmp_path)
     assert notices_of(capture, tmp_path, downscale=1)[0].dataset.downscale == 1
@@ -122,20 +123,23 @@ def test_the_estimate_counts_the_parameters_of_the_model(options):
                                bg_config=config.field_config(m.bg_field or m.field,
                                                              'inverted_sphere'))
     actual = sum(dr.width(v) for v in model.parameters().values())
-    estimate = memory.model_parameters(config)
+    plan = budget.plan(config)
+    estimate = plan.entries['grids']
     assert estimate <= actual < estimate * 1.001 + 200_000     # the colour MLPs, an MLP field
-    threads = memory.threads()
-    assert memory.training_working_set(config) == (
-        memory.BASE_BYTES + 4 * estimate * (memory.PARAMETER_COPIES + threads)
-        + memory.SAMPLE_BYTES * config.schedule.batch_rays * config.samples_per_ray)
+    threads = dr.thread_count()
+    assert plan.machine.threads == threads
+    assert plan.total == (
+        budget.BASE_BYTES + 4 * estimate * (budget.PARAMETER_COPIES + threads)
+        + budget.OCCUPANCY_BYTES_PER_CELL * plan.entries['occupancy']
+        + budget.TRAIN_BYTES_PER_SAMPLE * config.schedule.batch_rays * config.samples_per_ray)
 
 
 def test_the_available_memory_is_what_the_machine_has():
     with open('/proc/meminfo') as f:
         total = next(int(line.split()[1]) * 1024 for line in f if line.startswith('MemTotal'))
-    assert 0 < memory.available_bytes() <= total
-    assert memory.image_budget(step_bytes=10, available=1000) == 790
-    assert memory.image_budget(step_bytes=10 ** 9, available=1000) == 0
+    assert 0 < budget.available_bytes() <= total
+    assert budget.images_budget(10, available=1000) == 790
+    assert budget.images_budget(10 ** 9, available=1000) == 0
 
 
 def test_a_resumed_run_keeps_the_resolution_it_was_trained_at(capture, tmp_path, monkeypatch):
@@ -147,8 +151,8 @@ def test_a_resumed_run_keeps_the_resolution_it_was_trained_at(capture, tmp_path,
     run.train(run.start(inputs))
     # Too little memory now for the images at any size: a new run is refused, the resumed one
     # goes on as it was trained.
-    monkeypatch.setattr(memory, 'available_bytes', lambda: memory.training_working_set(
-        inputs.config) + 1000)
+    needed = budget.plan(inputs.config).total
+    monkeypatch.setattr(budget, 'available_bytes', lambda: needed + 1000)
     observer = Recorder()
     config = TrainConfig.from_options(**dict(tiny, iterations=3))
     resumed = run.prepare(capture, config, out, resume=True, observer=observer)

@@ -7,9 +7,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.checkpoint import VERSION, CheckpointError, load_checkpoint, save_checkpoint
-from mi_nerfpp.frame import Normalization
-from mi_nerfpp.model import NeRFPPModel
+from mi_nerfpp.files.checkpoint import VERSION, CheckpointError, load_checkpoint, save_checkpoint
+from mi_nerfpp.core.frame import Normalization
+from mi_nerfpp.core.model import NeRFPPModel
 from tests.helpers import TINY_GRID, scene_dict, tiny_model
 
 
@@ -138,7 +138,7 @@ def test_version_1_files_with_top_level_center_and_scale_are_still_read(tmp_path
 def test_checkpoint_carries_the_render_settings_and_the_integrator_reads_them(tmp_path):
     import dataclasses
 
-    from mi_nerfpp.render import Sampling
+    from mi_nerfpp.core.render import Sampling
     m = tiny_model(seed=4)
     m.sampling = Sampling(fg_samples=5, bg_samples=6, fine_samples=3, near=0.02)
     path = tmp_path / 'm.npz'
@@ -179,7 +179,7 @@ def _as_before_render_settings(path, flat_config):
 
 
 def test_old_checkpoints_render_with_the_sample_counts_of_their_training(tmp_path):
-    from mi_nerfpp.render import Sampling
+    from mi_nerfpp.core.render import Sampling
     path = tmp_path / 'm.npz'
     save_checkpoint(path, tiny_model())
     _as_before_render_settings(path, {'model': 'nerf', 'fg_samples': 12, 'bg_samples': 4,
@@ -189,6 +189,20 @@ def test_old_checkpoints_render_with_the_sample_counts_of_their_training(tmp_pat
     save_checkpoint(path, tiny_model())
     _as_before_render_settings(path, None)      # no training config: the render defaults
     assert load_checkpoint(path)[0].sampling == Sampling()
+
+
+def test_old_checkpoints_with_grouped_training_configs_render_with_their_sample_counts(
+        tmp_path):
+    from mi_nerfpp.core.render import SKIPPING, Sampling
+    path = tmp_path / 'm.npz'
+    save_checkpoint(path, tiny_model())
+    _as_before_render_settings(path, {'model': {'kind': 'nerfpp'},
+                                      'sampling': {'fg_samples': 8, 'fine_samples': 2}})
+    assert load_checkpoint(path)[0].sampling == Sampling(8, SKIPPING.bg_samples, 2)
+    save_checkpoint(path, tiny_model())
+    _as_before_render_settings(path, {'model': {'kind': 'nerf'}, 'sampling': {}})
+    assert load_checkpoint(path)[0].sampling == Sampling.of_model(
+        'nerf', SKIPPING.fg_samples, SKIPPING.bg_samples, SKIPPING.fine_samples)
 
 
 # The training config of a checkpoint written before the config groups (flat, as
@@ -213,10 +227,10 @@ def test_a_checkpoint_with_a_flat_training_config_loads_evaluates_and_resumes(
         tiny_run, capture, tmp_path, capsys):
     import shutil
 
-    from mi_nerfpp.cli import main
-    from mi_nerfpp.config import TrainConfig
-    from mi_nerfpp.render import Sampling
-    from mi_nerfpp.run import evaluate_run, open_run
+    from mi_nerfpp.commands.cli import main
+    from mi_nerfpp.training.config import TrainConfig
+    from mi_nerfpp.core.render import Sampling
+    from mi_nerfpp.jobs.run import evaluate_run, open_run
     from tests.helpers import TINY_RUN
     run = tmp_path / 'old'
     shutil.copytree(tiny_run, run)
@@ -277,7 +291,7 @@ def test_the_background_may_colour_every_sample_while_the_foreground_defers(tmp_
     foreground's ``--color`` (default: deferred). The fields get their own modes, a checkpoint
     keeps them, and a checkpoint stored before the option (its background coloured as its
     ``--color``) refuses to resume as another."""
-    from mi_nerfpp.config import TrainConfig
+    from mi_nerfpp.training.config import TrainConfig
     config = TrainConfig()
     m = config.model
     assert config.field_config(m.field, 'ball')['color'] == 'deferred'

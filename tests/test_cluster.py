@@ -1,4 +1,4 @@
-"""Ray (mi_nerfpp/cluster.py) on a local cluster this module starts: frames on actors equal the
+"""Ray (mi_nerfpp/jobs/cluster.py) on a local cluster this module starts: frames on actors equal the
 single-process frames, a worker killed with SIGKILL loses no frame, sweep runs captures as tasks."""
 import json
 import os
@@ -12,11 +12,11 @@ ray = pytest.importorskip('ray')
 
 import imageio.v3 as iio  # noqa: E402
 
-from mi_nerfpp.cli import build_parser, main  # noqa: E402
-from mi_nerfpp.cluster import FramePool, FrameWorker  # noqa: E402
+from mi_nerfpp.commands.cli import build_parser, main  # noqa: E402
+from mi_nerfpp.jobs.cluster import FramePool, FrameWorker  # noqa: E402
 from mi_nerfpp.commands.video import cameras_of  # noqa: E402
-from mi_nerfpp.exr import read_exr  # noqa: E402
-from mi_nerfpp.video import frame_files, pending_frames, prepare_frames_dir  # noqa: E402
+from mi_nerfpp.files.exr import read_exr  # noqa: E402
+from mi_nerfpp.output.video import frame_files, pending_frames, prepare_frames_dir  # noqa: E402
 from tests.helpers import TINY_RUN  # noqa: E402
 
 VIDEO = ['--frames', '6', '--res', '24x18', '--exr']

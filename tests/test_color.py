@@ -1,11 +1,11 @@
-"""Colour conversion (mi_nerfpp.color): the sRGB curves in NumPy and Dr.Jit, encodings, 8 bits."""
+"""Colour conversion (mi_nerfpp.core.color): the sRGB curves in NumPy and Dr.Jit, encodings, 8 bits."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 import mi_nerfpp  # noqa: F401  (libLLVM, variant)
-from mi_nerfpp import color
+from mi_nerfpp.core import color
 
 
 def solid(value):

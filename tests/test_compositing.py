@@ -9,13 +9,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp import exr
-from mi_nerfpp.color import REC709_CHROMATICITIES
+from mi_nerfpp.files import exr
+from mi_nerfpp.core.color import REC709_CHROMATICITIES
 from mi_nerfpp.data import Camera, mitsuba_sensor_dict
-from mi_nerfpp.layers import LAYERS
-from mi_nerfpp.model import NeRFPPModel
-from mi_nerfpp.render import HIDDEN_WEIGHT
-from mi_nerfpp.views import camera_attributes, render_to_files
+from mi_nerfpp.core.layers import LAYERS
+from mi_nerfpp.core.model import NeRFPPModel
+from mi_nerfpp.core.render import HIDDEN_WEIGHT
+from mi_nerfpp.output.views import camera_attributes, render_to_files
 from tests.helpers import AnalyticField, scene_dict, tiny_model
 
 OIIOTOOL_OPT_OUT = 'MI_NERFPP_NO_OIIOTOOL'
@@ -188,7 +188,7 @@ def test_oiiotool_composites_fg_over_bg_to_the_beauty(tmp_path, tiny_scene):
 def test_oiiotool_converts_from_the_declared_colour_space(tmp_path, tiny_scene):
     """oiiotool's built-in colour config resolves the file's colour space: --tocolorspace
     sRGB applies the sRGB curve to the linear beauty."""
-    from mi_nerfpp.color import srgb_oetf
+    from mi_nerfpp.core.color import srgb_oetf
     tool = _oiiotool()
     c = render(tiny_scene, tmp_path)
     src, out = str(tmp_path / 'r.exr'), str(tmp_path / 'srgb.exr')
@@ -218,8 +218,8 @@ def test_checkpoint_from_before_linear_compositing_renders_as_trained(tmp_path):
     """Older sRGB checkpoints summed encoded colour: they render as trained, decoded after."""
     import json
 
-    from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
-    from mi_nerfpp.color import srgb_oetf
+    from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
+    from mi_nerfpp.core.color import srgb_oetf
     path = tmp_path / 'old.npz'
     save_checkpoint(path, tiny_model())
     with np.load(path) as z:
@@ -244,7 +244,7 @@ def test_checkpoint_from_before_linear_compositing_renders_as_trained(tmp_path):
 
 def load_checkpoint_composite(tmp_path):
     """What a checkpoint written now records (for the test above)."""
-    from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
+    from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
     save_checkpoint(tmp_path / 'new.npz', tiny_model())
     return load_checkpoint(tmp_path / 'new.npz')[0].composite
 

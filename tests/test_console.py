@@ -1,8 +1,8 @@
-"""The terminal view of a run (mi_nerfpp.console): its progress bar on a terminal and in a log."""
+"""The terminal view of a run (mi_nerfpp.jobs.console): its progress bar on a terminal and in a log."""
 import io
 from types import SimpleNamespace
 
-from mi_nerfpp import console
+from mi_nerfpp.jobs import console
 
 
 class Terminal(io.StringIO):

@@ -7,9 +7,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp import deep, exr
-from mi_nerfpp.model import NeRFPPModel
-from mi_nerfpp.views import render_to_files
+from mi_nerfpp.output import deep
+from mi_nerfpp.files import exr
+from mi_nerfpp.core.model import NeRFPPModel
+from mi_nerfpp.output.views import render_to_files
 from tests.helpers import AnalyticField, scene_dict, tiny_model
 from tests.test_compositing import _oiiotool, sphere_field
 
@@ -123,7 +124,7 @@ def test_deep_render_with_objects_and_a_shadow_catcher(tmp_path):
 
 
 def test_render_command_writes_a_deep_exr(tmp_path):
-    from mi_nerfpp.synth import scene_file
+    from mi_nerfpp.data.synth import scene_file
     out = tmp_path / 'deep.exr'
     r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'render',
                         scene_file('render_random.xml'), '-o', str(out), '--deep',

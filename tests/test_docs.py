@@ -137,7 +137,7 @@ def test_the_generated_reference_matches_help(reference_page):
 
 def test_the_reference_lists_every_command_and_option(reference_page):
     import argparse
-    from mi_nerfpp.cli import build_parser
+    from mi_nerfpp.commands.cli import build_parser
     parser = build_parser()
     commands = list(reference._subcommands(parser))
     assert {name for name, _ in commands} >= {'render', 'optimize', 'synth', 'evaluate', 'video',
@@ -181,7 +181,7 @@ FOREIGN_OPTIONS = {
 
 
 def test_options_named_in_the_guides_exist():
-    from mi_nerfpp.cli import build_parser
+    from mi_nerfpp.commands.cli import build_parser
     accepted = {option for _, sub in reference._subcommands(build_parser())
                 for action in sub._actions for option in action.option_strings}
     generated = {DOCS / 'reference.md', DOCS / 'benchmarks.md'}

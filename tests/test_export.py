@@ -13,10 +13,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp import export
+from mi_nerfpp.jobs import export
 from mi_nerfpp.data import Camera, mitsuba_sensor_dict
-from mi_nerfpp.frame import Normalization
-from mi_nerfpp.model import NeRFPPModel
+from mi_nerfpp.core.frame import Normalization
+from mi_nerfpp.core.model import NeRFPPModel
 from tests.helpers import AnalyticField
 
 from pxr import Gf, Usd, UsdGeom  # noqa: E402  (usd-core: a test dependency, setup.sh)
@@ -24,10 +24,10 @@ from pxr import Gf, Usd, UsdGeom  # noqa: E402  (usd-core: a test dependency, se
 
 @pytest.fixture(scope='module')
 def exported(tiny_run, tmp_path_factory):
-    from mi_nerfpp.cli import main
+    from mi_nerfpp.commands.cli import main
     out = str(tmp_path_factory.mktemp('export') / 'dcc')
     # A 5-step model has no clear surface: mesh it where its density is in the top 2 %.
-    from mi_nerfpp.run import open_run
+    from mi_nerfpp.jobs.run import open_run
     model = open_run(tiny_run)[0]
     x = np.random.default_rng(0).uniform(-0.7, 0.7, (20000, 3)).astype(np.float32)
     density = np.array(model.radiance_fields()[0].density([mi.Float(x[:, i]) for i in range(3)]))
@@ -45,7 +45,7 @@ def _opencv_projection(camera, point):
 def _dataset_cameras(run):
     """The capture's cameras as its files give them (world frame), by (split, image stem):
     the NeRF++ layout numbers each split's images from 000000."""
-    from mi_nerfpp.run import open_run
+    from mi_nerfpp.jobs.run import open_run
     meta = open_run(run)[1]
     root = meta['dataset']
     out = {}
@@ -180,7 +180,7 @@ def test_blender_builds_the_usd_camera_and_projects_like_the_exr_header(exported
             pytest.skip('blender not installed and MI_NERFPP_NO_BLENDER is set')
         pytest.fail('blender is not installed: run scripts/setup.sh (apt package blender), or '
                     'set MI_NERFPP_NO_BLENDER=1 to skip this check')
-    from mi_nerfpp.views import camera_attributes
+    from mi_nerfpp.output.views import camera_attributes
     run, out = exported
     (split, stem), camera = sorted(_dataset_cameras(run).items())[0]
     stage = Usd.Stage.Open(os.path.join(out, 'scene.usda'))

@@ -1,4 +1,4 @@
-"""Tests for multi-layer EXR I/O (mi_nerfpp.exr) and PNG previews (mi_nerfpp.preview)."""
+"""Tests for multi-layer EXR I/O (mi_nerfpp.files.exr) and PNG previews (mi_nerfpp.files.preview)."""
 from __future__ import annotations
 
 import os
@@ -8,8 +8,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from mi_nerfpp import color, exr, preview
-from mi_nerfpp.layers import FULL_PRECISION_CHANNELS, LAYERS
+from mi_nerfpp.core import color
+from mi_nerfpp.files import exr, preview
+from mi_nerfpp.core.layers import FULL_PRECISION_CHANNELS, LAYERS
 
 H, W = 5, 7
 
@@ -34,7 +35,7 @@ def test_layers_layout(tmp_path):
     # a wrong name or order breaks the compositing identity or the alpha/depth checks.
     import mitsuba as mi
 
-    from mi_nerfpp.views import render_to_files
+    from mi_nerfpp.output.views import render_to_files
     from tests.helpers import scene_dict, tiny_model
     scene = mi.load_dict(scene_dict())
     scene.integrator().set_model(tiny_model())

@@ -4,7 +4,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.fields import GridField, MLPField, make_field
+from mi_nerfpp.core.fields import GridField, MLPField, make_field
 from tests.helpers import field_inputs
 
 
@@ -160,7 +160,7 @@ def test_a_footprint_within_the_finest_cell_is_the_point_lookup(domain, warp):
     n = dr.width(x[0])
     # Footprints up to the finest cell, in the domain's units; the warp magnifies the centre
     # by at most BALL_WARP_SHARE / warp, so shrink them by that much there.
-    from mi_nerfpp.geometry import BALL_WARP_SHARE
+    from mi_nerfpp.core.geometry import BALL_WARP_SHARE
     magnify = BALL_WARP_SHARE / warp if warp else 1.0
     width = mi.Float(np.linspace(0.0, 1.0, n).astype(np.float32)) * (
         field.cell_size(1) / magnify)
@@ -200,7 +200,7 @@ def test_a_wide_footprint_weighs_each_level_by_how_well_its_cells_resolve_it(dom
 
 
 def test_level_weight():
-    from mi_nerfpp.fields import level_weight
+    from mi_nerfpp.core.fields import level_weight
     w = level_weight(mi.Float([0.0, 0.5, 1.0, 1.25, 1.5, 2.0, 3.0]), 1.0)
     np.testing.assert_allclose(np.array(w), [1, 1, 1, 0.75, 0.5, 0, 0])
 
@@ -219,7 +219,7 @@ def test_per_sample_colour_for_training_equals_the_render_network(layers):
     mode, the ray's share of the first layer gathered for every row at once) gives the render's
     colours (packed cooperative vectors, row by row) and weight gradients equal to central
     finite differences."""
-    from mi_nerfpp.fields import positional_encoding
+    from mi_nerfpp.core.fields import positional_encoding
     field = GridField('inverted_sphere', resolutions=(4, 8), channels=3, hidden=8,
                       color_layers=layers, dir_octaves=1, color='sample')
     net = field.color_net

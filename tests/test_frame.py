@@ -1,11 +1,11 @@
-"""The world <-> model normalization (mi_nerfpp.frame): NeRF++'s rule, cameras, rays, points."""
+"""The world <-> model normalization (mi_nerfpp.core.frame): NeRF++'s rule, cameras, rays, points."""
 import mitsuba as mi
 import numpy as np
 import pytest
 
 from mi_nerfpp.data import Camera
-from mi_nerfpp.frame import (NERF_CAMERA_RADIUS, NERFPP_CAMERA_RADIUS, Normalization,
-                             reframe_cameras)
+from mi_nerfpp.core.frame import (NERF_CAMERA_RADIUS, NERFPP_CAMERA_RADIUS, Normalization,
+                                  reframe_cameras)
 from tests.helpers import orbit_camera, truck_fixture_cameras
 
 

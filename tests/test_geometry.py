@@ -1,4 +1,4 @@
-"""Tests for the ray geometry of NeRF++ (mi_nerfpp.geometry), against closed forms in float64."""
+"""Tests for the ray geometry of NeRF++ (mi_nerfpp.core.geometry), against closed forms in float64."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,7 +8,7 @@ import mi_nerfpp  # noqa: F401  (sets up libLLVM and the llvm_ad_rgb variant)
 import drjit as dr
 import mitsuba as mi
 
-from mi_nerfpp import geometry as geo
+from mi_nerfpp.core import geometry as geo
 
 N_RAYS = 300
 
@@ -306,7 +306,7 @@ def test_equirect_range_and_round_trip():
 def test_ball_warp_magnifies_the_inner_ball_and_keeps_the_sphere():
     """Closed form of the piecewise-linear radial warp: the inner ball of radius r0 fills half the
     radius, the unit sphere stays in place, radii are monotonic and directions unchanged."""
-    from mi_nerfpp.geometry import BALL_WARP_SHARE, ball_warp
+    from mi_nerfpp.core.geometry import BALL_WARP_SHARE, ball_warp
     r0 = 0.3
     rng = np.random.default_rng(3)
     d = rng.normal(size=(400, 3))

@@ -1,16 +1,19 @@
-"""The package's modules import each other without a cycle: data flows one way.
+"""The package's modules import each other without a cycle and never from a higher layer: data
+flows one way, and the folders show the layers (``LAYERS``). Imports sit at module level, except
+the few that say why they wait (``# deferred: <reason>``).
 
 The graph is read from the source with ``ast`` (nothing is imported): every ``import`` and
 ``from ... import`` of a module of the package, at module level or inside a function (an
 import deferred into a function is still a dependency, only a later one), is an edge to the
 module it names - ``from .data import load_dataset`` to ``mi_nerfpp.data``, ``from . import
-optim`` to ``mi_nerfpp.optim``. An import of one of the module's own ancestor packages (``from
-. import __version__`` in ``mi_nerfpp/exr.py``, ``from . import positive_int`` in a command)
+optim`` to ``mi_nerfpp.training.optim``. An import of one of the module's own ancestor packages (``from
+. import __version__`` in ``mi_nerfpp/files/exr.py``, ``from . import positive_int`` in a command)
 is not an edge: Python has set up the ancestor packages before the module runs, so such an
 import starts no import of its own.
 """
 import ast
 import os
+import re
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -83,10 +86,32 @@ def find_cycle(graph):
     return None
 
 
+# The package's folders, lowest first: a module imports from its own layer or lower ones. The
+# root's ``_llvm`` and ``errors`` lie below every folder; ``mi_nerfpp`` itself (the package's
+# facade, which registers the integrator) and ``__main__`` above them.
+LAYERS = ('core', 'files', 'integrator', 'data', 'output', 'training', 'jobs', 'commands')
+DEFERRED = re.compile(r'#.*\bdeferred: \S')
+
+
+def layer(module):
+    """The layer index of a module of the package (see :data:`LAYERS`)."""
+    parts = module.split('.')
+    if len(parts) == 1 or parts[1] == '__main__':
+        return len(LAYERS)
+    if parts[1] in LAYERS:
+        return LAYERS.index(parts[1])
+    return -1                                  # _llvm, errors
+
+
+def upward_imports(graph):
+    """``[(module, imported module)]`` of every import from a higher layer."""
+    return sorted((m, t) for m, targets in graph.items() for t in targets if layer(t) > layer(m))
+
+
 def test_the_package_has_no_import_cycle():
     graph = import_graph(ROOT, 'mi_nerfpp')
-    assert len(graph) > 40 and 'mi_nerfpp.run' in graph['mi_nerfpp.commands.optimize']
-    assert 'mi_nerfpp.checkpoint' in graph['mi_nerfpp.train']
+    assert len(graph) > 40 and 'mi_nerfpp.jobs.run' in graph['mi_nerfpp.commands.optimize']
+    assert 'mi_nerfpp.files.checkpoint' in graph['mi_nerfpp.training.train']
     cycle = find_cycle(graph)
     assert cycle is None, ' -> '.join(cycle)
 
@@ -113,3 +138,50 @@ def test_a_cycle_through_a_function_level_import_is_found(tmp_path):
     _write(tmp_path, {'pkg/c.py': 'import pkg.a\nthing = 1\n'})
     cycle = find_cycle(import_graph(str(tmp_path), 'pkg'))
     assert cycle == ['pkg.a', 'pkg.sub.b', 'pkg.c', 'pkg.a']
+
+
+def test_no_module_imports_from_a_higher_layer():
+    graph = import_graph(ROOT, 'mi_nerfpp')
+    placed = {m: layer(m) for m in graph}
+    misplaced = [m for m, i in placed.items() if i == -1
+                 and m not in ('mi_nerfpp._llvm', 'mi_nerfpp.errors')]
+    assert not misplaced, f'modules outside the layer folders {LAYERS}: {misplaced}'
+    assert upward_imports(graph) == []
+
+
+def test_an_upward_import_is_found():
+    graph = {'mi_nerfpp.core.model': {'mi_nerfpp.training.config'},
+             'mi_nerfpp.training.config': {'mi_nerfpp.core.model'}}
+    assert upward_imports(graph) == [('mi_nerfpp.core.model', 'mi_nerfpp.training.config')]
+
+
+def deferred_imports(path):
+    """``[(line, text, has a reason)]`` of the imports inside functions of one file."""
+    with open(path, encoding='utf-8') as f:
+        text = f.read()
+    lines = text.split('\n')
+    found = []
+    for node in ast.walk(ast.parse(text, path)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for sub in ast.walk(node):
+                if isinstance(sub, (ast.Import, ast.ImportFrom)):
+                    line = lines[sub.end_lineno - 1]
+                    found.append((sub.lineno, lines[sub.lineno - 1].strip(),
+                                  bool(DEFERRED.search(line))))
+    return found
+
+
+def test_imports_sit_at_module_level_unless_they_say_why():
+    missing = [f'{os.path.relpath(path, ROOT)}:{line}: {text}'
+               for path in modules(ROOT, 'mi_nerfpp').values()
+               for line, text, reason in deferred_imports(path) if not reason]
+    assert not missing, ('imports inside functions without a "# deferred: <reason>" comment '
+                         '(move them to the top of the module):\n' + '\n'.join(missing))
+
+
+def test_a_deferred_import_without_a_reason_is_found(tmp_path):
+    path = tmp_path / 'm.py'
+    path.write_text('import os\n\ndef f():\n    import ray  # deferred: an optional extra\n'
+                    '    import json\n    return json\n')
+    assert deferred_imports(str(path)) == [(4, 'import ray  # deferred: an optional extra', True),
+                                           (5, 'import json', False)]

@@ -4,8 +4,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.layers import AOVS, BEAUTY
-from mi_nerfpp.frame import Normalization
+from mi_nerfpp.core.layers import AOVS, BEAUTY
+from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.integrator import NeRFPPIntegrator
 from tests.helpers import scene_dict, tiny_model
 
@@ -15,7 +15,7 @@ CHANNELS = BEAUTY + AOVS
 
 
 def layers(img):
-    from mi_nerfpp.views import render_layers
+    from mi_nerfpp.output.views import render_layers
     return render_layers(np.array(img))
 
 
@@ -172,10 +172,10 @@ def test_renders_pass_each_pixels_footprint_to_the_fields():
     from the point lookup."""
     from mi_nerfpp.data import Split
     from mi_nerfpp.data.storage import StoredImages
-    from mi_nerfpp.model import NeRFPPModel
-    from mi_nerfpp.render import render_rays
-    from mi_nerfpp.train import RayBank
-    from mi_nerfpp.views import ViewRenderer, rgb
+    from mi_nerfpp.core.model import NeRFPPModel
+    from mi_nerfpp.core.render import render_rays
+    from mi_nerfpp.training.train import RayBank
+    from mi_nerfpp.output.views import ViewRenderer, rgb
     from tests.helpers import orbit_camera
     grid = dict(kind='grid', resolutions=[8, 64], channels=3, hidden=8, antialias=True)
     model = NeRFPPModel.create(seed=2, fg_config=dict(grid, domain='ball'),

@@ -9,7 +9,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.integrator.parameters import MAX_CHUNK_ENTRIES, MAX_CAMERA_RADIUS
+from mi_nerfpp.core.budget import MAX_CHUNK_ENTRIES
+from mi_nerfpp.integrator.parameters import MAX_CAMERA_RADIUS
 from tests.helpers import scene_dict, tiny_model
 
 
@@ -51,7 +52,7 @@ def test_sample_counts_beyond_a_chunk_are_refused_at_load():
 
 def test_the_model_sample_counts_are_checked_before_rendering():
     """A model handed over with counts that do not fit is refused at render, not by Dr.Jit."""
-    from mi_nerfpp.render import Sampling
+    from mi_nerfpp.core.render import Sampling
     desc = scene_dict()
     for name in ('fg_samples', 'bg_samples', 'fine_samples'):
         del desc['integrator'][name]

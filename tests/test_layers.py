@@ -1,4 +1,4 @@
-"""The layer table (mi_nerfpp.layers): one definition that the integrator, the readers of a
+"""The layer table (mi_nerfpp.core.layers): one definition that the integrator, the readers of a
 render, the EXR writer and the docs all follow."""
 from __future__ import annotations
 
@@ -6,9 +6,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp import exr, layers
+from mi_nerfpp.files import exr
+from mi_nerfpp.core import layers
 from mi_nerfpp.integrator import NeRFPPIntegrator
-from mi_nerfpp.views import render_layers
+from mi_nerfpp.output.views import render_layers
 from tests.helpers import scene_dict, tiny_model
 
 

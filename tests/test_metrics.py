@@ -1,4 +1,4 @@
-"""Tests for the image quality metrics in mi_nerfpp.metrics."""
+"""Tests for the image quality metrics in mi_nerfpp.training.metrics."""
 from __future__ import annotations
 
 import math
@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from mi_nerfpp import metrics
+from mi_nerfpp.training import metrics
 
 
 def noisy(image, sigma, seed=0):
@@ -92,7 +92,7 @@ def test_shape_mismatch(fn):
 
 
 def test_separation_against_a_hand_computed_example():
-    from mi_nerfpp.metrics import separation
+    from mi_nerfpp.training.metrics import separation
     gt = np.array([[1.0, 1.0, 0.0, 0.0]])
     alpha = np.array([[1.0, 0.5, 0.1, 0.0]])
     depth_gt = np.array([[2.0, 4.0, 0.0, 0.0]])
@@ -108,15 +108,15 @@ def test_separation_against_a_hand_computed_example():
 
 
 def test_soft_alpha_fraction_counts_the_open_band_only():
-    from mi_nerfpp.metrics import soft_alpha_fraction
+    from mi_nerfpp.training.metrics import soft_alpha_fraction
     alpha = np.array([[0.0, 0.05, 0.06, 0.5], [0.94, 0.95, 1.0, 0.2]])
     assert soft_alpha_fraction(alpha) == pytest.approx(4 / 8)      # 0.06, 0.5, 0.94, 0.2
     assert soft_alpha_fraction(alpha, (0.1, 0.9)) == pytest.approx(2 / 8)
 
 
 def test_matte_warning_only_above_the_threshold():
-    from mi_nerfpp.evaluate import matte_warning
-    from mi_nerfpp.metrics import SOFT_ALPHA_WARNING
+    from mi_nerfpp.training.evaluate import matte_warning
+    from mi_nerfpp.training.metrics import SOFT_ALPHA_WARNING
     assert matte_warning({'psnr': 25.0}) is None                     # no background volume
     assert matte_warning({'soft_alpha': SOFT_ALPHA_WARNING}) is None
     text = matte_warning({'soft_alpha': 0.255})
@@ -124,7 +124,7 @@ def test_matte_warning_only_above_the_threshold():
 
 
 def test_masked_psnr_scores_only_the_masked_pixels():
-    from mi_nerfpp.metrics import masked_psnr
+    from mi_nerfpp.training.metrics import masked_psnr
     gt = np.zeros((4, 4, 3))
     pred = gt.copy()
     pred[:, :2] = 0.1                     # error 0.1 on the left half only

@@ -1,4 +1,4 @@
-"""Empty-space skipping (mi_nerfpp.occupancy) against closed forms.
+"""Empty-space skipping (mi_nerfpp.core.occupancy) against closed forms.
 
 The scene of these tests: density σ in the half-space x > 0 of the unit ball, zero elsewhere.
 Its occupancy grid marks exactly the cells with x > 0 (the grid splits at x = 0).
@@ -12,9 +12,9 @@ import mi_nerfpp  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from mi_nerfpp.occupancy import EMPTY_WEIGHT, OccupancyGrid, OccupiedVolume
-from mi_nerfpp.render import Foreground, Sampling, render_rays, render_volume
-from mi_nerfpp.sampling import stratified
+from mi_nerfpp.core.occupancy import EMPTY_WEIGHT, OccupancyGrid, OccupiedVolume
+from mi_nerfpp.core.render import Foreground, Sampling, render_rays, render_volume
+from mi_nerfpp.core.sampling import stratified
 from tests.helpers import AnalyticField, tiny_model
 
 SIGMA = 3.0
@@ -53,7 +53,7 @@ def half_space_grid(resolution=16):
 def random_volume(domain, n, rng):
     """The volume of ``domain`` along ``n`` random rays from inside the ball, and an occupancy grid
     of 32 cells per axis with 30 % of them occupied at random."""
-    from mi_nerfpp.render import Background
+    from mi_nerfpp.core.render import Background
     o = rng.normal(size=(n, 3))
     o *= 0.9 * rng.uniform(size=(n, 1)) ** (1 / 3) / np.linalg.norm(o, axis=1, keepdims=True)
     d = rng.normal(size=(n, 3))
@@ -107,7 +107,7 @@ def test_samples_skip_the_empty_region():
 
 
 def _ray_index(n_rays, n):
-    from mi_nerfpp.sampling import flat_index
+    from mi_nerfpp.core.sampling import flat_index
     return flat_index(n_rays, n)[0],
 
 
@@ -151,8 +151,8 @@ def test_empty_grid_renders_nothing_in_the_foreground():
 
 
 def test_checkpoint_keeps_the_occupancy(tmp_path):
-    from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
-    from mi_nerfpp.model import NeRFPPModel
+    from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
+    from mi_nerfpp.core.model import NeRFPPModel
     tiny = dict(kind='grid', resolutions=[4, 8], channels=3, hidden=8, dir_octaves=1)
     model = NeRFPPModel.create(fg_config=dict(tiny, domain='ball'),
                                bg_config=dict(tiny, domain='inverted_sphere'))
@@ -175,7 +175,7 @@ def test_occupied_length_coordinate_matches_a_float64_reference(domain, bins):
     """``parameter(u)`` of random rays through a random occupancy grid equals the inverse of the
     occupied-length CDF computed in float64 from the bins' occupancy (equal bins, empty ones
     weighing EMPTY_WEIGHT), within float32 rounding of the ray parameter."""
-    from mi_nerfpp.sampling import flat_index
+    from mi_nerfpp.core.sampling import flat_index
     rng = np.random.default_rng(4)
     n, m = 300, 24
     base, grid = random_volume(domain, n, rng)
@@ -227,9 +227,9 @@ def test_samples_placed_per_ray_equal_the_wavefront(domain):
     """Samples placed in one loop per ray (how renders and training place them) are the
     wavefront's exactly: stratified coarse samples with jitter, then fine samples by inverse CDF,
     through the occupied-length inverse of a random occupancy grid."""
-    from mi_nerfpp.render import _placed
-    from mi_nerfpp.sampling import (FineSampler, flat_index, inverse_cdf, stratified,
-                                    stratified_sample, uniforms)
+    from mi_nerfpp.core.render import _placed
+    from mi_nerfpp.core.sampling import (FineSampler, flat_index, inverse_cdf, stratified,
+                                         stratified_sample, uniforms)
     rng = np.random.default_rng(9)
     n, n_c, n_f = 200, 16, 8
     vol = OccupiedVolume(*random_volume(domain, n, rng), 128 if domain == 'ball' else 64)

@@ -1,4 +1,4 @@
-"""Colour losses (mi_nerfpp.optim): values against hand computation, gradients against central
+"""Colour losses (mi_nerfpp.training.optim): values against hand computation, gradients against central
 finite differences, and the training option that picks one."""
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import mi_nerfpp  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from mi_nerfpp import optim
-from mi_nerfpp.config import TrainConfig
+from mi_nerfpp.training import optim
+from mi_nerfpp.training.config import TrainConfig
 
 PRED = np.array([[0.2, 0.5, 0.9, 0.31], [0.0, 0.25, 0.7, 0.6], [1.0, 0.4, 0.1, 0.3]])
 GT = np.array([[0.25, 0.5, 0.3, 0.3], [0.1, 0.2, 0.7, 0.0], [0.9, 0.45, 0.15, 0.31]])

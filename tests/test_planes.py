@@ -6,11 +6,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.checkpoint import load_checkpoint, save_checkpoint
-from mi_nerfpp.config import TrainConfig
-from mi_nerfpp.fields import GridField, make_field
-from mi_nerfpp.model import NeRFPPModel
-from mi_nerfpp.optim import is_grid, is_grid_level
+from mi_nerfpp.core import budget
+
+from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
+from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.core.fields import GridField, make_field
+from mi_nerfpp.core.model import NeRFPPModel
+from mi_nerfpp.training.optim import is_grid, is_grid_level
 from tests.helpers import TINY_GRID, field_inputs
 
 AXES = {'xy': (0, 1), 'xz': (0, 2), 'yz': (1, 2)}
@@ -43,7 +45,7 @@ def test_a_plane_level_is_the_sum_of_three_bilinear_planes(domain):
     """Closed form: with the dense levels at zero, density logit and features are the sums of
     the three planes' bilinear lookups at the coordinate pairs (longitude periodic, colatitude
     and s clamped to the cell centres in the background)."""
-    from mi_nerfpp.geometry import grid_coordinates
+    from mi_nerfpp.core.geometry import grid_coordinates
     field = GridField(domain, resolutions=(4,), channels=3, planes=(8,), density_bias=0.0)
     rng = np.random.default_rng(2)
     values = {k: rng.normal(size=v.shape).astype(np.float32) for k, v in field.params.items()
@@ -72,7 +74,7 @@ def test_the_background_planes_are_periodic_in_longitude_only():
                           for k, v in field.params.items() if k.startswith('plane')})
     # Directions just either side of the seam (longitude 0 = 1) have nearly equal density.
     eps = 1e-4
-    from mi_nerfpp.geometry import direction_to_equirect
+    from mi_nerfpp.core.geometry import direction_to_equirect
     u, _ = direction_to_equirect(mi.Vector3f(1.0, 0.0, 0.0))
     assert abs(float(u[0]) % 1.0) < 1e-6 or abs(float(u[0]) - 0.5) < 1e-6
     d = [mi.Float(c) for c in np.array([[np.cos(t), 0.3, np.sin(t)] for t in (-eps, eps)]).T]
@@ -159,11 +161,11 @@ def test_plane_options_reach_the_fields_and_the_learning_rates():
     assert cfg.field_config('grid', 'ball')['planes'] == [64]
     assert cfg.field_config('grid', 'inverted_sphere')['planes'] == [32]
     # The memory plan counts the planes' entries: 3·64² in the ball, 2·32² + 3·32·16 behind.
-    assert cfg.grid_planes_entries('ball') == [3 * 64 * 64 * 4]
-    assert cfg.grid_planes_entries('inverted_sphere') == [(2 * 32 * 32 + 3 * 32 * 16) * 4]
+    assert budget.grid_plane_entries(cfg, 'ball') == [3 * 64 * 64 * 4]
+    assert budget.grid_plane_entries(cfg, 'inverted_sphere') == [(2 * 32 * 32 + 3 * 32 * 16) * 4]
     field = make_field(cfg.field_config('grid', 'inverted_sphere'))
     entries = sum(np.prod(v.shape) for k, v in field.params.items() if k.startswith('plane'))
-    assert entries == cfg.grid_planes_entries('inverted_sphere')[0]
+    assert entries == budget.grid_plane_entries(cfg, 'inverted_sphere')[0]
     assert is_grid('fg.plane0xy') and not is_grid_level('fg.plane0xy')
     assert is_grid('bg.grid1') and is_grid_level('bg.grid1') and not is_grid('fg.color.rest.0')
     with pytest.raises(Exception, match='grid_planes|grid-planes'):
@@ -172,7 +174,7 @@ def test_plane_options_reach_the_fields_and_the_learning_rates():
 
 def test_a_training_step_updates_the_planes(capture, tmp_path):
     from mi_nerfpp.data import load_dataset
-    from mi_nerfpp.train import Trainer
+    from mi_nerfpp.training.train import Trainer
     cfg = TrainConfig.from_options(iterations=3, batch_rays=256, grid_levels=(8, 16),
                                    grid_planes=(32,), checkpoint_every=0, preview_every=0)
     tr = Trainer(load_dataset(capture), str(tmp_path), cfg)

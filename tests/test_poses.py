@@ -9,12 +9,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp import optim, poses
+from mi_nerfpp.training import optim
+from mi_nerfpp.core import poses
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.render import Sampling, render_rays
-from mi_nerfpp.synth import POSES_FILE, perturb_poses
-from mi_nerfpp.config import TrainConfig
-from mi_nerfpp.train import Trainer
+from mi_nerfpp.core.render import Sampling, render_rays
+from mi_nerfpp.data.synth import POSES_FILE, perturb_poses
+from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.training.train import Trainer
 from tests.helpers import per_image_parameters_resume_exactly
 
 FAST = dict(batch_rays=512, fg_samples=8, bg_samples=8, fine_samples=8, checkpoint_every=0,

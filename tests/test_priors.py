@@ -1,4 +1,4 @@
-"""Regularizers (mi_nerfpp.priors): values against hand computation, gradients against central
+"""Regularizers (mi_nerfpp.training.priors): values against hand computation, gradients against central
 finite differences."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import mi_nerfpp  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from mi_nerfpp import priors
+from mi_nerfpp.training import priors
 
 
 def fd_check(f, x0, eps=1e-3, rtol=2e-2, atol=1e-5):

@@ -1,4 +1,4 @@
-"""The training ray bank (mi_nerfpp.train.RayBank): rays built per batch from the cameras and
+"""The training ray bank (mi_nerfpp.training.train.RayBank): rays built per batch from the cameras and
 the compact image store equal the rays precomputed for every pixel before issue 34, exactly -
 origins, directions, colours and image indices - and training on them takes the same steps,
 with pose refinement on and off."""
@@ -7,12 +7,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp import train
-from mi_nerfpp.arrays import owned
-from mi_nerfpp.config import TrainConfig
+from mi_nerfpp.training import train
+from mi_nerfpp.core.arrays import owned
+from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.data import Camera, Split, load_dataset, pixel_rays
 from mi_nerfpp.data.storage import StoredImages, store, to_float
-from mi_nerfpp.train import RayBank, Trainer
+from mi_nerfpp.training.train import RayBank, Trainer
 from tests.helpers import one_thread, orbit_camera
 
 
@@ -216,7 +216,7 @@ def test_footprints_are_those_mitsuba_measures_on_the_same_camera():
     solid angle at its centre, Mitsuba's a forward difference to the next pixel, which is off
     by O(1/f): 1.3 % at most here, with a focal length of 28 pixels (0.1 % at 1,000)."""
     from mi_nerfpp.data.cameras import mitsuba_sensor_dict
-    from mi_nerfpp.geometry import pixel_footprint
+    from mi_nerfpp.core.geometry import pixel_footprint
     cam = orbit_camera(0.3, 0.2, 2.5, 40, 30, focal=0.7)
     cam.K[:2, 2] += (2.0, -1.5)
     img = np.zeros((30, 40, 3), np.uint8)

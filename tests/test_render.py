@@ -1,4 +1,4 @@
-"""Tests for volume-rendering quadrature and compositing (mi_nerfpp.render) against closed forms.
+"""Tests for volume-rendering quadrature and compositing (mi_nerfpp.core.render) against closed forms.
 
 The quadrature is NeRF's: for sorted samples ``v_0 < … < v_{n-1}``, ``δ_i = v_{i+1} - v_i`` and the
 last interval ends at ``hi`` (foreground) or is infinite (background). The part of the segment
@@ -15,11 +15,12 @@ import mi_nerfpp  # noqa: F401  (sets up libLLVM and the llvm_ad_rgb variant)
 import drjit as dr
 import mitsuba as mi
 
-from mi_nerfpp import geometry as geo
-from mi_nerfpp import sampling
-from mi_nerfpp.render import (INFINITE_DELTA, MAX_DEPTH_RADIUS, Background, Foreground, Sampling,
-                              Shading, composite, quadrature, render_rays, render_volume)
-from mi_nerfpp.sampling import PDF_EPSILON, flat_index, stratified
+from mi_nerfpp.core import geometry as geo
+from mi_nerfpp.core import sampling
+from mi_nerfpp.core.render import (INFINITE_DELTA, MAX_DEPTH_RADIUS, Background, Foreground,
+                                   Sampling, Shading, composite, quadrature, render_rays,
+                                   render_volume)
+from mi_nerfpp.core.sampling import PDF_EPSILON, flat_index, stratified
 from tests.helpers import AnalyticField
 
 
@@ -348,7 +349,7 @@ def test_render_volume_fine_pass_varying_density():
 
 
 def test_distortion_loss_matches_pairwise_definition():
-    from mi_nerfpp.render import distortion
+    from mi_nerfpp.core.render import distortion
     rng = np.random.default_rng(3)
     n_rays, n = 7, 9
     m = np.sort(rng.uniform(0, 1, (n_rays, n)), axis=1)
@@ -378,7 +379,7 @@ def test_ray_distortion_puts_both_volumes_on_one_axis():
     m/2 (weights w_fg) followed by the background samples at ½ + m/2 (weights λ·w_bg), and it
     penalizes a ray whose weight is split between the volumes more than one that either
     volume owns."""
-    from mi_nerfpp.render import RenderResult, VolumeRender, ray_distortion
+    from mi_nerfpp.core.render import RenderResult, VolumeRender, ray_distortion
     rng = np.random.default_rng(5)
     n_rays, n_fg, n_bg = 6, 5, 4
 
@@ -411,7 +412,7 @@ def test_ray_distortion_puts_both_volumes_on_one_axis():
 def test_ray_distortion_gradient_matches_finite_differences():
     """d/dθ of the whole-ray distortion of a rendered batch, where θ scales the foreground's
     density (so it moves weight between the volumes through λ), against central differences."""
-    from mi_nerfpp.render import ray_distortion
+    from mi_nerfpp.core.render import ray_distortion
     o, d = rays(64, seed=9)
     seed = mi.UInt32(np.arange(64, dtype=np.uint32))
     bg = AnalyticField(lambda x: 2.0 + 3.0 * x[3], (0.2, 0.3, 0.4))
@@ -435,7 +436,7 @@ def test_skipping_the_occluded_background_changes_the_composite_by_at_most_its_t
     """Early termination between the volumes: rays whose foreground transmittance λ is below
     OCCLUDED_TRANSMITTANCE get no background; the composite moves by at most λ·C_bg ≤ 1e-4
     (colours ≤ 1), and rays that see the background render it exactly as before."""
-    from mi_nerfpp.render import OCCLUDED_TRANSMITTANCE
+    from mi_nerfpp.core.render import OCCLUDED_TRANSMITTANCE
 
     half_opaque = AnalyticField(               # opaque for x > 0, clear elsewhere
         lambda x: dr.select(x[0] > 0.0, 200.0, 0.0),
@@ -465,7 +466,7 @@ def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_
     negligible. On a known density - thin haze, then an opaque slab at x in [-0.1, 0.1] - the
     composite moves by less than HIDDEN_WEIGHT, opacity and depth stay exact, and most samples
     behind the slab are never shaded."""
-    from mi_nerfpp.render import HIDDEN_WEIGHT
+    from mi_nerfpp.core.render import HIDDEN_WEIGHT
 
     field = AnalyticField(
         lambda x: dr.select(dr.abs(x[0]) < 0.1, 300.0, 0.01),
@@ -490,7 +491,7 @@ def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_
     np.testing.assert_allclose(npf(lazy.weights), npf(full.weights), rtol=1e-6, atol=1e-9)
     # render_rays uses it for primal renders (skip_occluded) in both volumes: each volume's
     # skipped samples and the skipped occluded background add at most their thresholds.
-    from mi_nerfpp.render import OCCLUDED_TRANSMITTANCE
+    from mi_nerfpp.core.render import OCCLUDED_TRANSMITTANCE
     bg = constant_field(0.7, (0.1, 0.9, 1.0))
     o2, d2 = rays(256, seed=4)
     a = render_rays(o2, d2, field, bg, Sampling(32, 16, 16))
@@ -506,8 +507,8 @@ def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(
     shown samples only run the colour network on them. The composite is the full render's
     within HIDDEN_WEIGHT, opacity and depth exactly, and the field takes exactly two lookups
     (the coarse and the fine pass), not a third at the shown samples."""
-    from mi_nerfpp.fields import GridField
-    from mi_nerfpp.render import HIDDEN_WEIGHT
+    from mi_nerfpp.core.fields import GridField
+    from mi_nerfpp.core.render import HIDDEN_WEIGHT
     field = GridField(domain, resolutions=(8, 16), color='sample', init=1.0, density_bias=0.0,
                       seed=3)
     lookups = []
@@ -527,7 +528,7 @@ def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(
     np.testing.assert_allclose(npf(lazy.fine.opacity), npf(full.fine.opacity), rtol=1e-6)
     np.testing.assert_allclose(npf(lazy.fine.depth), npf(full.fine.depth), rtol=1e-6)
     # The same through the linear-radiance wrapper of an sRGB model (how renders see it).
-    from mi_nerfpp.model import LinearRadiance
+    from mi_nerfpp.core.model import LinearRadiance
     lookups.clear()
     linear = render_volume(volume(), LinearRadiance(field), n_c, n_f, seed, visible_only=True)
     assert lookups == [n_rays * n_c, n_rays * n_f]
@@ -535,7 +536,7 @@ def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(
 
 
 def test_scale_gradient_keeps_the_value_and_scales_the_gradient():
-    from mi_nerfpp.render import scale_gradient
+    from mi_nerfpp.core.render import scale_gradient
     x = mi.Float(0.3, -1.2, 2.5)
     s = mi.Float(0.25, 1.0, 0.0)
     dr.enable_grad(x)
@@ -629,7 +630,7 @@ def test_deferred_grid_field_colours_the_composited_features_once_per_ray():
     """A grid field's volume colour is ``α·c(F/α, d)`` with ``F = Σ w_i f_i`` over its merged
     samples (float64 composite of the field's own features at the returned positions)."""
     from tests.helpers import TINY_GRID
-    from mi_nerfpp.fields import GridField
+    from mi_nerfpp.core.fields import GridField
     field = GridField('ball', **{k: v for k, v in TINY_GRID.items() if k != 'kind'},
                       density_bias=1.0, seed=3)
     assert field.deferred
@@ -682,7 +683,7 @@ def test_gradients_through_the_merged_samples_match_finite_differences(deferred)
 
 
 def _fused_and_wavefront(o, d, fg_field, bg_field, sampling, **kwargs):
-    from mi_nerfpp.render import surface_distance
+    from mi_nerfpp.core.render import surface_distance
     out = []
     for fused in (False, True):
         res = render_rays(o, d, fg_field, bg_field, sampling, fused=fused, **kwargs)
@@ -729,7 +730,7 @@ def _agree(fused, wave):
 def test_fused_quadrature_matches_on_a_trained_model(tiny_run):
     """The same on a trained grid model (deferred colour, occupancy grids), with the occluded
     background skipped as the integrator renders it."""
-    from mi_nerfpp.checkpoint import load_checkpoint
+    from mi_nerfpp.files.checkpoint import load_checkpoint
     model, _, _ = load_checkpoint(f'{tiny_run}/model.npz')
     o, d = rays(500, seed=5)
     wave, fused = _fused_and_wavefront(o, d, *model.radiance_fields(), Sampling(16, 16, 8),

@@ -1,5 +1,8 @@
-"""Tests for sample placement (mi_nerfpp.sampling): strata, inverse-CDF fine samples, merging."""
+"""Tests for sample placement (mi_nerfpp.core.sampling): strata, inverse-CDF fine samples, merging."""
 from __future__ import annotations
+
+import ast
+import pathlib
 
 import numpy as np
 import pytest
@@ -8,12 +11,11 @@ import mi_nerfpp  # noqa: F401  (sets up libLLVM and the llvm_ad_rgb variant)
 import drjit as dr
 import mitsuba as mi
 
-from mi_nerfpp import geometry as geo
-from mi_nerfpp import sampling
-from mi_nerfpp.render import Background, quadrature
-from mi_nerfpp.sampling import (PDF_EPSILON, bin_edges, gather_merged, inverse_cdf, merge_order,
-                                split_merged,
-                                stratified)
+from mi_nerfpp.core import geometry as geo
+from mi_nerfpp.core import sampling
+from mi_nerfpp.core.render import Background, quadrature
+from mi_nerfpp.core.sampling import (PDF_EPSILON, bin_edges, gather_merged, inverse_cdf,
+                                     merge_order, split_merged, stratified)
 
 
 def F(a):
@@ -360,3 +362,51 @@ def test_split_merged_inverts_gather_merged(n_a, n_b, grid):
     dr.backward(dr.sum(xa * pa) + dr.sum(xb * pb) + 10.0 * dr.sum(x))
     np.testing.assert_array_equal(np.asarray(dr.grad(x)),
                                   np.asarray(gather_merged(order, pa, pb)) + 10.0)
+
+
+# ----------------------------------------------------------------------------- one home
+
+SAMPLE_COUNTS = ('fg_samples', 'bg_samples', 'fine_samples')
+
+
+def sample_count_literals(root):
+    """``[(file, line)]`` of every whole number written as a sample count in the package's
+    source: a keyword ``fg_samples=16``, a field or assignment ``fine_samples = 8`` or
+    ``option(16, ...)`` of such a field."""
+    found = []
+    for path in sorted(root.rglob('*.py')):
+        tree = ast.parse(path.read_text(encoding='utf-8'))
+        for node in ast.walk(tree):
+            value = None
+            if isinstance(node, ast.keyword) and node.arg in SAMPLE_COUNTS:
+                value = node.value
+            elif (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+                  and node.target.id in SAMPLE_COUNTS):
+                value = node.value
+                if isinstance(value, ast.Call) and value.args:      # option(16, ...)
+                    value = value.args[0]
+            if isinstance(value, ast.Constant) and isinstance(value.value, int):
+                found.append((str(path.relative_to(root.parent)), node.lineno))
+    return found
+
+
+def test_the_sample_count_defaults_have_one_home():
+    """16/16/8 (empty-space skipping, training) and 64/64/128 (whole rays) are written once,
+    in mi_nerfpp.core.render; the options, the integrator and old checkpoints read them."""
+    from mi_nerfpp.core.render import SKIPPING, Sampling
+    from mi_nerfpp.training.config import SamplingOptions
+    root = pathlib.Path(__file__).resolve().parent.parent / 'mi_nerfpp'
+    places = {file for file, _ in sample_count_literals(root)}
+    assert places == {'mi_nerfpp/core/render.py'}, places
+    options = SamplingOptions()
+    assert (options.fg_samples, options.bg_samples, options.fine_samples) == (
+        SKIPPING.fg_samples, SKIPPING.bg_samples, SKIPPING.fine_samples)
+    assert Sampling() == Sampling(64, 64, 128, 0.0)
+
+
+def test_a_sample_count_written_elsewhere_is_found(tmp_path):
+    package = tmp_path / 'pkg'
+    package.mkdir()
+    (package / 'a.py').write_text('def f(x):\n    return x(fine_samples=4, near=0)\n')
+    (package / 'b.py').write_text('class C:\n    bg_samples: int = option(16, "help")\n')
+    assert sample_count_literals(package) == [('pkg/a.py', 2), ('pkg/b.py', 2)]

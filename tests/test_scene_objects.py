@@ -6,7 +6,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.render import Sampling, render_rays
+from mi_nerfpp.core.render import Sampling, render_rays
+from mi_nerfpp.integrator.nerfpp import VolumesOnly
 from tests.helpers import AnalyticField
 from tests.test_render import F, constant_field, npf, rays
 
@@ -77,7 +78,7 @@ def sky(x):
 
 def object_scene(fg, bg, shapes, width=16, height=12, origin=(0.0, 0.1, 0.9), target=(0, 0, 0),
                  spp=1, fov=60, **integrator):
-    from mi_nerfpp.model import NeRFPPModel
+    from mi_nerfpp.core.model import NeRFPPModel
     from tests.helpers import scene_dict
     desc = scene_dict(width=width, height=height, origin=origin, target=target, spp=spp,
                       jitter=False, **dict(dict(fg_samples=64, bg_samples=32, fine_samples=32),
@@ -90,7 +91,7 @@ def object_scene(fg, bg, shapes, width=16, height=12, origin=(0.0, 0.1, 0.9), ta
 
 
 def channels(scene, **kwargs):
-    from mi_nerfpp.views import render_layers
+    from mi_nerfpp.output.views import render_layers
     return render_layers(mi.render(scene, **kwargs), scene.integrator())
 
 
@@ -323,7 +324,7 @@ def test_gradients_through_a_mirror_match_finite_differences():
     dr.enable_grad(params[key])
     params.update()
     img = mi.render(scene, params, seed=1)
-    from mi_nerfpp.layers import AOVS
+    from mi_nerfpp.core.layers import AOVS
     assert np.array(img)[..., 4 + AOVS.index('obj.A')].max() == 1.0     # the mirror is in view
     dr.backward(loss(img))
     grad = np.array(dr.grad(params[key])).ravel()
@@ -417,8 +418,8 @@ def test_chunked_render_with_shapes_matches_single_pass():
 def test_example_scene_renders_objects_into_a_checkpoint(tmp_path):
     """scenes/insert_objects.xml with any checkpoint: the objects are in view and the layers
     add up to the beauty."""
-    from mi_nerfpp.checkpoint import save_checkpoint
-    from mi_nerfpp.synth import scene_file
+    from mi_nerfpp.files.checkpoint import save_checkpoint
+    from mi_nerfpp.data.synth import scene_file
     from tests.helpers import tiny_model
     model = tiny_model()
     model.sampling = Sampling(4, 4, 4)      # the scene renders with the checkpoint's counts
@@ -470,7 +471,7 @@ def test_shadow_catcher_ratio_under_a_black_disk_is_the_unblocked_cosine_fractio
 
 def test_foreground_only_alpha_covers_the_objects(tmp_path):
     """background=false: the EXR's A is the foreground over the objects' coverage."""
-    from mi_nerfpp.views import render_to_files
+    from mi_nerfpp.output.views import render_to_files
     scene = object_scene(AnalyticField(0.3, (1, 1, 1)), None, {'ball': {
         'type': 'sphere', 'center': [0, 0, 0.2], 'radius': 0.2}}, background=False)
     c = render_to_files(scene, tmp_path / 'r.exr', progress=False)
@@ -480,8 +481,9 @@ def test_foreground_only_alpha_covers_the_objects(tmp_path):
 
 
 def test_scene_without_shapes_renders_the_volumes_alone():
-    """No shapes: the beauty is render_layers of the camera rays (no intersection), and the
-    objects' layers are 0."""
+    """No shapes: the beauty is the volumes' alone along the camera rays (the integrator's
+    render_rays with the scene's frame, VolumesOnly: no intersection), and the objects' layers
+    are 0."""
     from tests.helpers import scene_dict, tiny_model
     scene = mi.load_dict(scene_dict(jitter=False))      # rays through the pixel centres
     scene.integrator().set_model(tiny_model())
@@ -489,9 +491,11 @@ def test_scene_without_shapes_renders_the_volumes_alone():
     for name in ('obj.R', 'obj.G', 'obj.B', 'obj.A', 'obj_depth.Z', 'shadow.R', 'shadow.G', 'shadow.B'):
         assert np.all(c[name] == 0), name
     o, d = pixel_rays(scene)
-    L, _ = scene.integrator().render_layers(mi.Point3f(*[F(o[..., i]) for i in range(3)]),
-                                            mi.Vector3f(*[F(d[..., i]) for i in range(3)]),
-                                            None, primal=True)
+    integrator = scene.integrator()
+    frame = integrator.frame(scene)
+    assert isinstance(frame, VolumesOnly)
+    L, _ = integrator.render_rays(frame, mi.Point3f(*[F(o[..., i]) for i in range(3)]),
+                                  mi.Vector3f(*[F(d[..., i]) for i in range(3)]))
     np.testing.assert_allclose(np.stack([c[ch] for ch in 'RGB'], -1).reshape(-1, 3),
                                npf(L, dr.width(L)).T, rtol=1e-6, atol=1e-7)
 
@@ -531,8 +535,8 @@ def test_object_variants_of_the_example_drop_shapes_and_catchers():
     """The three renders of the objects benchmark and docs figure: the example's XML without
     its shapes (and then no proxies), with them, and with them and the shadow catchers."""
     import xml.etree.ElementTree as ET
-    from mi_nerfpp.bench import OBJECT_VARIANTS, object_variant_xml
-    from mi_nerfpp.synth import scene_file
+    from mi_nerfpp.jobs.bench import OBJECT_VARIANTS, object_variant_xml
+    from mi_nerfpp.data.synth import scene_file
     with open(scene_file('insert_objects.xml')) as f:
         xml = f.read()
     full = ET.fromstring(xml)

@@ -9,13 +9,13 @@ import shutil
 import numpy as np
 import pytest
 
-from mi_nerfpp.cli import main
-from mi_nerfpp.run import photos_to_dataset
+from mi_nerfpp.commands.cli import main
+from mi_nerfpp.jobs.run import photos_to_dataset
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.data.colmap import read_model
-from mi_nerfpp.frame import NERFPP_CAMERA_RADIUS, Normalization
-from mi_nerfpp.sfm import SfmError, run_sfm
-from mi_nerfpp.synth import scene_file, synthesize
+from mi_nerfpp.core.frame import NERFPP_CAMERA_RADIUS, Normalization
+from mi_nerfpp.data.sfm import SfmError, run_sfm
+from mi_nerfpp.data.synth import scene_file, synthesize
 
 # Camera centres after the similarity alignment, relative to the capture's extent (largest
 # distance of a camera from their mean); measured ~1.5% max, ~0.5% mean.
@@ -74,7 +74,7 @@ def test_most_photos_register_and_the_rest_are_listed(photos, sfm):
 
 def test_runs_on_one_thread_verify_the_same_pairs_and_register_the_same_photos(photos,
                                                                               tmp_path):
-    # Geometric verification and the mapper are seeded (mi_nerfpp.sfm.SFM_SEED): before, the
+    # Geometric verification and the mapper are seeded (mi_nerfpp.data.sfm.SFM_SEED): before, the
     # verified pairs varied from run to run (59 or 60 here) and one CI run registered 11 of 20.
     # Seeded, COLMAP's matcher still varies with the order in which its threads take the pairs
     # (a CI run of 2026-11-26 verified 60 pairs where the first run had 59): on one thread

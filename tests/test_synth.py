@@ -7,11 +7,11 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp import synth
-from mi_nerfpp.cli import main
+from mi_nerfpp.data import synth
+from mi_nerfpp.commands.cli import main
 from mi_nerfpp.data import load_dataset, pixel_rays
 from mi_nerfpp.data.cameras import Camera
-from mi_nerfpp.exr import read_exr
+from mi_nerfpp.files.exr import read_exr
 
 GARDEN = synth.scene_file('gt_garden.xml')
 TINY = dict(views=6, res=(16, 12), spp=4, progress=False)
@@ -84,7 +84,7 @@ def test_ground_truth_layers(garden):
     masks = np.stack(masks)
     assert masks.min() == 0 and masks.max() == 1      # foreground objects and distant scenery
     # The PNG is the sRGB encoding of the linear layers.
-    from mi_nerfpp.color import to_srgb8
+    from mi_nerfpp.core.color import to_srgb8
     import imageio.v3 as iio
     png = iio.imread(out / 'train' / 'rgb' / '000000.png')
     layers = read_exr(out / 'train' / 'gt' / '000000.exr')
@@ -314,7 +314,7 @@ def test_command_line(tmp_path, capsys):
     assert main(['synth', synth.scene_file('gt_bounded.xml'), '--out', str(tmp_path / 'a2'),
                  '--views', '2', '--res', '4x3', '--spp', '1', '--trajectory', 'arc']) == 1
     assert re.search(r'^error: synth: .*at least 3 views', capsys.readouterr().err)
-    from mi_nerfpp.cli import build_parser
+    from mi_nerfpp.commands.cli import build_parser
     args = build_parser().parse_args(['synth', GARDEN, '--out', str(out),
                                       '--trajectory', 'hemisphere'])
     assert args.trajectory == 'hemisphere'

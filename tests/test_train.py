@@ -9,13 +9,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.checkpoint import load_checkpoint
+from mi_nerfpp.files.checkpoint import load_checkpoint
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp import priors
-from mi_nerfpp.evaluate import evaluate_split
-from mi_nerfpp.config import TrainConfig
-from mi_nerfpp.options import values
-from mi_nerfpp.train import Trainer, TrainingError
+from mi_nerfpp.training import priors
+from mi_nerfpp.training.evaluate import evaluate_split
+from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.training.options import values
+from mi_nerfpp.training.train import Trainer, TrainingError
 from tests.helpers import one_thread, straight_and_resumed
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -117,8 +117,8 @@ def test_optimize_options_come_from_train_config():
     import argparse
     import dataclasses
 
-    from mi_nerfpp.cli import build_parser
-    from mi_nerfpp.options import groups, options_of
+    from mi_nerfpp.commands.cli import build_parser
+    from mi_nerfpp.training.options import groups, options_of
     args = build_parser().parse_args(['optimize'])
     cfg = TrainConfig.from_options(**values(args, TrainConfig))
     assert dataclasses.asdict(cfg) == dataclasses.asdict(TrainConfig())
@@ -180,8 +180,8 @@ def test_optimize_command_end_to_end(capture, tmp_path):
     assert (out / 'preview' / 'iter_000030.png').exists() and (out / 'training.png').exists()
     assert (out / 'test' / 'test_000.exr').exists()
     # The soft-alpha score is that of the written mattes, and the warning follows it.
-    from mi_nerfpp.exr import read_exr
-    from mi_nerfpp.metrics import SOFT_ALPHA_WARNING, soft_alpha_fraction
+    from mi_nerfpp.files.exr import read_exr
+    from mi_nerfpp.training.metrics import SOFT_ALPHA_WARNING, soft_alpha_fraction
     for view in metrics['test']['views']:
         fg_a = read_exr(str(out / 'test' / f'test_{view["view"]:03d}.exr'))['fg.A']
         assert view['soft_alpha'] == pytest.approx(soft_alpha_fraction(fg_a))
@@ -317,7 +317,7 @@ def test_owned_arrays_do_not_share_numpy_memory():
     release Dr.Jit cannot record): writing to the source after the copy changes nothing."""
     import drjit as dr
     import mitsuba as mi
-    from mi_nerfpp.arrays import owned
+    from mi_nerfpp.core.arrays import owned
     a = np.zeros((64, 1024), np.float32)        # page-aligned: the case NumPy may lend out
     t, f = owned(a), owned(a.ravel(), mi.Float)
     a[:] = 7.0
@@ -340,7 +340,7 @@ def test_ctrl_c_while_a_step_is_recorded_saves_a_checkpoint(dataset, tmp_path, m
     a Dr.Jit loop wraps one raised in its body (so inside a recording it arrives wrapped twice):
     a Ctrl-C there, or in the occupancy refresh before the recorded part, must still stop the
     run like a Ctrl-C anywhere else (checkpoint saved), and the run must go on from it."""
-    import mi_nerfpp.train as train_module
+    import mi_nerfpp.training.train as train_module
     calls = []
 
     def once(original, interrupt):
@@ -355,7 +355,7 @@ def test_ctrl_c_while_a_step_is_recorded_saves_a_checkpoint(dataset, tmp_path, m
         raise KeyboardInterrupt
 
     if where == 'occupancy_loop':
-        from mi_nerfpp.model import NeRFPPModel as NeRFPP
+        from mi_nerfpp.core.model import NeRFPPModel as NeRFPP
         monkeypatch.setattr(NeRFPP, 'update_occupancy',
                             once(NeRFPP.update_occupancy, _interrupt_in_a_loop_body))
     else:

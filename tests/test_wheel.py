@@ -111,7 +111,7 @@ def test_installed_wheel_synthesizes_and_optimizes_outside_the_repository(venv, 
     work.mkdir()
     env = _env(tmp_path / 'cache')
     where = json.loads(_run([python, '-c', (
-        'import json, mi_nerfpp, mi_nerfpp.synth as s; '
+        'import json, mi_nerfpp, mi_nerfpp.data.synth as s; '
         'print(json.dumps([mi_nerfpp.__file__, s.scene_file(s.DEFAULT_SCENE)]))')],
         cwd=work, env=env).strip().splitlines()[-1])
     installed = os.path.realpath(os.path.join(purelib, 'mi_nerfpp'))

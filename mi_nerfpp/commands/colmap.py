@@ -1,14 +1,17 @@
-"""``python -m mi_nerfpp colmap PHOTOS --out DATA``: structure from motion (:mod:`mi_nerfpp.sfm`)."""
+"""``python -m mi_nerfpp colmap PHOTOS --out DATA``: structure from motion (:mod:`mi_nerfpp.data.sfm`)."""
 from __future__ import annotations
 
 import argparse
 
+from mi_nerfpp.data.sfm import (CAMERA_MODES, DEFAULT_HOLD,
+                                DEFAULT_MAX_IMAGE_SIZE, DEFAULT_OVERLAP,
+                                MATCHING, run_sfm)
+from mi_nerfpp.files.atomic import check_not_a_file
+
 
 def run(args) -> int:
-    from ..files import check_not_a_file
-    from ..sfm import run_sfm
     check_not_a_file(args.out)
-    # Errors (SfmError, OSError, ...) end the command at its boundary (mi_nerfpp.cli).
+    # Errors (SfmError, OSError, ...) end the command at its boundary (mi_nerfpp.commands.cli).
     run_sfm(args.photos, args.out, matching=args.matching, camera=args.camera,
             hold=args.hold, max_image_size=args.max_image_size, overlap=args.overlap,
             num_threads=args.threads)
@@ -21,8 +24,6 @@ def subject(args):
 
 def add_parser(sub) -> argparse.ArgumentParser:
     """Register ``colmap`` on the sub-command parsers of ``python -m mi_nerfpp``."""
-    from ..sfm import (CAMERA_MODES, DEFAULT_HOLD, DEFAULT_MAX_IMAGE_SIZE, DEFAULT_OVERLAP,
-                       MATCHING)
     p = sub.add_parser(
         'colmap', help='poses for a folder of photos (structure from motion with pycolmap), '
                        'written as a NeRF++ dataset',

@@ -1,6 +1,12 @@
 """``python -m mi_nerfpp evaluate RUN``: re-run the held-out evaluation of a training run."""
 from __future__ import annotations
 
+import sys
+
+from mi_nerfpp.jobs.console import ConsoleObserver
+from mi_nerfpp.jobs.run import evaluate_run
+from mi_nerfpp.training.evaluate import matte_warning
+
 
 def add_parser(sub):
     p = sub.add_parser('evaluate', help='re-run the held-out evaluation of a training run')
@@ -14,13 +20,9 @@ def subject(args):
 
 
 def run(args):
-    import sys
 
-    from ..evaluate import matte_warning
-    from ..run import evaluate_run
-    from ..console import ConsoleObserver
 
-    metrics = evaluate_run(args.run, ConsoleObserver())     # errors: reported by mi_nerfpp.cli
+    metrics = evaluate_run(args.run, ConsoleObserver())     # errors: reported by mi_nerfpp.commands.cli
     if 'test' in metrics:
         print(f'{len(metrics["test"]["views"])} held-out views: PSNR '
               f'{metrics["test"]["psnr"]:.2f} dB, SSIM {metrics["test"]["ssim"]:.3f}; '

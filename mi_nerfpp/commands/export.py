@@ -1,10 +1,13 @@
 """``python -m mi_nerfpp export RUN --out DIR``: cameras and proxy geometry of a run for USD,
-Nuke and Blender (:mod:`mi_nerfpp.export`)."""
+Nuke and Blender (:mod:`mi_nerfpp.jobs.export`)."""
 from __future__ import annotations
+
+from mi_nerfpp.commands.arguments import positive_int
+from mi_nerfpp.jobs.export import export_run
+from mi_nerfpp.jobs.run import open_run
 
 
 def add_parser(sub):
-    from . import positive_int
     p = sub.add_parser('export', help='export a run\'s cameras (USD, Nuke .chan) and a proxy '
                                       'mesh of its foreground (USD, PLY) for DCC tools')
     p.add_argument('run', help='run folder written by optimize (holds model.npz)')
@@ -24,13 +27,11 @@ def subject(args):
 
 def run(args):
     try:
-        import pxr  # noqa: F401
+        import pxr  # noqa: F401  # deferred: usd-core is the optional extra [export]
     except ImportError:
         raise RuntimeError("usd-core is not installed: pip install -e '.[export]' "
                            "(scripts/setup.sh installs it)") from None
-    from ..export import export_run
-    from ..run import open_run
-    opened = open_run(args.run)                # errors: reported by mi_nerfpp.cli
+    opened = open_run(args.run)                # errors: reported by mi_nerfpp.commands.cli
     written = export_run(args.run, args.out, args.resolution, args.density, opened=opened)
     for path in written:
         print(f'wrote {path}')

@@ -5,16 +5,20 @@ iterations, checkpoints that resume, and at the end held-out PSNR/SSIM
 (``metrics.json``), per-view EXRs and PNGs, a ready-to-render ``render.xml`` and a
 loss/PSNR-vs-time plot. The training options follow, by group.
 """
-# The run itself is mi_nerfpp.run.optimize; this command parses the options (generated from
-# mi_nerfpp.config.TrainConfig, one section of --help per group) and prints what it reports.
+# The run itself is mi_nerfpp.jobs.run.optimize; this command parses the options (generated from
+# mi_nerfpp.training.config.TrainConfig, one section of --help per group) and prints what it reports.
 from __future__ import annotations
 
 import sys
 
+from mi_nerfpp.core import budget
+from mi_nerfpp.jobs import run as runs
+from mi_nerfpp.jobs.console import ConsoleObserver
+from mi_nerfpp.training.config import DEFAULT_JOB_MINUTES, TrainConfig
+from mi_nerfpp.training.options import add_options, values
+
 
 def add_parser(sub):
-    from ..config import DEFAULT_JOB_MINUTES, TrainConfig
-    from ..options import add_options
     p = sub.add_parser('optimize', help='fit both volumes to a posed-image dataset',
                        description=__doc__)
     p.add_argument('data', nargs='?', help='dataset folder (NeRF++ layout, transforms.json, '
@@ -36,21 +40,18 @@ def subject(args):
 
 
 def run(args):
-    from .. import run as runs
-    from ..config import TrainConfig
-    from ..console import ConsoleObserver
-    from ..options import values
 
     observer = ConsoleObserver()
     options, data = values(args, TrainConfig), args.data
     config = TrainConfig.from_options(**options)    # checks every option (ValueError: the flag)
-    config.check_limits()                           # and what they size (memory, Dr.Jit)
+    plan = budget.plan(config)                      # what they size (memory, Dr.Jit), once
+    budget.check(config, plan)
     if data is None:        # after the checks: the default capture may take minutes to render
         data, options = runs.default_job(options, progress=True)
         config = TrainConfig.from_options(**options)
-    # Errors (TrainingError and the others) end the command at its boundary (mi_nerfpp.cli).
+    # Errors (TrainingError and the others) end the command at its boundary (mi_nerfpp.commands.cli).
     result = runs.optimize(data, config, args.out, resume=args.resume, overwrite=args.overwrite,
-                           observer=observer)
+                           observer=observer, plan=plan)
     if not result.finished:
         print(f'interrupted at iteration {result.trainer.iteration}: checkpoint saved to '
               f'{result.trainer.checkpoint_path}; continue with --resume', file=sys.stderr)

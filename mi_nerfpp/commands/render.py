@@ -4,6 +4,13 @@ from __future__ import annotations
 import os
 import time
 
+import mitsuba as mi
+
+from mi_nerfpp.files.atomic import check_writable_folder
+from mi_nerfpp.files.preview import write_linear_png
+from mi_nerfpp.output.deep import render_deep_to_file
+from mi_nerfpp.output.views import render_to_files
+
 
 def add_parser(sub):
     p = sub.add_parser('render', help='render a scene XML (nerfpp integrator) to a multi-layer EXR')
@@ -32,11 +39,8 @@ def _defines(pairs):
 
 
 def run(args):
-    import mitsuba as mi
 
-    from ..views import render_to_files
 
-    from ..files import check_writable_folder
 
     if not os.path.isfile(args.scene):
         raise ValueError(f'{args.scene}: scene file not found')
@@ -52,8 +56,6 @@ def run(args):
     scene = mi.load_file(args.scene, **_defines(args.define))
     check_sensor(scene, args.scene)
     if args.deep:
-        from ..deep import render_deep_to_file
-        from ..preview import write_linear_png
         _, _, beauty = render_deep_to_file(scene, args.output, spp=args.spp, seed=args.seed)
         if args.preview:
             write_linear_png(args.preview, beauty)

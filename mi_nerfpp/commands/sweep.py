@@ -3,11 +3,11 @@
 Every dataset folder is trained with the optimize options given here (the same options as
 ``optimize``), once per ``--set`` when option sets are given, each in its own run folder
 (``OUT/<dataset>`` or ``OUT/<dataset>_<set>``) with its progress in ``optimize.log`` there.
-With ``--ray`` the runs are Ray tasks on a cluster (:mod:`mi_nerfpp.cluster`), else they run
+With ``--ray`` the runs are Ray tasks on a cluster (:mod:`mi_nerfpp.jobs.cluster`), else they run
 one after the other here. A failed run is reported in the table and the others go on; a run
 interrupted before (``model.npz`` without ``metrics.json``) is resumed, a finished one is
 reported as it is (``--overwrite`` trains it again). One table of held-out PSNR/SSIM and
-times at the end, also written to ``OUT/sweep.json``. The runs are :mod:`mi_nerfpp.sweep`'s.
+times at the end, also written to ``OUT/sweep.json``. The runs are :mod:`mi_nerfpp.jobs.sweep`'s.
 """
 from __future__ import annotations
 
@@ -15,12 +15,19 @@ import argparse
 import os
 import shlex
 
+from tqdm import tqdm
+
+from mi_nerfpp.commands.arguments import positive_int
+from mi_nerfpp.commands.video import add_ray_options
+from mi_nerfpp.files.atomic import (check_not_a_file, check_writable_folder,
+                                    write_json)
+from mi_nerfpp.jobs.cluster import check_address, run_tasks, timeout_line
+from mi_nerfpp.jobs.sweep import failed, make_jobs, run_job
+from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.training.options import add_options, values
+
 
 def add_parser(sub):
-    from ..config import TrainConfig
-    from ..options import add_options
-    from . import positive_int
-    from .video import add_ray_options
     p = sub.add_parser('sweep', help='train many captures (or option sets), optionally on a '
                        'Ray cluster, and tabulate held-out PSNR/SSIM', description=__doc__)
     p.add_argument('data', nargs='+', help='dataset folders, one run each')
@@ -40,8 +47,6 @@ def add_parser(sub):
 
 def option_parser(defaults: dict):
     """A parser of optimize's training options only, starting from ``defaults``."""
-    from ..config import TrainConfig
-    from ..options import add_options
     p = argparse.ArgumentParser(prog='sweep --set', add_help=False)
     add_options(p, TrainConfig)
     p.set_defaults(**{a.dest: defaults[a.dest] for a in p._actions if a.dest in defaults})
@@ -51,8 +56,6 @@ def option_parser(defaults: dict):
 def option_sets(args):
     """``[(text, options)]``: each ``--set`` as given and the training options it makes on top
     of the command line's (one set of those alone without ``--set``)."""
-    from ..config import TrainConfig
-    from ..options import values
     parser = option_parser(vars(args))
     return [(text, values(parser.parse_args(shlex.split(text)), TrainConfig))
             for text in args.option_sets or ['']]
@@ -80,17 +83,11 @@ def subject(args):
 
 
 def run(args):
-    from tqdm import tqdm
 
-    from ..cluster import run_tasks, timeout_line
-    from ..evaluate import write_json
-    from ..files import check_not_a_file, check_writable_folder
-    from ..sweep import failed, make_jobs, run_job
 
     check_not_a_file(args.out)
     jobs = make_jobs(args.data, option_sets(args), args.out, args.overwrite)
     if args.ray:
-        from ..cluster import check_address
         check_address(args.ray)     # ray not installed, or no cluster there: before any work
     check_writable_folder(args.out, what='sweep folder (--out)')
     rows = {}

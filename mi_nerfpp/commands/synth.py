@@ -1,14 +1,19 @@
-"""``python -m mi_nerfpp synth SCENE.xml --out DATA``: a synthetic capture (:mod:`mi_nerfpp.synth`)."""
+"""``python -m mi_nerfpp synth SCENE.xml --out DATA``: a synthetic capture (:mod:`mi_nerfpp.data.synth`)."""
 from __future__ import annotations
 
 import argparse
 
+from mi_nerfpp.commands.arguments import resolution
+from mi_nerfpp.data.synth import (DEFAULT_FOV, DEFAULT_RADIUS, DEFAULT_RES,
+                                  DEFAULT_SEED, DEFAULT_SPP,
+                                  DEFAULT_TRAJECTORY, DEFAULT_VIEWS,
+                                  TRAJECTORIES, synthesize)
+from mi_nerfpp.files.atomic import check_not_a_file
+
 
 def run(args) -> None:
-    from ..files import check_not_a_file
-    from ..synth import synthesize
     check_not_a_file(args.out)
-    # Errors end the command at its boundary (mi_nerfpp.cli).
+    # Errors end the command at its boundary (mi_nerfpp.commands.cli).
     synthesize(args.scene, args.out, views=args.views, res=args.res, spp=args.spp,
                trajectory=args.trajectory, seed=args.seed, fov=args.fov, radius=args.radius)
 
@@ -19,9 +24,6 @@ def subject(args):
 
 def add_parser(sub) -> argparse.ArgumentParser:
     """Register ``synth`` on the sub-command parsers of ``python -m mi_nerfpp``."""
-    from ..synth import (DEFAULT_FOV, DEFAULT_RADIUS, DEFAULT_RES, DEFAULT_SEED, DEFAULT_SPP,
-                         DEFAULT_TRAJECTORY, DEFAULT_VIEWS, TRAJECTORIES)
-    from . import resolution
     p = sub.add_parser(
         'synth', help='render a synthetic NeRF++ capture (images, poses, ground truth) of a '
                       'Mitsuba scene',

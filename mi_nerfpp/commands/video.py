@@ -2,7 +2,7 @@
 
 Frames are written to a frames folder first (PNG, and the multi-layer EXR with ``--exr``), each
 atomically; frames already there are skipped, so a re-run resumes an interrupted job. With
-``--ray`` the frames are rendered by workers on a Ray cluster (:mod:`mi_nerfpp.cluster`), with
+``--ray`` the frames are rendered by workers on a Ray cluster (:mod:`mi_nerfpp.jobs.cluster`), with
 the same function as in one process. The video is assembled from the PNGs.
 """
 from __future__ import annotations
@@ -10,9 +10,19 @@ from __future__ import annotations
 import argparse
 import os
 
+from tqdm import tqdm
+
+from mi_nerfpp.commands.arguments import positive_int, resolution
+from mi_nerfpp.files.atomic import remove_stale_temporaries
+from mi_nerfpp.jobs.cluster import (FramePool, FrameWorker, check_address,
+                                    cluster_cpus, session, timeout_line)
+from mi_nerfpp.jobs.run import open_run
+from mi_nerfpp.output.video import (check_video_path, orbit_cameras,
+                                    pending_frames, prepare_frames_dir,
+                                    read_frames, resized, write_video)
+
 
 def add_parser(sub):
-    from . import positive_int, resolution
     p = sub.add_parser('video', help='render a novel-view video of a training run')
     p.add_argument('run', help='run folder written by optimize (holds model.npz)')
     p.add_argument('-o', '--output', help='.mp4 or .gif (default: RUN/video.mp4)')
@@ -50,8 +60,6 @@ def add_ray_options(p, what):
 
 def cameras_of(args):
     """The run's checkpoint path, the video's cameras and the description of the job."""
-    from ..run import open_run
-    from ..video import orbit_cameras, resized
 
     _, meta, _, dataset = open_run(args.run)
     template = dataset.train.cameras[0]
@@ -76,16 +84,11 @@ def subject(args):
 
 
 def run(args):
-    from tqdm import tqdm
 
-    from ..files import remove_stale_temporaries
-    from ..video import (check_video_path, pending_frames, prepare_frames_dir, read_frames,
-                         write_video)
 
     out = args.output or os.path.join(args.run, 'video.mp4')
     check_video_path(out)           # a format it cannot write: before any frame is rendered
     if args.ray:
-        from ..cluster import check_address
         check_address(args.ray)     # ray not installed, or no cluster there: before any work
     checkpoint, cameras, job = cameras_of(args)
     frames_dir = args.frames_dir or os.path.splitext(out)[0] + '_frames'
@@ -104,13 +107,11 @@ def run(args):
 
 
 def render_here(checkpoint, cameras, pending, frames_dir, exr, bar, skip_empty=True):
-    from ..cluster import FrameWorker
     FrameWorker(checkpoint, skip_empty=skip_empty).render(
         {i: cameras[i] for i in pending}, frames_dir, exr, on_frame=lambda i: bar.update(1))
 
 
 def render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar):
-    from ..cluster import FramePool, cluster_cpus, session, timeout_line
     with session(args.ray, timeout_line('video', args.ray)) as ray:
         workers = args.workers or max(1, cluster_cpus(ray) // args.worker_cpus)
         workers = min(workers, len(pending))

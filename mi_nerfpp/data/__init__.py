@@ -11,25 +11,19 @@ Modules:
     colmap   -- COLMAP sparse models (``sparse/0/`` + ``images/``)
     formats  -- :func:`load_dataset`, which detects the format
 """
-from .blender import read_transforms
-from .cameras import (
-    Camera,
-    direction_coverage,
-    mitsuba_sensor_dict,
-    mitsuba_to_opencv,
-    opencv_to_mitsuba,
-    opencv_to_opengl,
-    opengl_to_opencv,
-    pixel_rays,
-    project,
-)
-from .colmap import read_colmap
-from .dataset import AutoDownscale, Dataset, Split
-from .errors import DatasetError
-from .formats import detect_format, load_dataset
-from .images import downscale_image, image_size, read_image, write_encoded_png
-from .llff import llff_to_opencv, read_llff
-from .nerfpp import read_nerfpp, write_nerfpp
+from mi_nerfpp.data.blender import read_transforms
+from mi_nerfpp.data.cameras import (Camera, direction_coverage,
+                                    mitsuba_sensor_dict, mitsuba_to_opencv,
+                                    opencv_to_mitsuba, opencv_to_opengl,
+                                    opengl_to_opencv, pixel_rays, project)
+from mi_nerfpp.data.colmap import read_colmap
+from mi_nerfpp.data.dataset import AutoDownscale, Dataset, Split
+from mi_nerfpp.data.errors import DatasetError
+from mi_nerfpp.data.formats import detect_format, load_dataset
+from mi_nerfpp.data.images import (downscale_image, image_size, read_image,
+                                   write_encoded_png)
+from mi_nerfpp.data.llff import llff_to_opencv, read_llff
+from mi_nerfpp.data.nerfpp import read_nerfpp, write_nerfpp
 
 __all__ = [
     'AutoDownscale', 'Camera', 'Dataset', 'DatasetError', 'Split', 'detect_format',

@@ -36,12 +36,12 @@ import warnings
 
 import numpy as np
 
-from .cameras import opengl_to_opencv
-from .colmap import ColmapCamera
-from .dataset import Dataset, Frame, make_dataset, make_splits
-from .errors import DatasetError
-from .images import image_size
-from .undistort import CACHE_INDEX, View, undistort_views
+from mi_nerfpp.data.cameras import opengl_to_opencv
+from mi_nerfpp.data.colmap import ColmapCamera
+from mi_nerfpp.data.dataset import Dataset, Frame, make_dataset, make_splits
+from mi_nerfpp.data.errors import DatasetError
+from mi_nerfpp.data.images import image_size
+from mi_nerfpp.data.undistort import CACHE_INDEX, View, undistort_views
 
 SPLIT_FILES = {'train': 'transforms_train.json', 'validation': 'transforms_val.json',
                'test': 'transforms_test.json'}

@@ -1,6 +1,6 @@
 """Pinhole cameras and the coordinate conventions that meet in mi-nerfpp.
 
-The normalization into the unit sphere is :class:`mi_nerfpp.frame.Normalization`.
+The normalization into the unit sphere is :class:`mi_nerfpp.core.frame.Normalization`.
 
 A :class:`Camera` stores its pose as a camera-to-world matrix in the **OpenCV** convention, which
 is the one the NeRF++ data format uses. Three camera-space conventions meet in this project:
@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import mitsuba as mi
 import numpy as np
 
 # Camera-space axis flips, applied on the right of a camera-to-world matrix.
@@ -222,7 +223,6 @@ def mitsuba_sensor_dict(camera: Camera, spp: int = 1, pixel_format: str = 'rgba'
         ValueError: for non-square pixels (|fx - fy| / fx >= 1e-3), a skewed K, or a transform
             with scale (Mitsuba's perspective sensor supports none of these).
     """
-    import mitsuba as mi
 
     K = camera.K
     fx, fy = K[0, 0], K[1, 1]

@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .dataset import Dataset, Frame, make_dataset, make_splits
-from .errors import DatasetError
-from .undistort import is_fresh, undistort_model
+from mi_nerfpp.data.dataset import Dataset, Frame, make_dataset, make_splits
+from mi_nerfpp.data.errors import DatasetError
+from mi_nerfpp.data.undistort import is_fresh, undistort_model
 
 IMAGE_FOLDER = 'images'
 UNDISTORTED_FOLDER = 'undistorted'

@@ -13,16 +13,18 @@ from typing import Callable
 
 import numpy as np
 
-from ..frame import Normalization
-from .cameras import Camera
-from .errors import DatasetError
-from .images import image_size, read_stored_image
-from .storage import MAX_STORED_BYTES, StoredImages, bytes_per_pixel, store, stored_depth
+from mi_nerfpp.core.budget import images_budget
+from mi_nerfpp.core.frame import Normalization
+from mi_nerfpp.data.cameras import Camera
+from mi_nerfpp.data.errors import DatasetError
+from mi_nerfpp.data.images import image_size, read_stored_image
+from mi_nerfpp.data.storage import (MAX_STORED_BYTES, StoredImages,
+                                    bytes_per_pixel, store, stored_depth)
 
 SPLITS = ('train', 'validation', 'test')
 
 # The automatic downscale counts the training images twice: as loaded, and in the store that
-# the training step gathers its pixels from (:class:`mi_nerfpp.train.RayBank`).
+# the training step gathers its pixels from (:class:`mi_nerfpp.training.train.RayBank`).
 TRAIN_COPIES = 2
 # Camera positions a capture may have. Beyond this distance from the origin (world units) the
 # centres cannot be normalized in floating point (their spread is lost to rounding, squares
@@ -65,7 +67,7 @@ class Dataset:
         format: the reader that produced it: 'nerfpp', 'blender', 'llff' or 'colmap'.
         root: the folder (or file) it was read from.
         color_space: 'srgb' (PNG/JPEG pixel values) or 'linear' (EXR).
-        normalization: the :class:`~mi_nerfpp.frame.Normalization` already applied to every
+        normalization: the :class:`~mi_nerfpp.core.frame.Normalization` already applied to every
             camera; the identity when the cameras were inside the unit sphere as read.
         downscale: the factor the images were shrunk by (chosen by :class:`AutoDownscale`
             when the reader was given ``downscale=None`` or one).
@@ -105,7 +107,7 @@ class Frame:
     intrinsics_source: str | None = None
 
 
-MIN_IMAGE_SIZE = 3    # the smallest SSIM window (mi_nerfpp.metrics.SSIM_MIN_WIN_SIZE)
+MIN_IMAGE_SIZE = 3    # the smallest SSIM window (mi_nerfpp.training.metrics.SSIM_MIN_WIN_SIZE)
 
 
 def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.0)) -> Split:
@@ -170,11 +172,12 @@ class AutoDownscale:
     ones once, as stored (:func:`stored_bytes`, sizes and bit depths read from the file
     headers before any image is decoded); a training store must also stay under
     :data:`~mi_nerfpp.data.storage.MAX_STORED_BYTES`. ``budget`` None: what
-    :func:`mi_nerfpp.memory.image_budget` leaves for images with the default training options.
+    :func:`mi_nerfpp.core.budget.images_budget` leaves beside the process; a training run
+    passes what its plan leaves (:attr:`mi_nerfpp.core.budget.Plan.images`).
 
     After loading, ``factor`` is the factor chosen, ``needed`` the bytes the images take at
     their own resolution, ``used`` at the factor chosen and ``size`` the (width, height) of
-    the first training image as read (what :func:`mi_nerfpp.run.prepare` announces).
+    the first training image as read (what :func:`mi_nerfpp.jobs.run.prepare` announces).
     """
     budget: int | None = None
     factor: int | None = None
@@ -196,8 +199,7 @@ class AutoDownscale:
         """The factor for training and held-out images of ``(width, height, depth)``, recorded
         here. Raises :class:`DatasetError` (naming ``where``) when no factor makes them fit."""
         if self.budget is None:
-            from ..memory import image_budget
-            self.budget = image_budget()
+            self.budget = images_budget()
 
         def cost(factor):
             return TRAIN_COPIES * stored_bytes(train, factor) + stored_bytes(held_out, factor)

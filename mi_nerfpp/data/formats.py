@@ -3,12 +3,12 @@ from __future__ import annotations
 
 import os
 
-from .blender import is_transforms, read_transforms
-from .colmap import is_colmap, read_colmap
-from .dataset import AutoDownscale, Dataset
-from .errors import DatasetError
-from .llff import is_llff, read_llff
-from .nerfpp import is_nerfpp, read_nerfpp
+from mi_nerfpp.data.blender import is_transforms, read_transforms
+from mi_nerfpp.data.colmap import is_colmap, read_colmap
+from mi_nerfpp.data.dataset import AutoDownscale, Dataset
+from mi_nerfpp.data.errors import DatasetError
+from mi_nerfpp.data.llff import is_llff, read_llff
+from mi_nerfpp.data.nerfpp import is_nerfpp, read_nerfpp
 
 
 def detect_format(path) -> str:

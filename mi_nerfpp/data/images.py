@@ -19,10 +19,13 @@ from __future__ import annotations
 import os
 
 import imageio.v3 as iio
+import mitsuba as mi
 import numpy as np
+import OpenEXR
+from PIL import Image
 
-from ..color import quantize8
-from .errors import DatasetError
+from mi_nerfpp.core.color import quantize8
+from mi_nerfpp.data.errors import DatasetError
 
 _PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
 _EXIF_ORIENTATION = 0x0112
@@ -94,9 +97,9 @@ def write_encoded_png(path, img) -> None:
     Args:
         path: output file.
         img: float array (H, W), (H, W, 1), (H, W, 3) or (H, W, 4) with values in [0, 1]
-            (clipped, then rounded to 8 bits, :func:`~mi_nerfpp.color.quantize8`). No colour
+            (clipped, then rounded to 8 bits, :func:`~mi_nerfpp.core.color.quantize8`). No colour
             conversion: a scene-linear render is written by
-            :func:`mi_nerfpp.preview.write_linear_png`, which encodes it.
+            :func:`mi_nerfpp.files.preview.write_linear_png`, which encodes it.
     """
     img = np.asarray(img)
     if not np.issubdtype(img.dtype, np.floating):
@@ -140,7 +143,6 @@ def _png_bit_depth(path: str) -> int | None:
 def _read_ldr(path: str) -> np.ndarray:
     """Raw integer (or bool) pixels of a PNG/JPEG/..., 16-bit PNGs at full precision."""
     if _png_bit_depth(path) == 16:
-        import mitsuba as mi
         return np.array(mi.Bitmap(path))
     return iio.imread(path, plugin='pillow', rotate=True)     # rotate: EXIF orientation
 
@@ -155,7 +157,6 @@ def image_size(path) -> tuple[int, int]:
     path = os.fspath(path)
     if not path.lower().endswith('.exr'):
         try:
-            from PIL import Image
             with Image.open(path) as img:
                 width, height = img.size
                 # EXIF orientations 5-8 turn the image by 90 degrees.
@@ -198,7 +199,6 @@ def _split_alpha(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
 
 def _read_exr(path: str) -> tuple[np.ndarray, np.ndarray | None]:
     """Colour (H, W, 3) and optional alpha (H, W, 1) of an EXR's default (unnamed) layer."""
-    import OpenEXR
 
     with OpenEXR.File(path, separate_channels=True) as f:
         channels = {name: np.asarray(ch.pixels, dtype=np.float32)

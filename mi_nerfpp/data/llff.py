@@ -13,8 +13,8 @@ import os
 
 import numpy as np
 
-from .dataset import Dataset, Frame, make_dataset, make_splits
-from .errors import DatasetError
+from mi_nerfpp.data.dataset import Dataset, Frame, make_dataset, make_splits
+from mi_nerfpp.data.errors import DatasetError
 
 POSES_FILE = 'poses_bounds.npy'
 IMAGE_FOLDER = 'images'

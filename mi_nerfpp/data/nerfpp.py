@@ -16,10 +16,11 @@ import os
 
 import numpy as np
 
-from .cameras import Camera
-from .dataset import SPLITS, Dataset, Frame, make_dataset, make_splits
-from .errors import DatasetError
-from .images import write_encoded_png
+from mi_nerfpp.data.cameras import Camera
+from mi_nerfpp.data.dataset import (SPLITS, Dataset, Frame, make_dataset,
+                                    make_splits)
+from mi_nerfpp.data.errors import DatasetError
+from mi_nerfpp.data.images import write_encoded_png
 
 IMAGE_EXTENSIONS = ('.png', '.jpg', '.jpeg', '.exr')
 SUBFOLDERS = ('rgb', 'pose', 'intrinsics')

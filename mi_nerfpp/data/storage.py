@@ -1,7 +1,7 @@
 """How a split keeps its images in memory: compactly, at the precision of the files.
 
 A training pixel costs what its file stored, not tens of bytes of float rays
-(:class:`mi_nerfpp.train.RayBank` builds the rays of a batch from the cameras). Each split keeps
+(:class:`mi_nerfpp.training.train.RayBank` builds the rays of a batch from the cameras). Each split keeps
 one kind of storage for all its images (:class:`StoredImages`), with the float value of a
 stored value ``v``:
 
@@ -36,7 +36,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .images import _png_bit_depth, downscale_image
+from mi_nerfpp.data.images import _png_bit_depth, downscale_image
 
 # A split's store is addressed by 32-bit indices (the gathers of the training step): at most
 # this many bytes.

@@ -35,9 +35,15 @@ import shutil
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
+import imageio.v3 as iio
+import mitsuba as mi
 import numpy as np
+import OpenEXR
+from scipy.ndimage import map_coordinates
+from tqdm import tqdm
 
-from .errors import DatasetError
+from mi_nerfpp.data.errors import DatasetError
+from mi_nerfpp.data.images import _read_exr, _read_ldr
 
 # The index of a transforms.json undistortion cache (written last: its time stamps the cache).
 CACHE_INDEX = 'cameras.json'
@@ -49,14 +55,14 @@ _BLOCK_PIXELS = 1 << 21
 def camera_options():
     """COLMAP's options for the pinhole camera of a distorted one (its defaults: no blank
     pixels, so the pinhole image is cropped to where the distorted image has content)."""
-    import pycolmap
+    import pycolmap  # deferred: COLMAP's native library, for SfM and undistortion only
     return pycolmap.UndistortCameraOptions()
 
 
 def pycolmap_camera(camera):
     """A ``pycolmap.Camera`` of a camera description with ``model`` (COLMAP's model name),
     ``width``, ``height`` and ``params`` (e.g. :class:`mi_nerfpp.data.colmap.ColmapCamera`)."""
-    import pycolmap
+    import pycolmap  # deferred: COLMAP's native library, for SfM and undistortion only
     return pycolmap.Camera(model=camera.model, width=int(camera.width),
                            height=int(camera.height),
                            params=np.asarray(camera.params, dtype=np.float64))
@@ -106,7 +112,7 @@ def undistort_model(model_folder: str, image_folder: str, out: str) -> None:
     Raises:
         DatasetError: COLMAP fails (the message names the model and the way out).
     """
-    import pycolmap
+    import pycolmap  # deferred: COLMAP's native library, for SfM and undistortion only
     with atomic_folder(out) as tmp:
         try:
             pycolmap.undistort_images(tmp, model_folder, image_folder,
@@ -164,7 +170,7 @@ def undistort_views(views: list[View], out: str, sources: Iterable[str] = (),
         DatasetError: an unreadable image, two views with one cache name, a cache folder that
             cannot be written.
     """
-    import pycolmap
+    import pycolmap  # deferred: COLMAP's native library, for SfM and undistortion only
     out = os.path.abspath(out)
     names = {}
     for view in views:
@@ -253,7 +259,7 @@ def _pinhole(out: str, name: str, camera: dict) -> Pinhole:
 
 def _pinhole_cameras(cameras) -> list:
     """COLMAP's pinhole camera of each camera; those of one source size cropped to one size."""
-    import pycolmap
+    import pycolmap  # deferred: COLMAP's native library, for SfM and undistortion only
     options = camera_options()
     pinholes = [pycolmap.undistort_camera(options, pycolmap_camera(c)) for c in cameras]
     common = {}
@@ -292,7 +298,6 @@ def _pixel_map(distorted, pinhole) -> np.ndarray:
 def warp(pixels: np.ndarray, coords: np.ndarray) -> np.ndarray:
     """``pixels`` (H, W, C) resampled bilinearly at ``coords`` (:func:`_pixel_map`); outside
     the image is 0 (as in COLMAP); integer pixels are rounded back to their type."""
-    from scipy.ndimage import map_coordinates
     channels = [map_coordinates(pixels[..., c].astype(np.float32), coords, order=1,
                                 mode='constant', cval=0.0) for c in range(pixels.shape[2])]
     result = np.stack(channels, axis=-1)
@@ -305,7 +310,6 @@ def warp(pixels: np.ndarray, coords: np.ndarray) -> np.ndarray:
 def _read_pixels(path: str) -> np.ndarray:
     """An image as stored, (H, W, C): uint8 or uint16 for PNG/JPEG (EXIF orientation applied,
     alpha kept), float32 RGB[A] for EXR (colour premultiplied, as stored)."""
-    from .images import _read_exr, _read_ldr
     try:
         if path.lower().endswith('.exr'):
             rgb, alpha = _read_exr(path)
@@ -331,21 +335,17 @@ def _read_pixels(path: str) -> np.ndarray:
 def _write_pixels(path: str, pixels: np.ndarray) -> None:
     """Write what :func:`_read_pixels` read: PNG (8 or 16 bit) or EXR (float32)."""
     if path.lower().endswith('.exr'):
-        import OpenEXR
         names = ('R', 'G', 'B', 'A')[:pixels.shape[2]]
         channels = {name: np.ascontiguousarray(pixels[..., i]) for i, name in enumerate(names)}
         with OpenEXR.File({'compression': OpenEXR.ZIP_COMPRESSION,
                            'type': OpenEXR.scanlineimage}, channels) as f:
             f.write(path)
     elif pixels.dtype == np.uint16:
-        import mitsuba as mi  # Pillow cannot write 16-bit colour PNGs
         mi.Bitmap(pixels if pixels.shape[2] > 1 else pixels[..., 0]).write(path)
     else:
-        import imageio.v3 as iio
         iio.imwrite(path, pixels if pixels.shape[2] > 1 else pixels[..., 0], extension='.png')
 
 
 def _progress(total: int, enabled: bool):
-    from tqdm import tqdm
     return tqdm(total=total, desc='undistort', unit='image', disable=not enabled or total < 2,
                 leave=False)

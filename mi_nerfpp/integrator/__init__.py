@@ -7,7 +7,7 @@
 * :mod:`.shapes` - the scene's shapes: paths through them, shadow catchers;
 * :mod:`.nerfpp` - the class that puts them together, Mitsuba's entry points.
 """
-from .nerfpp import NeRFPPIntegrator, camera_axis, register
-from .parameters import MAX_FILM_SAMPLES
+from mi_nerfpp.integrator.nerfpp import NeRFPPIntegrator, camera_axis, register
+from mi_nerfpp.integrator.parameters import MAX_FILM_SAMPLES
 
 __all__ = ['MAX_FILM_SAMPLES', 'NeRFPPIntegrator', 'camera_axis', 'register']

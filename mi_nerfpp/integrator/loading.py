@@ -6,7 +6,8 @@ import os
 
 import mitsuba as mi
 
-from ..checkpoint import load_checkpoint
+from mi_nerfpp.core.appearance import single
+from mi_nerfpp.files.checkpoint import load_checkpoint
 
 
 def resolve_checkpoint(name: str) -> str:
@@ -42,6 +43,5 @@ def check_appearance(model, index: int):
 
 def appearance_transform(model, index: int):
     """``(gain, bias)`` (Color3f) of training image ``index``'s colour transform."""
-    from ..appearance import single
     gain, bias = single(model.appearance.numpy(), index)
     return mi.Color3f(*map(float, gain)), mi.Color3f(*map(float, bias))

@@ -1,8 +1,9 @@
 """The Mitsuba integrator ``nerfpp``: NeRF++ rendering with compositing layers as AOVs.
 
-The class is put together from one module per concern: its XML parameters and limits
-(:mod:`.parameters`), the model it loads (:mod:`.loading`), the volumes' layers
-(:mod:`.volumes`) and the scene's shapes (:mod:`.shapes`).
+:class:`NeRFPPIntegrator` reads its XML parameters once (checked by :mod:`.parameters`), loads
+its model (:mod:`.loading`) and renders each camera sample with one of two strategies: the
+volumes alone (:class:`VolumesOnly`, :class:`~.volumes.VolumeRenderer`) or the volumes with the
+scene's shapes (:class:`VolumesAndShapes`, :class:`~.shapes.ShapeRenderer`).
 """
 from __future__ import annotations
 
@@ -13,30 +14,19 @@ import mitsuba as mi
 import numpy as np
 from mitsuba.ad.integrators.common import ADIntegrator
 
-from ..geometry import pixel_footprint
-from ..layers import AOVS, aov_list, rst_table
-from ..model import FIELD_KINDS, NeRFPPModel
-from ..objects import split_scene
-from ..render import Sampling
-from .loading import check_appearance, load_model
-from .parameters import check_chunk_sizes, check_film, check_sensor, read_parameters
-from .shapes import ShapeLayers
-from .volumes import VolumeLayers
+from mi_nerfpp.core.budget import RENDER_CHUNK_RAYS, check_chunk_sizes
+from mi_nerfpp.core.geometry import pixel_footprint
+from mi_nerfpp.core.layers import AOVS, aov_list, rst_table
+from mi_nerfpp.core.model import FIELD_KINDS, NeRFPPModel
+from mi_nerfpp.core.objects import split_scene
+from mi_nerfpp.core.render import Sampling
+from mi_nerfpp.integrator.loading import check_appearance, load_model
+from mi_nerfpp.integrator.parameters import (MAX_FILM_SAMPLES, ParameterReader,
+                                             check_film, check_sensor)
+from mi_nerfpp.integrator.shapes import ShapeRenderer
+from mi_nerfpp.integrator.volumes import VolumeRenderer, in_chunks
 
 
-def _methods_of(*parts):
-    """Class decorator: the methods of the plain classes ``parts`` become the class's own
-    (a nanobind class, such as Mitsuba's integrators, takes a single base class)."""
-    def add(cls):
-        for part in parts:
-            for name, value in vars(part).items():
-                if not (name.startswith('__') and name.endswith('__')):
-                    setattr(cls, name, value)
-        return cls
-    return add
-
-
-@_methods_of(VolumeLayers, ShapeLayers)
 class NeRFPPIntegrator(ADIntegrator):
     r"""
     .. _integrator-nerfpp:
@@ -51,7 +41,7 @@ class NeRFPPIntegrator(ADIntegrator):
     original world frame.
 
     The scene's shapes are rendered inside the reconstruction
-    (:mod:`mi_nerfpp.objects`): a camera ray integrates the volumes up to the
+    (:mod:`mi_nerfpp.core.objects`): a camera ray integrates the volumes up to the
     first surface and sees the surface through the remaining transmittance; the
     surface is path traced with its BSDF (``max_depth``, ``rr_depth`` as in
     Mitsuba's ``path``), and every path segment that leaves a surface takes the
@@ -92,7 +82,7 @@ class NeRFPPIntegrator(ADIntegrator):
      * - fg_samples
        - |int|
        - Coarse samples per ray in the foreground volume. (Default: the
-         model's, :class:`~mi_nerfpp.model.RenderSettings`: a checkpoint renders
+         model's, :class:`~mi_nerfpp.core.model.RenderSettings`: a checkpoint renders
          with the counts it was trained with, older checkpoints with those of
          their training config; random fields with 64)
      * - bg_samples
@@ -182,36 +172,70 @@ class NeRFPPIntegrator(ADIntegrator):
     ``chunk_rays``, the film, a sensor with a non-finite ``to_world`` or farther
     than 1e4 unit-sphere radii from the model), with the largest value that
     fits, before Dr.Jit sees them (:mod:`~mi_nerfpp.integrator.parameters`). The model carries how it is
-    rendered (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`: its sample
+    rendered (:attr:`~mi_nerfpp.core.model.NeRFPPModel.render_settings`: its sample
     counts, ``near``, whether it has a background, where it composites); the
     parameters above that say "the model's" override those settings one by one,
     also for a model handed over with :meth:`set_model`.
 
+    Renderers other than Mitsuba's (deep output, :mod:`mi_nerfpp.output.deep`)
+    use the same code through :meth:`look_through` (the camera of the depth
+    layer), :meth:`frame` (the scene's shapes, split once per frame) and
+    :meth:`render_rays`, whose ``record`` receives the per-sample render.
+
     Radiance is scene-linear (Rec.709 primaries), also for models fitted to
-    sRGB photos (:meth:`~mi_nerfpp.model.NeRFPPModel.radiance_fields`).
-    The AOVs are the *sample channels* of :data:`mi_nerfpp.layers.AOVS`, after
+    sRGB photos (:meth:`~mi_nerfpp.core.model.NeRFPPModel.radiance_fields`).
+    The AOVs are the *sample channels* of :data:`mi_nerfpp.core.layers.AOVS`, after
     the film's ``R G B [A]``: per-sample values that the film averages, from
-    which :func:`mi_nerfpp.views.render_layers` develops the layers below
+    which :func:`mi_nerfpp.output.views.render_layers` develops the layers below
     (ratios of averages, so that they add up at any samples per pixel:
-    :mod:`mi_nerfpp.layers`):
+    :mod:`mi_nerfpp.core.layers`):
 
     {layer_table}
     """
 
     def __init__(self, props):
         super().__init__(props)
-        for name, value in read_parameters(props, FIELD_KINDS).items():
-            setattr(self, name, value)
+        read = ParameterReader(props)
+        self.checkpoint = read('checkpoint', str, '')
+        self.random_field = read('field', str, 'grid', choices=FIELD_KINDS)
+        self.random_seed = read('seed', int, 0, minimum=0)
+        # Overrides of the model's render settings (None: the model's).
+        self.sampling_overrides = {
+            'fg_samples': read('fg_samples', int, None, minimum=1),
+            'bg_samples': read('bg_samples', int, None, minimum=1),
+            'fine_samples': read('fine_samples', int, None, minimum=0),
+            'near': read('near', float, None, minimum=0.0)}
+        self.background_override = read('background', bool, None)
+        self.skip_empty = read('skip_empty', bool, True)
+        self.stratified = read('stratified', bool, False)
+        self.occluded_background = read('occluded_background', bool, False)
+        self.chunk_rays = read('chunk_rays', int, RENDER_CHUNK_RAYS, minimum=1)
+        self.appearance_image = read('appearance_image', int, -1, minimum=-1)
+        self.max_samples = read('max_samples', int, MAX_FILM_SAMPLES, minimum=1)
+        self.max_depth = read('max_depth', int, 6, minimum=1)
+        self.rr_depth = read('rr_depth', int, 5, minimum=1)
+        self.shadow_catchers = _ids(read('shadow_catchers', str, ''))
+        self.proxies = _ids(read('proxies', str, ''))
+        self.catcher_samples = read('catcher_samples', int, 16, minimum=1)
+        self.volume_shadows = read('volume_shadows', bool, True)
+        read.reject_unknown()
+        if self.random_seed >= 2 ** 32:
+            raise ValueError(f"nerfpp: parameter 'seed' is {self.random_seed}; the largest "
+                             f"seed is {2 ** 32 - 1}")
+        check_chunk_sizes(self.chunk_rays, self.sampling_overrides, self.max_depth,
+                          self.catcher_samples)
         self.show_progress = False
+        self.camera = None           # (centre, view axis) of the sensor: the depth layer's
         self._model, self.meta = None, {}
-        self._view = None
         if self.checkpoint:
             self._model, self.meta = load_model(self.checkpoint)
             check_appearance(self._model, self.appearance_image)
+        self.volumes = VolumeRenderer(self)
+        self.shapes = ShapeRenderer(self, self.volumes)
 
     @property
     def model(self):
-        """The :class:`~mi_nerfpp.model.NeRFPPModel` rendered: the checkpoint's, the one
+        """The :class:`~mi_nerfpp.core.model.NeRFPPModel` rendered: the checkpoint's, the one
         given to :meth:`set_model`, or (built on first use) seeded random fields."""
         if self._model is None:
             self._model = NeRFPPModel.create(field=self.random_field, seed=self.random_seed)
@@ -219,12 +243,12 @@ class NeRFPPIntegrator(ADIntegrator):
 
     @property
     def sampling(self) -> Sampling:
-        """Samples per ray: the model's (:attr:`~mi_nerfpp.model.NeRFPPModel.render_settings`),
-        or :class:`~mi_nerfpp.render.Sampling`'s defaults without ``skip_empty``, with the ones
-        the XML gives in their place."""
-        given = {k: v for k, v in self._sampling.items() if v is not None}
+        """Samples per ray: the model's (:attr:`~mi_nerfpp.core.model.NeRFPPModel.render_settings`),
+        or whole rays' (:class:`~mi_nerfpp.core.render.Sampling`'s defaults) without
+        ``skip_empty``, with the ones the XML gives in their place."""
+        given = {k: v for k, v in self.sampling_overrides.items() if v is not None}
         settings = self.model.render_settings.sampling
-        if not self.skip_empty:     # whole rays: the counts of a model without occupancy grids
+        if not self.skip_empty:
             settings = Sampling(near=settings.near)
         return dataclasses.replace(settings, **given)
 
@@ -232,21 +256,22 @@ class NeRFPPIntegrator(ADIntegrator):
     def background(self) -> bool:
         """Whether the background volume is rendered: the XML's ``background``, else whether
         the model has one."""
-        if self._background is not None:
-            return self._background
+        if self.background_override is not None:
+            return self.background_override
         return self.model.render_settings.background
 
     def set_model(self, model, meta=None):
-        """Render ``model`` (a :class:`~mi_nerfpp.model.NeRFPPModel`) from now on."""
+        """Render ``model`` (a :class:`~mi_nerfpp.core.model.NeRFPPModel`) from now on."""
         check_appearance(model, self.appearance_image)
         self._model, self.meta = model, meta or {}
 
     def aov_names(self):
-        """The AOV channels, in :data:`mi_nerfpp.layers.AOVS` order."""
+        """The AOV channels, in :data:`mi_nerfpp.core.layers.AOVS` order."""
         return list(AOVS)
 
     def to_string(self):
-        given = {k: v for k, v in dict(self._sampling, background=self._background).items()
+        given = {k: v for k, v in dict(self.sampling_overrides,
+                                       background=self.background_override).items()
                  if v is not None}
         settings = ', '.join(f'{k}={v}' for k, v in given.items()) or "the model's settings"
         return f'NeRFPPIntegrator[checkpoint="{self.checkpoint}", {settings}]'
@@ -259,54 +284,117 @@ class NeRFPPIntegrator(ADIntegrator):
         # Fields read their parameter dict on every evaluation: nothing to rebuild.
         pass
 
+    # ------------------------------------------------------------------ rendering
+
     def prepare(self, sensor, seed=0, spp=0, aovs=()):
         """Refuses films beyond ``max_samples``, an empty film, a sample count of 0, sample
         counts beyond what a chunk holds and a sensor with a non-finite or far-away
         ``to_world`` before Mitsuba or Dr.Jit allocates anything
-        (:mod:`~mi_nerfpp.integrator.parameters`), and notes the camera frame for the depth
-        layer."""
+        (:mod:`~mi_nerfpp.integrator.parameters`), and looks through ``sensor``."""
         check_film(sensor.film().crop_size(), spp or sensor.sampler().sample_count(),
                    self.max_samples)
-        check_chunk_sizes(self.chunk_rays, self.sampling, self.max_depth, self.catcher_samples)
-        check_sensor(sensor.world_transform().matrix, self.model.normalization)
-        self._view = camera_axis(sensor)
+        self.look_through(sensor)
         return super().prepare(sensor, seed, spp, list(aovs))
 
-    def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
-        o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
-        fp = pixel_footprint(ray)
-        seed = None
-        if self.stratified:
-            seed = mi.UInt32(sampler.next_1d() * 4294967040.0)
-        n = dr.width(o)
-        # (Split on every render, not cached: a cache would keep the scene alive.)
+    def look_through(self, sensor):
+        """Render for ``sensor`` from now on: the depth layer is measured along its view axis.
+        Refuses sample counts beyond what a chunk holds and a sensor with a non-finite or
+        far-away ``to_world``."""
+        check_chunk_sizes(self.chunk_rays, self.sampling, self.max_depth, self.catcher_samples)
+        check_sensor(sensor.world_transform().matrix, self.model.normalization)
+        self.camera = camera_axis(sensor)
+
+    def camera_depth(self, o, d, t):
+        """The depth layer of points at distance ``t`` along rays ``o + t·d``: along the
+        camera's view axis (:meth:`look_through`), or the distance itself before any."""
+        if self.camera is None:
+            return t
+        center, axis = self.camera
+        return dr.dot(o - center, axis) + t * dr.dot(dr.normalize(d), axis)
+
+    def frame(self, scene):
+        """How ``scene`` is rendered, decided once per frame: :class:`VolumesOnly` for a scene
+        without shapes (no intersection work), else :class:`VolumesAndShapes` (the shapes
+        split into objects, shadow catchers and proxies; the catchers' environment map
+        rendered once). A new split each time: a cached one would keep the scene alive."""
         parts = split_scene(scene, self.shadow_catchers, self.proxies)
         if parts.objects is None and parts.catchers is None:
-            # No shapes: the volumes alone, without any intersection.
-            if mode != dr.ADMode.Primal:
-                L, aovs = self.render_layers(o, d, seed, footprint=fp)
-            elif n <= self.chunk_rays:
-                L, aovs = self.render_layers(o, d, seed, primal=True, footprint=fp)
-            else:
-                L, aovs = self._chunked(lambda o, d, seed, fp: self.render_layers(
-                    o, d, seed, primal=True, footprint=fp), [o, d, seed, fp], n)
-            # The objects' layers are 0.
-            return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
-        # One seed per camera sample: its index hashed with the sampler (which carries the
-        # render's seed), so no two samples share a path even where the sampler repeats.
-        path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n),
-                                        mi.UInt32(sampler.next_1d() * 4294967040.0))
-        environment = None
-        if parts.catchers is not None and parts.objects is not None:
-            environment = self._catcher_environment(parts, mode == dr.ADMode.Primal)
-        if mode != dr.ADMode.Primal:
-            L, aovs = self._render_scene(parts, o, d, seed, path_seed, primal=False,
-                                         environment=environment, footprint=fp)
-        else:
-            L, aovs = self._chunked(lambda o, d, seed, path_seed, fp: self._render_scene(
-                parts, o, d, seed, path_seed, primal=True, environment=environment,
-                footprint=fp), [o, d, seed, path_seed, fp], n)
+            return VolumesOnly(self)
+        return VolumesAndShapes(self, parts)
+
+    def render_rays(self, frame, o, d, seed=None, path_seed=None, footprint=None,
+                    primal=True, record=None):
+        """Beauty and AOVs (``{channel: Float}``) of camera rays ``o + t·d`` in world space
+        through ``frame`` (:meth:`frame`), in chunks of ``chunk_rays`` when ``primal``.
+        ``seed``: per-ray jitter of the samples (None: strata midpoints); ``path_seed``: per
+        ray, the paths through the shapes; ``footprint``: the pixels' footprints
+        (:func:`~mi_nerfpp.core.geometry.pixel_footprint`). ``record`` (a dict; one chunk of
+        rays, ``primal`` only) receives the render's per-sample arrays (deep output)."""
+        n = dr.width(o)
+        if frame.traces_paths and path_seed is None:
+            path_seed = dr.arange(mi.UInt32, n)
+        if not primal or record is not None:
+            return frame.render(o, d, seed, path_seed, footprint, primal, record)
+        return in_chunks(lambda o, d, seed, path_seed, footprint: frame.render(
+            o, d, seed, path_seed, footprint, True), [o, d, seed, path_seed, footprint], n,
+            self.chunk_rays, progress=self.show_progress)
+
+    def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
+        """One camera sample per ray (Mitsuba's entry point): both volumes sampled and
+        integrated by quadrature, composited by Eq. 4, developed into the layers
+        (:meth:`~.volumes.VolumeRenderer.layers`), through the scene's shapes where it has
+        some (:meth:`~.shapes.ShapeRenderer.render`)."""
+        o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
+        n = dr.width(o)
+        footprint = pixel_footprint(ray)
+        seed = mi.UInt32(sampler.next_1d() * 4294967040.0) if self.stratified else None
+        primal = mode == dr.ADMode.Primal
+        frame = self.frame(scene)
+        path_seed = None
+        if frame.traces_paths:
+            # One path seed per camera sample: its index hashed with the sampler (which
+            # carries the render's seed), so no two samples share a path even where the
+            # sampler repeats.
+            path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n),
+                                            mi.UInt32(sampler.next_1d() * 4294967040.0))
+        L, aovs = self.render_rays(frame, o, d, seed, path_seed, footprint, primal)
         return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
+
+
+class VolumesOnly:
+    """The strategy for a scene without shapes: the volumes alone, without any intersection;
+    the objects' layers are 0."""
+    traces_paths = False
+
+    def __init__(self, integrator):
+        self.volumes = integrator.volumes
+
+    def render(self, o, d, seed, path_seed, footprint, primal, record=None):
+        L, aovs, _ = self.volumes.layers(o, d, seed, primal, footprint=footprint, record=record)
+        return L, aovs
+
+
+class VolumesAndShapes:
+    """The strategy for a scene with shapes: the volumes up to the first surface, the surfaces
+    path traced with the volumes as their light, the shadow catchers' differential shading
+    (:class:`~.shapes.ShapeRenderer`)."""
+    traces_paths = True
+
+    def __init__(self, integrator, parts):
+        self.shapes, self.parts = integrator.shapes, parts
+        self.environment = None
+        if parts.catchers is not None and parts.objects is not None:
+            with dr.suspend_grad():
+                self.environment = integrator.shapes.catcher_environment(parts)
+
+    def render(self, o, d, seed, path_seed, footprint, primal, record=None):
+        return self.shapes.render(self.parts, o, d, seed, path_seed, primal, self.environment,
+                                  footprint, record)
+
+
+def _ids(text):
+    """The shape ids of a comma-separated list."""
+    return tuple(c.strip() for c in text.split(',') if c.strip())
 
 
 if NeRFPPIntegrator.__doc__:     # (None under python -OO)

@@ -1,11 +1,12 @@
-"""The ``nerfpp`` integrator's XML parameters: read once, each with its type and range, and the
-limits that keep a render within memory and Dr.Jit's arrays, checked before Dr.Jit sees them.
+"""The ``nerfpp`` integrator's XML parameters: a reader that checks each one's type and range as
+the integrator reads it, and the limits that keep a render within memory and Dr.Jit's arrays,
+checked before Dr.Jit sees them.
 
 Every size that a parameter, the film or the sensor sets is refused here with one line naming
 it and the largest value that fits (issue 37): sample counts per ray, path depth and catcher
 directions (arrays of ``chunk_rays`` times them per chunk), the film (pixels times samples per
 pixel) and the sensor (a finite ``to_world`` within :data:`MAX_CAMERA_RADIUS` of the model).
-The rule for a chunk's arrays lives in :mod:`mi_nerfpp.limits`, which the training options
+The rule for a chunk's arrays lives in :mod:`mi_nerfpp.core.budget`, which the training options
 check too.
 """
 from __future__ import annotations
@@ -13,8 +14,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from ..limits import MAX_CHUNK_ENTRIES, RENDER_CHUNK_RAYS, check_chunk_sizes
 
 # Largest number of camera rays (film pixels x samples per pixel) one render may trace: memory
 # grows by roughly 100 bytes per ray, so this bounds a render to about 2 GB. Raise it with the
@@ -62,41 +61,6 @@ class ParameterReader:
                              f"integrator takes {', '.join(sorted(self.known))}")
 
 
-def read_parameters(props, field_kinds) -> dict:
-    """The integrator's attributes from its XML ``props`` (see the class docstring), the
-    overrides of the model's sampling under ``'_sampling'`` (None: the model's)."""
-    read = ParameterReader(props)
-    p = {'checkpoint': read('checkpoint', str, '')}
-    p['_sampling'] = {
-        'fg_samples': read('fg_samples', int, None, minimum=1),
-        'bg_samples': read('bg_samples', int, None, minimum=1),
-        'fine_samples': read('fine_samples', int, None, minimum=0),
-        'near': read('near', float, None, minimum=0.0)}
-    p['_background'] = read('background', bool, None)
-    p['skip_empty'] = read('skip_empty', bool, True)
-    p['stratified'] = read('stratified', bool, False)
-    p['occluded_background'] = read('occluded_background', bool, False)
-    p['chunk_rays'] = read('chunk_rays', int, RENDER_CHUNK_RAYS, minimum=1)
-    p['max_samples'] = read('max_samples', int, MAX_FILM_SAMPLES, minimum=1)
-    p['random_field'] = read('field', str, 'grid', choices=field_kinds)
-    p['random_seed'] = read('seed', int, 0, minimum=0)
-    p['appearance_image'] = read('appearance_image', int, -1, minimum=-1)
-    p['max_depth'] = read('max_depth', int, 6, minimum=1)
-    p['rr_depth'] = read('rr_depth', int, 5, minimum=1)
-    catchers = read('shadow_catchers', str, '')
-    p['shadow_catchers'] = tuple(c.strip() for c in catchers.split(',') if c.strip())
-    proxies = read('proxies', str, '')
-    p['proxies'] = tuple(c.strip() for c in proxies.split(',') if c.strip())
-    p['catcher_samples'] = read('catcher_samples', int, 16, minimum=1)
-    p['volume_shadows'] = read('volume_shadows', bool, True)
-    read.reject_unknown()
-    if p['random_seed'] >= 2 ** 32:
-        raise ValueError(f"nerfpp: parameter 'seed' is {p['random_seed']}; the largest seed "
-                         f"is {2 ** 32 - 1}")
-    check_chunk_sizes(p['chunk_rays'], p['_sampling'], p['max_depth'], p['catcher_samples'])
-    return p
-
-
 def check_film(size, count, max_samples):
     """Refuse an empty film, a sample count of 0, and films beyond ``max_samples`` rays."""
     if count < 1:
@@ -119,7 +83,7 @@ def check_sensor(to_world, normalization):
     """Refuse a sensor transform with NaN or infinite entries, a degenerate one, or a camera
     farther than :data:`MAX_CAMERA_RADIUS` unit-sphere radii from the model (world-frame
     ``to_world``, 4x4; ``normalization``: the model's
-    :class:`~mi_nerfpp.frame.Normalization`)."""
+    :class:`~mi_nerfpp.core.frame.Normalization`)."""
     m = np.asarray(to_world, dtype=np.float64).reshape(4, 4)
     centre, scale = normalization.center_array, float(normalization.scale)
     # Distance first: a lookat that far away also fills its rotation with NaN (float32

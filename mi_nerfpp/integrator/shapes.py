@@ -1,38 +1,46 @@
 """The scene's shapes in the ``nerfpp`` integrator: the volumes up to the first surface, the
-surfaces path traced with the volumes as their light (:mod:`mi_nerfpp.objects`), the shadow
+surfaces path traced with the volumes as their light (:mod:`mi_nerfpp.core.objects`), the shadow
 catchers' differential shading, and their layers."""
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
 
-from ..layers import layer_channels
-from ..objects import combine, path_rng, trace_paths
-from .loading import appearance_transform
+from mi_nerfpp.core.layers import layer_channels
+from mi_nerfpp.core.objects import combine, path_rng, trace_paths
+from mi_nerfpp.integrator.loading import appearance_transform
+from mi_nerfpp.integrator.volumes import VolumeRenderer
 
 
-class ShapeLayers:
-    """The shapes' methods of :class:`~mi_nerfpp.integrator.NeRFPPIntegrator` (which takes
-    them as its own; they use those of :class:`~.volumes.VolumeLayers`)."""
+class ShapeRenderer:
+    """Renders camera rays through a scene with shapes, with the settings of one
+    :class:`~mi_nerfpp.integrator.NeRFPPIntegrator` (``max_depth``, ``rr_depth``,
+    ``volume_shadows``, ``catcher_samples``, ...) and its :class:`~.volumes.VolumeRenderer`
+    for the volumes along every path segment."""
 
-    def _render_scene(self, parts, o, d, seed, path_seed, primal, environment=None,
-                      transform=True, camera=True, footprint=None):
+    def __init__(self, integrator, volumes: VolumeRenderer):
+        self.integrator, self.volumes = integrator, volumes
+
+    def render(self, parts, o, d, seed, path_seed, primal, environment=None, footprint=None,
+               record=None):
         """Beauty and AOVs of camera rays through a scene with shapes (see
-        :mod:`mi_nerfpp.objects`): the volumes up to the first surface, the surfaces path
+        :mod:`mi_nerfpp.core.objects`): the volumes up to the first surface, the surfaces path
         traced with the volumes as their light, the shadow catchers' differential shading
-        (with the ``environment`` of :meth:`_catcher_environment`, where the scene has
-        catchers); ``transform=False`` leaves out the appearance transform;
-        ``camera=False``: the rays start on a surface (see :meth:`_volume`)."""
+        (with the ``environment`` of :meth:`catcher_environment`, where the scene has
+        catchers). ``record`` (a dict, or None) receives the volumes' per-sample render (see
+        :meth:`~.volumes.VolumeRenderer.layers`) and the surfaces' ``far``, ``hit``, ``L0``,
+        ``surfaces`` and ``shadow``."""
+        ig = self.integrator
         n = dr.width(o)
         hit = dr.zeros(mi.Bool, n)
         far0 = None
         if parts.objects is not None:
-            paths = trace_paths(parts.objects, mi.Ray3f(o, d), path_seed, self.max_depth,
-                                self.rr_depth)
+            paths = trace_paths(parts.objects, mi.Ray3f(o, d), path_seed, ig.max_depth,
+                                ig.rr_depth)
             far0 = dr.gather(mi.Float, paths.far, paths.segment(0))
             hit = ~dr.isinf(far0)
-        L0, volumes, opacity0 = self._volume(o, d, seed, primal, far0, transform, camera,
-                                             footprint)
+        L0, volumes, opacity0 = self.volumes.layers(o, d, seed, primal, far0, footprint,
+                                                    record=record)
         surfaces = dr.zeros(mi.Color3f, n)
         if parts.objects is not None:
             # Every segment's volumes: the camera segment's from above, the others here.
@@ -42,25 +50,22 @@ class ShapeLayers:
                 later = dr.compress(paths.valid & (dr.arange(mi.UInt32, dr.width(paths.valid))
                                                    >= n))
                 if dr.width(later):
-                    L_k, T_k = self._volume_batch(dr.gather(mi.Point3f, paths.o, later),
+                    L_k, T_k = self.volumes.segments(dr.gather(mi.Point3f, paths.o, later),
                                                   dr.gather(mi.Vector3f, paths.d, later),
                                                   dr.gather(mi.Float, paths.far, later), primal)
                     dr.scatter(L_seg, L_k, later)
                     dr.scatter(T_seg, T_k, later)
             dr.scatter(T_seg, 1.0 - opacity0, paths.segment(0))
-            if self.volume_shadows:
-                paths.vertex = self._shadowed_by_volumes(paths, primal)
+            if ig.volume_shadows:
+                paths.vertex = self.shadowed_by_volumes(paths, primal)
             _, surfaces = combine(paths, L_seg, T_seg)
-            if self.appearance_image >= 0 and transform:
-                surfaces = appearance_transform(self.model, self.appearance_image)[0] * surfaces
+            if ig.appearance_image >= 0:
+                surfaces = appearance_transform(ig.model, ig.appearance_image)[0] * surfaces
         shadow = dr.zeros(mi.Color3f, n)
         if environment is not None and parts.objects is not None:
-            shadow = self._shadow(parts, o, d, far0, L0, path_seed, environment)
+            shadow = self.shadow(parts, o, d, far0, L0, path_seed, environment)
         t_hit = dr.select(hit, far0, 0.0) if far0 is not None else dr.zeros(mi.Float, n)
-        z_hit = t_hit
-        if self._view is not None:
-            center, axis = self._view
-            z_hit = dr.dot(o - center, axis) + t_hit * dr.dot(dr.normalize(d), axis)
+        z_hit = ig.camera_depth(o, d, t_hit)
         # The surface is the depth where the volumes in front of it stay below half opacity.
         depth = dr.select(hit & (opacity0 < 0.5), z_hit, volumes['depth.Z'])
         distance = volumes['distance.Y'] + dr.select(hit, (1.0 - opacity0) * t_hit, 0.0)
@@ -72,19 +77,19 @@ class ShapeLayers:
             obj_depth=(dr.select(hit, z_hit, 0.0),),
             shadow=(shadow.x, shadow.y, shadow.z),
             # Without the background: the foreground over the shapes, sample by sample.
-            A=(dr.full(mi.Float, 1.0, n) if self.background
+            A=(dr.full(mi.Float, 1.0, n) if ig.background
                else fg_alpha + (1.0 - fg_alpha) * mask,)))
-        if camera and transform and getattr(self, '_deep', None) is not None:
-            self._deep.update(far=far0, hit=hit, L0=L0, surfaces=surfaces, shadow=shadow)
+        if record is not None:
+            record.update(far=far0, hit=hit, L0=L0, surfaces=surfaces, shadow=shadow)
         return L0 + surfaces + shadow, aovs
 
-    def _shadowed_by_volumes(self, paths, primal):
+    def shadowed_by_volumes(self, paths, primal):
         """The paths' vertex light with next-event estimation attenuated by the volumes'
         transmittance along each shadow ray: ``V - (1 - T)·V_nee``."""
         rays = dr.compress(paths.shadow_far > 0.0)
         if dr.width(rays) == 0:
             return paths.vertex
-        _, T = self._volume_batch(dr.gather(mi.Point3f, paths.shadow_o, rays),
+        _, T = self.volumes.segments(dr.gather(mi.Point3f, paths.shadow_o, rays),
                                   dr.gather(mi.Vector3f, paths.shadow_d, rays),
                                   dr.gather(mi.Float, paths.shadow_far, rays), primal)
         vertex = mi.Color3f(paths.vertex)
@@ -92,7 +97,7 @@ class ShapeLayers:
                    - (1.0 - T) * dr.gather(mi.Color3f, paths.nee, rays), rays)
         return vertex
 
-    def _catcher_environment(self, parts, primal):
+    def catcher_environment(self, parts):
         """The reconstruction as the shadow catchers see it: the volumes' radiance along
         :data:`ENVIRONMENT_SIZE` directions (a latitude-longitude map) from the centre of the
         catchers' bounding box, rendered once per frame, as a bilinear texture
@@ -105,13 +110,13 @@ class ShapeLayers:
         centre = parts.catchers.bbox().center()
         o = mi.Point3f(*[dr.full(mi.Float, float(c), n) for c in centre])
         with dr.suspend_grad():
-            L, _ = self._volume_batch(o, d, dr.full(mi.Float, dr.inf, n), primal=True)
+            L, _ = self.volumes.segments(o, d, dr.full(mi.Float, dr.inf, n), primal=True)
             texels = dr.ravel(dr.detach(L))
             dr.eval(texels)
         return mi.Texture2f(mi.TensorXf(texels, (height, width, 3)),
                             filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
 
-    def _shadow(self, parts, o, d, far0, L0, path_seed, environment):
+    def shadow(self, parts, o, d, far0, L0, path_seed, environment):
         """Differential rendering on the shadow catchers (Debevec 1998), the occlusion part:
         where a camera ray meets a catcher before any object, the radiance ``L0`` of the
         volumes along it is scaled by ``E_with / E_without``, the catcher's irradiance with
@@ -123,7 +128,7 @@ class ShapeLayers:
         objects reflect onto the catcher is left out (no colour bleeding), and the
         environment is seen from one point (the catchers' centre), whose parallax mostly
         cancels in the ratio."""
-        n, K = dr.width(o), self.catcher_samples
+        n, K = dr.width(o), self.integrator.catcher_samples
         ray = mi.Ray3f(o, d)
         if far0 is not None:
             ray.maxt = dr.select(dr.isinf(far0), dr.largest(mi.Float), far0)
@@ -157,7 +162,7 @@ class ShapeLayers:
 
 
 # Texels (height, width) of the latitude-longitude map of the reconstruction that the shadow
-# catchers see (:meth:`ShapeLayers._catcher_environment`): 8192 volume rays per frame.
+# catchers see (:meth:`ShapeRenderer.catcher_environment`): 8192 volume rays per frame.
 ENVIRONMENT_SIZE = (64, 128)
 
 

@@ -5,8 +5,8 @@ import sys
 import numpy as np
 import OpenEXR
 
-from mi_nerfpp.exr import read_exr
-from mi_nerfpp.synth import scene_file
+from mi_nerfpp.files.exr import read_exr
+from mi_nerfpp.data.synth import scene_file
 
 
 

@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from mi_nerfpp.cli import main
+from mi_nerfpp.commands.cli import main
 from tests.helpers import TINY_RUN
 
 

@@ -2,8 +2,8 @@
 import os
 import sys
 
-from mi_nerfpp.cli import main
-from mi_nerfpp.video import frame_files
+from mi_nerfpp.commands.cli import main
+from mi_nerfpp.output.video import frame_files
 
 VIDEO = ['--frames', '3', '--res', '24x18']
 
@@ -50,7 +50,7 @@ def test_video_without_skipping_renders_whole_rays(tiny_run, tmp_path, capsys):
     import imageio.v3 as iio
     import numpy as np
 
-    from mi_nerfpp.cluster import FrameWorker
+    from mi_nerfpp.jobs.cluster import FrameWorker
     whole = FrameWorker(os.path.join(tiny_run, 'model.npz'), skip_empty=False).load()
     assert whole.scene.integrator().skip_empty is False
     assert whole.scene.integrator().sampling.bg_samples == 64

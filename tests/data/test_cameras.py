@@ -176,7 +176,7 @@ def test_direction_coverage_counts_the_cameras_that_see_each_direction():
     """A camera sees all its own directions; one turned 180 degrees sees none of them; one turned
     by half its field of view about the vertical sees exactly the half of the image on that side."""
     from mi_nerfpp.data import direction_coverage
-    from mi_nerfpp.synth import intrinsics_from_fov, look_at
+    from mi_nerfpp.data.synth import intrinsics_from_fov, look_at
     K = intrinsics_from_fov(60.0, 40, 30)
     front = Camera(K, look_at([0, 0, 0], [0, 0, 1]), 40, 30, 'front')
     back = Camera(K, look_at([5, 1, 0], [5, 1, -1]), 40, 30, 'back')

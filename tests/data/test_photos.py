@@ -8,7 +8,7 @@ from PIL import Image
 
 from mi_nerfpp.data import AutoDownscale, image_size, load_dataset, read_image, write_nerfpp
 from mi_nerfpp.data.dataset import DatasetError, stored_bytes
-from mi_nerfpp.sfm import _prepare_photo
+from mi_nerfpp.data.sfm import _prepare_photo
 from tests.helpers import orbit_camera
 
 # EXIF orientation -> how the stored pixels turn into the upright image.

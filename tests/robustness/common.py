@@ -2,7 +2,7 @@
 reading its one line."""
 import sys
 
-from mi_nerfpp import cli
+from mi_nerfpp.commands import cli
 
 TINY = ['--iterations', '2', '--batch-rays', '32', '--samples', '4', '4', '4',
         '--grid-levels', '4', '8', '--preview-every', '0', '--checkpoint-every', '0']

@@ -6,8 +6,8 @@ import re
 
 import pytest
 
-from mi_nerfpp import limits
-from mi_nerfpp.config import MAX_SEED, TrainConfig
+from mi_nerfpp.core import budget
+from mi_nerfpp.training.config import MAX_SEED, TrainConfig
 from tests.robustness.common import TINY, one_clear_line, run_cli
 
 GIB = 1 << 30
@@ -69,10 +69,11 @@ def test_options_that_size_arrays_name_the_largest_value_that_fits(capsys, tmp_p
     best = int(re.search(r'(?:at most|at resolution) ([\d,]+)', line).group(1).replace(',', ''))
     (name, value), = values.items()
     config = TrainConfig.from_options(**values)
-    assert config.largest_that_fits(name) == best and best >= 2
+    machine = budget.Machine.here()
+    assert budget.largest_that_fits(config, name, machine) == best and best >= 2
     size = (lambda v: (v,)) if isinstance(value, tuple) else (lambda v: v)
-    assert config.replace(**{name: size(best)}).limit_exceeded() is None
-    assert config.replace(**{name: size(best + 1)}).limit_exceeded() is not None
+    assert budget.plan(config.replace(**{name: size(best)}), machine).exceeded is None
+    assert budget.plan(config.replace(**{name: size(best + 1)}), machine).exceeded is not None
     assert not (tmp_path / 'run').exists()
 
 
@@ -81,11 +82,11 @@ def test_samples_beyond_what_a_render_holds_are_refused(capsys, tmp_path):
     the model take the samples of a volume for a chunk of the integrator's rays at a time,
     within the integrator's entries per array - the same rule its render applies, so that a
     run is not trained to fail at its evaluation."""
-    from mi_nerfpp.integrator.parameters import MAX_CHUNK_ENTRIES, check_chunk_sizes
+    from mi_nerfpp.core.budget import MAX_CHUNK_ENTRIES, check_chunk_sizes
     status, _, err = run_cli(capsys, 'optimize', tmp_path, '--out', tmp_path / 'run',
                              '--samples', '8', '8', '1000000', '--batch-rays', '32')
     line = one_clear_line(err)
-    per_volume = MAX_CHUNK_ENTRIES // limits.RENDER_CHUNK_RAYS
+    per_volume = MAX_CHUNK_ENTRIES // budget.RENDER_CHUNK_RAYS
     assert status == 1 and line == (
         f'error: optimize: --samples 8 8 1000000 are too many: renders of the model take '
         f'1,000,008 samples per ray of a volume (coarse and fine) for 32,768 rays at a time, '
@@ -93,11 +94,11 @@ def test_samples_beyond_what_a_render_holds_are_refused(capsys, tmp_path):
         f'{per_volume:,} samples per ray of a volume fit')
     assert not (tmp_path / 'run').exists()
     # At the boundary the config and the integrator agree: what one accepts the other renders.
-    chunk = limits.RENDER_CHUNK_RAYS
+    chunk = budget.RENDER_CHUNK_RAYS
     for fg, bg, fine in ((per_volume - 8, 8, 8), (8, per_volume - 8, 8), (1, 1, per_volume - 1)):
         config = TrainConfig.from_options(fg_samples=fg, bg_samples=bg, fine_samples=fine,
                                           batch_rays=32)
-        config.check_render_chunks()
+        assert budget.plan(config).chunk_error is None
         check_chunk_sizes(chunk, config.render_sampling, 1, 1)
         for bigger in ((fg + 1, bg, fine), (fg, bg + 1, fine), (fg, bg, fine + 1)):
             config = TrainConfig.from_options(fg_samples=bigger[0], bg_samples=bigger[1],
@@ -105,43 +106,54 @@ def test_samples_beyond_what_a_render_holds_are_refused(capsys, tmp_path):
             if max(bigger[0], bigger[1]) + bigger[2] <= per_volume:
                 continue
             with pytest.raises(ValueError, match=r'^--samples .* are too many: renders'):
-                config.check_render_chunks()
+                budget.check(config, budget.plan(config))
             with pytest.raises(ValueError, match=r'^nerfpp: parameter'):
                 check_chunk_sizes(chunk, config.render_sampling, 1, 1)
 
 
 def test_limits_against_a_memory_budget_in_closed_form():
-    """The estimates are sums of entries x bytes per entry: with a budget of 4 GiB the default
-    run fits, and the largest --batch-rays is what the budget leaves after the grids and the
-    occupancy grids, over 48 samples per ray x TRAIN_BYTES_PER_SAMPLE."""
-    budget = 4 * GIB
+    """The plan is a sum of entries x bytes per entry: on a machine of 4 GiB with 2 threads
+    the default run fits, and the largest --batch-rays is what the memory leaves after the
+    process, the grids and the occupancy grids, over 48 samples per ray x
+    TRAIN_BYTES_PER_SAMPLE."""
+    machine = budget.Machine(memory=4 * GIB, available=3 * GIB, threads=2)
     config = TrainConfig()
     grid_entries = (32 ** 3 + 128 ** 3) * 4 + (16 * 32 * 64 + 64 * 128 * 256) * 4
     occupancy_cells = 64 ** 3 + 16 * 32 * 64
-    fixed = (grid_entries * limits.GRID_BYTES_PER_ENTRY
-             + occupancy_cells * limits.OCCUPANCY_BYTES_PER_CELL)
-    assert config.memory_estimate() == {'grids': grid_entries * limits.GRID_BYTES_PER_ENTRY,
-                                        'occupancy': occupancy_cells * 16,
-                                        'step': config.schedule.batch_rays * 48
-                                        * limits.TRAIN_BYTES_PER_SAMPLE}
-    config.check_limits(budget)
-    best = (budget - fixed) // (48 * limits.TRAIN_BYTES_PER_SAMPLE)
-    assert config.largest_that_fits('batch_rays', budget) == best
+    per_entry = 4 * (budget.PARAMETER_COPIES + 2)
+    fixed = (budget.BASE_BYTES + grid_entries * per_entry
+             + occupancy_cells * budget.OCCUPANCY_BYTES_PER_CELL)
+    plan = budget.plan(config, machine)
+    assert plan.entries == {'grids': grid_entries, 'occupancy': occupancy_cells,
+                            'samples': config.schedule.batch_rays * 48}
+    assert plan.bytes == {'process': budget.BASE_BYTES, 'grids': grid_entries * per_entry,
+                          'occupancy': occupancy_cells * 16,
+                          'step': config.schedule.batch_rays * 48
+                          * budget.TRAIN_BYTES_PER_SAMPLE}
+    assert plan.exceeded is None and plan.total == sum(plan.bytes.values())
+    assert plan.images == int(0.8 * 3 * GIB) - plan.total
+    budget.check(config, plan)
+    best = (4 * GIB - fixed) // (48 * budget.TRAIN_BYTES_PER_SAMPLE)
+    assert budget.largest_that_fits(config, 'batch_rays', machine) == best
     big = config.replace(batch_rays=best + 1)
+    big_plan = budget.plan(big, machine)
+    assert big_plan.exceeded[0] == 'batch_rays' and big_plan.largest == best
     with pytest.raises(ValueError) as e:
-        big.check_limits(budget)
-    step = (best + 1) * 48 * limits.TRAIN_BYTES_PER_SAMPLE
+        budget.check(big, big_plan)
+    step = (best + 1) * 48 * budget.TRAIN_BYTES_PER_SAMPLE
+    text = budget.memory_text
     assert str(e.value) == (
         f'--batch-rays {best + 1} is too large: a run takes about '
-        f'{limits.memory_text(fixed + step)} (grids {limits.memory_text(grid_entries * 64)}, '
-        f'occupancy {limits.memory_text(occupancy_cells * 16)}, training step '
-        f'{limits.memory_text(step)}), more than this machine\'s 4 GiB; at most {best:,} fits')
+        f'{text(fixed + step)} (process {text(budget.BASE_BYTES)}, grids '
+        f'{text(grid_entries * per_entry)}, occupancy {text(occupancy_cells * 16)}, training '
+        f'step {text(step)}), more than this machine\'s 4 GiB; at most {best:,} fits')
     # More samples per ray with few rays: the samples are blamed, with the largest count
-    # (within what the integrator's chunks hold: check_render_chunks).
+    # (within what the integrator's chunks hold).
     many = config.replace(batch_rays=64, fine_samples=1000)
+    small = budget.Machine(memory=budget.BASE_BYTES + GIB // 4, available=GIB, threads=2)
     with pytest.raises(ValueError, match=r'^--samples 16 16 1000 are too many: .*at most '
                                          r'[\d,]+ samples per ray .* fit with --batch-rays 64'):
-        many.check_limits(GIB // 4)
+        budget.check(many, budget.plan(many, small))
 
 
 def test_stored_configs_are_not_refused_for_this_machine(capsys):
@@ -192,7 +204,7 @@ def test_video_format_is_refused_before_rendering(capsys, tiny_run, tmp_path):
      'Dr.Jit array holds (2^32 - 1); at most spp 1,048,575 fits at this resolution'),
 ])
 def test_synth_sizes_are_checked_before_rendering(capsys, tmp_path, args, message):
-    from mi_nerfpp import synth
+    from mi_nerfpp.data import synth
     status, _, err = run_cli(capsys, 'synth', synth.scene_file('gt_plaza.xml'), '--out',
                              tmp_path / 'capture', *args)
     assert status == 1 and one_clear_line(err) == f'error: synth: {message}'
@@ -200,13 +212,13 @@ def test_synth_sizes_are_checked_before_rendering(capsys, tmp_path, args, messag
 
 
 def test_synth_memory_limits_in_closed_form():
-    from mi_nerfpp.synth.capture import check_capture_size
-    per = limits.CAPTURE_BYTES_PER_PIXEL
+    from mi_nerfpp.data.synth.capture import check_capture_size
+    per = budget.CAPTURE_BYTES_PER_PIXEL
     check_capture_size(100, 64, 64, 4, budget=GIB)
     with pytest.raises(ValueError) as e:
         check_capture_size(10 ** 6, 64, 64, 4, budget=GIB)
     assert str(e.value) == (f'views 1000000 are too many at 64x64: their images take about '
-                            f'{limits.memory_text(10 ** 6 * 4096 * per)} while they are written, '
+                            f'{budget.memory_text(10 ** 6 * 4096 * per)} while they are written, '
                             f'more than this machine\'s 1 GiB; at most {GIB // (4096 * per):,} '
                             f'views fit at this resolution')
     with pytest.raises(ValueError, match=r'^resolution 100000x100000 is too large: '
@@ -219,7 +231,7 @@ def test_synth_memory_limits_in_closed_form():
 def test_an_unexpected_error_is_one_line_naming_the_input(capsys, tmp_path, monkeypatch):
     """A bug (any exception the command did not expect) still ends with one line, naming what
     the command worked on; --debug (or MI_NERFPP_DEBUG=1) shows the traceback above it."""
-    from mi_nerfpp import run
+    from mi_nerfpp.jobs import run
 
     def broken(*args, **kwargs):
         return 1 / 0

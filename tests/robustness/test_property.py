@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from mi_nerfpp.config import TrainConfig
+from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.data import DatasetError, load_dataset
-from mi_nerfpp.options import option_name, options_of
+from mi_nerfpp.training.options import option_name, options_of
 from tests.robustness.common import TINY, one_clear_line, run_cli
 
 CASES = 24             # damaged inputs per format
@@ -156,7 +156,7 @@ def test_damaged_datasets_are_refused_in_one_line(capsys, tmp_path, fmt):
 
 
 def test_damaged_checkpoints_are_refused_in_one_line(capsys, tmp_path):
-    from mi_nerfpp.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+    from mi_nerfpp.files.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
     from tests.helpers import tiny_model
     rng = random.Random('issue-37 checkpoints')
     good = tmp_path / 'good.npz'
@@ -218,8 +218,8 @@ def test_random_numbers_to_the_options_are_refused_in_one_line(capsys, tmp_path,
     refuses end the command with one line naming the option, status 1, and nothing
     written. The memory budget is fixed (16 GiB), so that every machine draws and refuses the
     same cases."""
-    from mi_nerfpp import limits
-    monkeypatch.setattr(limits, 'memory_bytes', lambda: 16 * limits.GIB)
+    from mi_nerfpp.core import budget
+    monkeypatch.setattr(budget, 'memory_bytes', lambda: 16 * budget.GIB)
     rng = random.Random('issue-37 options')
     ints = [v for v in EDGE_NUMBERS if re.fullmatch(r'-?\d+', v)] + ['65536', '100000000']
     refused = 0
@@ -236,7 +236,8 @@ def test_random_numbers_to_the_options_are_refused_in_one_line(capsys, tmp_path,
                         'fine_samples': parsed[2]} if flag == '--samples'
                        else {name: tuple(parsed) if count > 1 else parsed[0]})
             try:
-                TrainConfig.from_options(**options).check_limits()
+                config = TrainConfig.from_options(**options)
+                budget.check(config, budget.plan(config))
                 continue                        # a value it accepts: not a refusal to check
             except (ValueError, TypeError):
                 pass

@@ -12,7 +12,7 @@ import threading
 
 import pytest
 
-from mi_nerfpp import cluster
+from mi_nerfpp.jobs import cluster
 from tests.robustness.common import one_clear_line, run_cli
 
 pytest.importorskip('ray')

@@ -10,8 +10,8 @@ import signal
 import numpy as np
 import pytest
 
-from mi_nerfpp.checkpoint import load_checkpoint
-from mi_nerfpp.files import LOCK_NAME
+from mi_nerfpp.files.checkpoint import load_checkpoint
+from mi_nerfpp.files.atomic import LOCK_NAME
 from tests.robustness.common import TINY, Training, one_clear_line, run_cli
 
 
@@ -130,7 +130,7 @@ def test_outputs_of_a_run_without_its_model_are_not_mixed_in(capsys, capture, tm
         f'error: optimize: {out} holds outputs of an earlier run (metrics.json, render.xml, '
         f'training.png, test) without its model.npz: remove them with --overwrite, or choose '
         f'another --out')
-    from mi_nerfpp.sweep import finished
+    from mi_nerfpp.jobs.sweep import finished
     assert not finished(out)
     assert _train(capsys, capture, out, '--overwrite')[0] == 0 and finished(out)
 
@@ -227,7 +227,7 @@ def test_resume_of_a_checkpoint_from_before_linear_compositing(capsys, capture, 
 
 @pytest.mark.parametrize('held', [True, False])
 def test_lock_folder_refuses_a_second_holder(tmp_path, held):
-    from mi_nerfpp.files import FolderInUseError, lock_folder
+    from mi_nerfpp.files.atomic import FolderInUseError, lock_folder
     lock = lock_folder(tmp_path / 'f', what='folder')
     if not held:
         lock.release()
@@ -235,7 +235,7 @@ def test_lock_folder_refuses_a_second_holder(tmp_path, held):
         return
     import subprocess
     import sys
-    code = ('from mi_nerfpp.files import lock_folder, FolderInUseError\n'
+    code = ('from mi_nerfpp.files.atomic import lock_folder, FolderInUseError\n'
             f'try:\n    lock_folder({str(tmp_path / "f")!r})\n'
             'except FolderInUseError as e:\n    print(e)\n')
     child = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)

@@ -72,7 +72,7 @@ def test_a_sensor_that_is_not_a_pinhole_camera_is_refused(capsys, tmp_path, sens
 
 
 def test_a_thinlens_camera_renders(capsys, tmp_path):
-    from mi_nerfpp.exr import read_exr
+    from mi_nerfpp.files.exr import read_exr
     scene = scene_with(tmp_path, 'thinlens')
     status, _, _ = run_cli(capsys, 'render', scene, '-o', tmp_path / 'out.exr')
     assert status == 0 and read_exr(tmp_path / 'out.exr')['R'].shape == (3, 4)

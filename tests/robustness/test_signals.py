@@ -13,7 +13,7 @@ import signal
 
 import pytest
 
-from mi_nerfpp.checkpoint import load_checkpoint
+from mi_nerfpp.files.checkpoint import load_checkpoint
 from tests.robustness.common import Training
 
 

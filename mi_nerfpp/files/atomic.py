@@ -1,0 +1,196 @@
+"""Writing files atomically: readers never see a partial file, a crash never corrupts the old one."""
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import json
+import os
+import re
+import socket
+import sys
+import time
+import uuid
+from typing import Iterator
+
+
+def check_writable_folder(folder: str | os.PathLike, what: str = 'folder') -> None:
+    """Create ``folder`` if needed and prove it writable with a probe file (permissions alone
+    do not tell: a read-only mount or a root user). Raises OSError naming the folder."""
+    folder = os.fspath(folder)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        probe = os.path.join(folder, f'.write-test.{uuid.uuid4().hex}')
+        with open(probe, 'wb') as f:
+            f.write(b'0')
+        os.remove(probe)
+    except OSError as e:
+        raise OSError(e.errno, f'cannot write to this {what} ({e.strerror}): choose a '
+                      f'writable place', folder) from None
+
+
+def remove_stale_temporaries(folder: str | os.PathLike, name: str | None = None) -> list[str]:
+    """Delete the temporary files that :func:`atomic_write_path` left for ``name`` (for every
+    name when None) in ``folder`` when a process was killed mid-write. Returns the paths
+    removed."""
+    base, ext = os.path.splitext(name) if name is not None else ('', '')
+    removed = []
+    for entry in os.listdir(folder):
+        if name is None:
+            stale = entry.startswith('.') and '.tmp' in entry
+        else:
+            stale = entry.startswith(f'.{base}.') and entry.endswith(f'.tmp{ext}')
+        if stale:
+            path = os.path.join(folder, entry)
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(path)
+                removed.append(path)
+    return removed
+
+
+@contextlib.contextmanager
+def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
+    """Yield a temporary path next to ``path``; move it onto ``path`` on success.
+
+    The parent directory is created if needed. Readers never see a partially
+    written file, and on error the temporary file is removed.
+    """
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    base, ext = os.path.splitext(os.path.basename(path))
+    # A fresh unique name rather than mkstemp, so the writer creates the file
+    # with the usual umask permissions instead of mkstemp's 0600.
+    tmp = os.path.join(directory, f'.{base}.{uuid.uuid4().hex}.tmp{ext}')
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
+
+
+# ----------------------------------------------------------------------------- folder locks
+
+LOCK_NAME = '.mi-nerfpp.lock'
+# The folder locks this process holds: (process id, real path) -> [descriptor, holders]. A
+# process may lock a folder it holds again (a run prepared, then resumed in the same
+# process); the lock goes when its last holder releases it.
+_HELD: dict = {}
+
+
+class FolderInUseError(RuntimeError):
+    """Another live process holds the folder's lock."""
+
+
+class FolderLock:
+    """An exclusive lock on a folder, held by this process until :meth:`release` (or its
+    exit; a process may take a lock it holds again, released with its last holder):
+    ``fcntl.flock`` on the file :data:`LOCK_NAME` in the folder, which names the
+    holder (process id, host, command). The operating system releases the lock of a process
+    that dies, however it dies, so a lock is never left stale by a killed run; the file
+    stays. Where the file system has no ``flock`` the file itself is the lock: one naming a
+    process of this host that is no longer running is stale and taken over."""
+
+    def __init__(self, folder, key):
+        self.folder, self._key = folder, key
+
+    @property
+    def path(self):
+        return os.path.join(self.folder, LOCK_NAME)
+
+    def release(self):
+        key, self._key = self._key, None
+        held = _HELD.get(key) if key is not None else None
+        if held is not None:
+            held[1] -= 1
+            if held[1] <= 0:
+                del _HELD[key]
+                os.close(held[0])     # closing the descriptor releases the flock
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
+
+
+def _holder_text():
+    command = ' '.join(os.path.basename(a) if i == 0 else a for i, a in enumerate(sys.argv))
+    return (f'pid {os.getpid()} on {socket.gethostname()} since '
+            f'{time.strftime("%Y-%m-%d %H:%M:%S")}: {command}'[:500])
+
+
+def _holder_pid(text):
+    """(pid, host) of a lock file's text, or None."""
+    m = re.match(r'pid (\d+) on (\S+) ', text)
+    return (int(m.group(1)), m.group(2)) if m else None
+
+
+def lock_folder(folder, what: str = 'folder') -> FolderLock:
+    """Take the exclusive lock of ``folder`` (created if needed), or raise
+    :class:`FolderInUseError` naming the process that holds it."""
+    folder = os.fspath(folder)
+    os.makedirs(folder, exist_ok=True)
+    key = (os.getpid(), os.path.realpath(folder))
+    if key in _HELD:                     # held by this process already: one more holder
+        _HELD[key][1] += 1
+        return FolderLock(folder, key)
+    path = os.path.join(folder, LOCK_NAME)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise FolderInUseError(f'{folder}: this {what} is in use by another mi-nerfpp '
+                                       f'process ({_read_text(fd) or "unknown"}); wait for it '
+                                       f'to end or stop it, or choose another one') from None
+            if e.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                raise
+            holder = _holder_pid(_read_text(fd))         # no flock here: the file is the lock
+            if holder and holder[1] == socket.gethostname() and holder[0] != os.getpid() \
+                    and _alive(holder[0]):
+                raise FolderInUseError(f'{folder}: this {what} is in use by another mi-nerfpp '
+                                       f'process ({_read_text(fd)}); wait for it to end or '
+                                       f'stop it, or choose another one') from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (_holder_text() + '\n').encode(), 0)
+    except BaseException:
+        os.close(fd)
+        raise
+    _HELD[key] = [fd, 1]
+    return FolderLock(folder, key)
+
+
+def _read_text(fd):
+    try:
+        return os.pread(fd, 1000, 0).decode(errors='replace').strip()
+    except OSError:
+        return ''
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def check_not_a_file(folder, option: str = '--out'):
+    """Refuse a ``folder`` to write into that is an existing file (ValueError naming the
+    option), before anything is written."""
+    folder = os.fspath(folder)
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise ValueError(f'{option} {folder} is an existing file, not a folder: choose '
+                         f'another {option}')
+
+
+def write_json(path, data):
+    """Write ``data`` as indented JSON to ``path``, atomically."""
+    with atomic_write_path(path) as tmp, open(tmp, 'w') as f:
+        json.dump(data, f, indent=2)

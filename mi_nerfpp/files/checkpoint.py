@@ -1,0 +1,200 @@
+"""The checkpoint file: a NumPy ``.npz`` archive (never pickle).
+
+Keys:
+
+* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 3; grid fields
+  of version 1 and 2 files have per-sample colour and are read as ``color: "sample"``);
+* ``config`` — JSON: ``{"fg": <field config>, "bg": <field config or null>,
+  "normalization": {"center": [x, y, z], "scale": s}, "color_space": "srgb"|"linear",
+  "composite": "linear"|"srgb" (where samples are composited; missing: "srgb", older files),
+  "appearance_images": n (per-image colour transforms, ``param/appearance`` of shape (n, 6),
+  :mod:`~mi_nerfpp.core.appearance`; missing or 0: none),
+  "pose_images": n (per-image camera corrections, ``param/poses`` of shape (n, 6),
+  :mod:`~mi_nerfpp.core.poses`; missing or 0: none),
+  "sampling": {"fg_samples": n, "bg_samples": n, "fine_samples": n, "near": t} (the samples
+  per ray the model is rendered with, :class:`~mi_nerfpp.core.model.RenderSettings`; missing in
+  files written before it: those of the training config in ``meta``, else
+  :class:`~mi_nerfpp.core.render.Sampling`'s defaults),
+  "meta": {...}}``. ``normalization`` is the scene normalization
+  ``x_model = (x_world - center)·scale`` (:class:`~mi_nerfpp.core.frame.Normalization`; version 1
+  files stored ``center`` and ``scale`` at the top level and are still read);
+  ``meta`` holds free-form information (iteration, dataset, the training config as
+  :meth:`~mi_nerfpp.training.config.TrainConfig.to_dict` - flat in older files -, …);
+* ``param/<name>`` — float32 arrays of the learnable parameters, named as in
+  ``NeRFPPModel.parameters()`` (``fg.grid0``, ``bg.color.layers.0.weights``, …);
+* ``occupancy/<volume>`` — the occupancy grid of a volume (``fg``/``bg``) when the model
+  skips empty space; its configuration is in ``config["occupancy"]``;
+* ``state/<name>`` — optional arrays of training state (optimizer moments, RNG)
+  that rendering ignores.
+
+Files are written atomically: to a temporary file in the same folder, then renamed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+
+import numpy as np
+
+from mi_nerfpp.core.arrays import owned
+from mi_nerfpp.core.fields import make_field
+from mi_nerfpp.core.frame import Normalization
+from mi_nerfpp.core.model import NeRFPPModel
+from mi_nerfpp.core.occupancy import OccupancyGrid
+from mi_nerfpp.core.render import SKIPPING, Sampling
+from mi_nerfpp.files.atomic import atomic_write_path
+
+FORMAT = 'mi-nerfpp-checkpoint'
+VERSION = 3
+# 1: normalization as top-level center / scale; 1-2: grid fields coloured every sample.
+READABLE_VERSIONS = (1, 2, 3)
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, malformed or does not match its config."""
+
+
+class NonFiniteStateError(ValueError):
+    """A model or training state to be saved holds NaN or infinite values (nothing is
+    written)."""
+
+
+def _non_finite(arrays: dict) -> list[str]:
+    """The names of the float arrays that hold NaN or inf."""
+    return [k for k, v in arrays.items()
+            if np.asarray(v).dtype.kind == 'f' and not np.all(np.isfinite(v))]
+
+
+def save_checkpoint(path, model, meta=None, state=None):
+    """Write ``model`` (and optional training ``state``: name -> array) to ``path`` atomically.
+
+    Only finite state is written: parameters, occupancy grids or state arrays holding NaN or
+    inf raise :class:`NonFiniteStateError` (naming them) before the file is touched, so a
+    diverged run never replaces a good checkpoint."""
+    path = os.fspath(path)
+    config = dict(model.config, meta=meta or {})
+    arrays = {'format': np.array(FORMAT), 'version': np.array(VERSION),
+              'config': np.array(json.dumps(config))}
+    for k, v in model.parameters().items():
+        arrays[f'param/{k}'] = np.asarray(v.numpy(), dtype=np.float32)
+    for k, grid in model.occupancy.items():
+        arrays[f'occupancy/{k}'] = grid.numpy()
+    for k, v in (state or {}).items():
+        arrays[f'state/{k}'] = np.asarray(v)
+    bad = _non_finite(arrays)
+    if bad:
+        shown = ', '.join(bad[:4]) + (f' and {len(bad) - 4} more' if len(bad) > 4 else '')
+        raise NonFiniteStateError(f'{shown} hold NaN or infinite values')
+    with atomic_write_path(path) as tmp, open(tmp, 'wb') as f:
+        np.savez(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _read(path):
+    if not os.path.isfile(path):
+        raise CheckpointError(f'{path}: checkpoint not found')
+    if os.path.getsize(path) == 0:
+        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint: the file is empty (0 bytes)')
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):     # a bare .npy array
+            raise ValueError('a NumPy array file, not an .npz archive')
+        with z:
+            return {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, TypeError,
+            UnicodeDecodeError, NotImplementedError) as e:
+        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): '
+                              f'{e or type(e).__name__}') from None
+
+
+def read_meta(path) -> dict:
+    """The ``meta`` a checkpoint was saved with (its training config, iteration, ...), read
+    without building its model; errors as :func:`load_checkpoint`'s."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise CheckpointError(f'{path}: checkpoint not found')
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return json.loads(str(z['config'])).get('meta', {})
+    except (zipfile.BadZipFile, ValueError, OSError, KeyError) as e:
+        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): {e}') from None
+
+
+def load_checkpoint(path, seed=0):
+    """Read a checkpoint. Returns ``(model, meta, state)``; errors name the path and the problem."""
+    path = os.fspath(path)
+    z = _read(path)
+    if 'format' not in z or str(z['format']) != FORMAT:
+        raise CheckpointError(f"{path}: not a mi-nerfpp checkpoint (no 'format' = '{FORMAT}' entry)")
+    try:
+        version = int(z['version'])
+    except (KeyError, TypeError, ValueError):
+        raise CheckpointError(f"{path}: not a mi-nerfpp checkpoint (no integer 'version' "
+                              f"entry)") from None
+    if version not in READABLE_VERSIONS:
+        raise CheckpointError(f'{path}: checkpoint version {version}, this mi-nerfpp reads '
+                              f'{", ".join(map(str, READABLE_VERSIONS))}')
+    try:
+        config = json.loads(str(z['config']))
+        if version < 3:                   # before deferred colour, grid fields had an MLP per sample
+            for key in ('fg', 'bg'):
+                if config.get(key) and config[key].get('kind', 'grid') == 'grid':
+                    config[key].setdefault('color', 'sample')
+        fg = make_field(config['fg'], seed=seed)
+        bg = make_field(config['bg'], seed=seed + 1) if config.get('bg') else None
+        occupancy = {k: OccupancyGrid(density=z[f'occupancy/{k}'], **c)
+                     for k, c in config.get('occupancy', {}).items()}
+        model = NeRFPPModel(fg, bg, normalization=Normalization.from_config(config),
+                            color_space=config.get('color_space', 'srgb'), occupancy=occupancy,
+                            # written before issue 11: sRGB models composited encoded colour
+                            composite=config.get('composite', 'srgb'),
+                            appearance_images=int(config.get('appearance_images', 0)),
+                            pose_images=int(config.get('pose_images', 0)),
+                            sampling=_sampling(config))
+    except (KeyError, ValueError, TypeError) as e:
+        raise CheckpointError(f'{path}: invalid config: {e}') from None
+
+    expected = model.parameters()
+    stored = {k[len('param/'):]: v for k, v in z.items() if k.startswith('param/')}
+    missing = sorted(set(expected) - set(stored))
+    extra = sorted(set(stored) - set(expected))
+    if missing or extra:
+        raise CheckpointError(f'{path}: parameters do not match the config '
+                              f'(missing {missing}, unexpected {extra})')
+    values = {}
+    for k, v in stored.items():
+        if tuple(v.shape) != tuple(expected[k].shape):
+            raise CheckpointError(f"{path}: parameter '{k}' has shape {tuple(v.shape)}, "
+                                  f'the config needs {tuple(expected[k].shape)}')
+        if not np.all(np.isfinite(v)):
+            raise CheckpointError(f"{path}: parameter '{k}' contains NaN or inf")
+        values[k] = owned(v)
+    model.set_parameters(values)
+    state = {k[len('state/'):]: v for k, v in z.items() if k.startswith('state/')}
+    return model, config.get('meta', {}), state
+
+
+def _sampling(config):
+    """The samples per ray a checkpoint's model renders with: stored with the model, or in a
+    file written before that, those it was trained with (its training config); None (the
+    model's default) for a file that says neither."""
+    if 'sampling' in config:
+        return Sampling(**config['sampling'])
+    trained = config.get('meta', {}).get('config')
+    if trained:
+        return _trained_sampling(trained)
+    return None
+
+
+def _trained_sampling(stored: dict) -> Sampling:
+    """The samples per ray of a model from the training config an older file stored in its
+    ``meta``: option groups (``sampling``, ``model``), or one flat dict in files older still;
+    counts it does not store take training's defaults (:data:`~mi_nerfpp.core.render.SKIPPING`)."""
+    grouped = isinstance(stored.get('model'), dict)
+    sampling = stored.get('sampling', {}) if grouped else stored
+    kind = stored['model'].get('kind') if grouped else stored.get('model')   # flat: --model
+    counts = [sampling.get(name, getattr(SKIPPING, name))
+              for name in ('fg_samples', 'bg_samples', 'fine_samples')]
+    return Sampling.of_model(kind or 'nerfpp', *counts)

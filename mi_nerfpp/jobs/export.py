@@ -1,0 +1,308 @@
+"""Export a training run to DCC tools: cameras and proxy geometry for USD, Nuke and Blender.
+
+``python -m mi_nerfpp export RUN --out DIR`` (:func:`export_run`) writes::
+
+    DIR/scene.usda        USD (usd-core): one UsdGeom.Camera per dataset image, named after the
+                          image file's stem, under /cameras/<split>/; the video's orbit path
+                          (python -m mi_nerfpp video's default, 60 frames at 24 fps) as the
+                          animated /cameras/video_orbit; the proxy referenced as /proxy
+    DIR/proxy.usda        the proxy mesh as a UsdGeom.Mesh (vertex colours: displayColor)
+    DIR/proxy.ply         the same mesh as PLY (vertex colours, 8-bit sRGB)
+    DIR/sfm_points.ply    the structure-from-motion points, for a run trained from photos
+    DIR/<split>.chan      Nuke .chan of the split's cameras, one frame per image (frame i + 1:
+                          image i of DIR/cameras.json), and video_orbit.chan
+    DIR/cameras.json      per camera: name, split, frame, world c2w (OpenCV), K, size
+
+**Frame.** Everything is in the capture's world frame: the model's normalization is undone,
+and for a run trained from photos also the one structure from motion applied (``sfm.json``),
+so cameras and points are in COLMAP's frame.
+
+**Cameras.** USD cameras look down -z with +y up (``c2w_usd = c2w_opencv·diag(1, -1, -1,
+1)``), transforms stored as USD's row-vector matrices. Film back: ``horizontalAperture`` =
+36 (mm; USD's lens attributes are in tenths of a scene unit, i.e. millimetres by convention),
+``focalLength = fx·36/width``, ``verticalAperture = height·focalLength/fy``, and the principal
+point as aperture offsets, ``(width/2 - cx)/width·horizontalAperture`` and ``(cy -
+height/2)/height·verticalAperture``. Nuke's ``.chan`` holds per frame ``tx ty tz rx ry rz
+vfov`` (degrees; Nuke's default rotation order ZXY, the camera looking down -z): set the
+Camera's film back to the aspect of the images and its rotation order to ZXY before importing.
+
+**Proxy.** Marching cubes (scikit-image) on the foreground's density on a ``resolution``³ grid
+over the unit sphere, at the density whose opacity over one grid step is 1/2 (``level``:
+``ln 2 / step``) unless given; vertex colours are the field's radiance there seen along the
+inward normal, sRGB-encoded.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+from skimage.measure import marching_cubes
+
+from mi_nerfpp.core.color import to_srgb8
+from mi_nerfpp.core.frame import Normalization
+from mi_nerfpp.data.colmap import read_model
+from mi_nerfpp.data.sfm import read_report
+from mi_nerfpp.files.atomic import atomic_write_path, check_writable_folder
+from mi_nerfpp.jobs.run import open_run
+from mi_nerfpp.output.video import orbit_cameras
+
+# USD film back width (mm): a full-frame sensor.
+FILM_BACK_MM = 36.0
+# The orbit path that ``video`` renders by default.
+VIDEO_FRAMES, VIDEO_FPS = 60, 24
+
+
+def _undo_sfm(dataset_root):
+    """The normalization ``structure from motion`` applied to a photo run's dataset, or None."""
+    report = read_report(dataset_root) if dataset_root else None
+    if not report or 'normalization' not in report:
+        return None
+    config = {k: v for k, v in report['normalization'].items() if k in ('center', 'scale')}
+    return Normalization.from_config(config)
+
+
+def world_cameras(model, cameras, sfm=None):
+    """Model-frame ``cameras`` in the capture's world frame (module docs)."""
+    cams = [model.normalization.to_world_camera(c) for c in cameras]
+    return [sfm.to_world_camera(c) for c in cams] if sfm is not None else cams
+
+
+def usd_camera_values(camera):
+    """USD camera attributes of an OpenCV pinhole ``camera`` (module docs): ``(transform 4x4
+    column-vector camera-to-world, looking down -z; dict of lens attributes)``."""
+    K = camera.K
+    c2w = camera.c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
+    focal = K[0, 0] * FILM_BACK_MM / camera.width
+    vertical = camera.height * focal / K[1, 1]
+    return c2w, {
+        'focalLength': focal, 'horizontalAperture': FILM_BACK_MM, 'verticalAperture': vertical,
+        'horizontalApertureOffset': (camera.width / 2 - K[0, 2]) / camera.width * FILM_BACK_MM,
+        'verticalApertureOffset': (K[1, 2] - camera.height / 2) / camera.height * vertical}
+
+
+def _identifier(name):
+    from pxr import Tf  # deferred: usd-core is the optional extra [export]
+    return Tf.MakeValidIdentifier(name) if name else '_'
+
+
+def _define_camera(stage, path, cameras, times=None):
+    """A UsdGeom.Camera at ``path``: one camera, or an animation over ``times``."""
+    from pxr import Gf, UsdGeom  # deferred: usd-core is the optional extra [export]
+    cam = UsdGeom.Camera.Define(stage, path)
+    op = cam.AddTransformOp()
+    for i, camera in enumerate(cameras):
+        time = None if times is None else times[i]
+        c2w, lens = usd_camera_values(camera)
+        op.Set(Gf.Matrix4d(c2w.T.tolist()), *(() if time is None else (time,)))
+        for name, value in lens.items():
+            attr = getattr(cam, f'Get{name[0].upper()}{name[1:]}Attr')()
+            attr.Set(float(value), *(() if time is None else (time,)))
+    cam.GetProjectionAttr().Set(UsdGeom.Tokens.perspective)
+    cam.GetClippingRangeAttr().Set(Gf.Vec2f(0.01, 1e6))
+    return cam
+
+
+def write_usd(folder, cameras, video=None, proxy='proxy.usda'):
+    """``folder/scene.usda`` (module docs); ``cameras``: ``{split: [Camera]}`` (world)."""
+    from pxr import Usd, UsdGeom  # deferred: usd-core is the optional extra [export]
+    path = os.path.join(folder, 'scene.usda')
+    stage = Usd.Stage.CreateNew(path + '.tmp.usda')
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    root = UsdGeom.Xform.Define(stage, '/World')
+    stage.SetDefaultPrim(root.GetPrim())
+    UsdGeom.Scope.Define(stage, '/World/cameras')
+    for split, cams in cameras.items():
+        if not cams:
+            continue
+        UsdGeom.Scope.Define(stage, f'/World/cameras/{split}')
+        for camera in cams:
+            prim = _define_camera(stage, f'/World/cameras/{split}/{_identifier(camera.name)}',
+                                  [camera]).GetPrim()
+            prim.SetDisplayName(camera.name)
+            prim.SetCustomDataByKey('imageStem', camera.name)
+    if video:
+        _define_camera(stage, '/World/cameras/video_orbit', video,
+                       times=list(range(1, len(video) + 1)))
+        stage.SetStartTimeCode(1)
+        stage.SetEndTimeCode(len(video))
+        stage.SetTimeCodesPerSecond(VIDEO_FPS)
+    if proxy:
+        stage.DefinePrim('/World/proxy').GetReferences().AddReference(proxy)
+    stage.GetRootLayer().Save()
+    os.replace(path + '.tmp.usda', path)
+    return path
+
+
+def proxy_mesh(model, resolution=128, level=None, chunk=1 << 18):
+    """``(vertices (world), faces, colours (linear RGB))`` of the foreground's surface (module
+    docs). Raises ValueError when the density never reaches ``level``."""
+    step = 2.0 / (resolution - 1)
+    level = math.log(2.0) / step if level is None else float(level)
+    axis = np.linspace(-1.0, 1.0, resolution)
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing='ij'), axis=-1).reshape(-1, 3)
+    fg, _ = model.radiance_fields()
+    density = np.zeros(len(grid), dtype=np.float32)
+    with dr.suspend_grad():
+        for start in range(0, len(grid), chunk):
+            p = grid[start:start + chunk].astype(np.float32)
+            x = [mi.Float(p[:, i]) for i in range(3)]
+            density[start:start + chunk] = np.array(fg.density(x), dtype=np.float32)
+    density[np.linalg.norm(grid, axis=1) > 1.0] = 0.0
+    volume = density.reshape(resolution, resolution, resolution)
+    if not volume.max() > level:
+        raise ValueError(f'the foreground density never reaches {level:.4g} (its largest value '
+                         f'is {volume.max():.4g}): nothing to mesh; pass a lower --density')
+    verts, faces, normals, _ = marching_cubes(volume, level, spacing=(step, step, step))
+    verts = verts - 1.0                       # the grid starts at -1 on every axis
+    colours = _surface_colour(fg, verts, normals)
+    norm = model.normalization
+    world = verts / norm.scale + norm.center_array
+    return world, faces.astype(np.int64), colours
+
+
+def _surface_colour(field, points, normals):
+    """Linear radiance of ``field`` at ``points`` seen along the inward normals. (scikit-image's
+    gradient normals point towards lower values: out of the surface.)"""
+    n = len(points)
+    if n == 0:
+        return np.zeros((0, 3))
+    x = [mi.Float(points[:, i].astype(np.float32)) for i in range(3)]
+    d = -normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    d = mi.Vector3f(*[mi.Float(d[:, i].astype(np.float32)) for i in range(3)])
+    with dr.suspend_grad():
+        if getattr(field, 'deferred', False):
+            _, features = field.features(x)
+            rgb = field.color(features, d)
+        else:
+            _, rgb = field(x, d, dr.arange(mi.UInt32, n))
+    return np.clip(np.array(rgb, dtype=np.float64).reshape(3, -1).T, 0.0, None)
+
+
+def write_ply(path, vertices, faces=None, colours=None):
+    """An ASCII PLY of ``vertices`` (N x 3), optional ``faces`` (M x 3) and linear ``colours``
+    (N x 3, written sRGB-encoded as 8-bit), atomically."""
+    lines = ['ply', 'format ascii 1.0', f'element vertex {len(vertices)}',
+             'property float x', 'property float y', 'property float z']
+    if colours is not None:
+        lines += ['property uchar red', 'property uchar green', 'property uchar blue']
+        rgb8 = to_srgb8(np.asarray(colours, dtype=np.float32).reshape(-1, 1, 3)).reshape(-1, 3)
+    if faces is not None:
+        lines += [f'element face {len(faces)}', 'property list uchar int vertex_indices']
+    lines.append('end_header')
+    body = []
+    for i, v in enumerate(vertices):
+        row = f'{v[0]:.7g} {v[1]:.7g} {v[2]:.7g}'
+        if colours is not None:
+            row += ' {} {} {}'.format(*rgb8[i])
+        body.append(row)
+    if faces is not None:
+        body += [f'3 {a} {b} {c}' for a, b, c in faces]
+    with atomic_write_path(path) as tmp, open(tmp, 'w') as f:
+        f.write('\n'.join(lines + body) + '\n')
+
+
+def write_proxy_usd(path, vertices, faces, colours):
+    """The proxy mesh as ``path`` (a USD layer with a default prim /proxy)."""
+    from pxr import Usd, UsdGeom, Vt  # deferred: usd-core is the optional extra [export]
+    stage = Usd.Stage.CreateNew(path + '.tmp.usda')
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    mesh = UsdGeom.Mesh.Define(stage, '/proxy')
+    stage.SetDefaultPrim(mesh.GetPrim())
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(np.asarray(vertices, np.float32)))
+    mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray.FromNumpy(
+        np.full(len(faces), 3, dtype=np.int32)))
+    # scikit-image's winding faces the lower values; USD's default orientation is
+    # right-handed: reverse the triangles so their normals point out of the surface.
+    mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray.FromNumpy(
+        np.ascontiguousarray(np.asarray(faces)[:, ::-1], dtype=np.int32).ravel()))
+    colour = mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
+    # displayColor is linear by USD's convention.
+    colour.Set(Vt.Vec3fArray.FromNumpy(np.asarray(colours, np.float32)))
+    stage.GetRootLayer().Save()
+    os.replace(path + '.tmp.usda', path)
+
+
+def nuke_rotation(c2w_gl):
+    """Euler angles (degrees) of a camera-to-world rotation for Nuke's rotation order ZXY
+    (``R = Ry·Rx·Rz``, column vectors)."""
+    R = np.asarray(c2w_gl, dtype=np.float64)[:3, :3]
+    rx = math.asin(max(-1.0, min(1.0, -R[1, 2])))
+    ry = math.atan2(R[0, 2], R[2, 2])
+    rz = math.atan2(R[1, 0], R[1, 1])
+    return np.degrees([rx, ry, rz])
+
+
+def rotation_zxy(rx, ry, rz):
+    """The rotation matrix of Nuke's ZXY order from degrees (the inverse of
+    :func:`nuke_rotation`)."""
+    x, y, z = np.radians([rx, ry, rz])
+    Rx = np.array([[1, 0, 0], [0, math.cos(x), -math.sin(x)], [0, math.sin(x), math.cos(x)]])
+    Ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
+    Rz = np.array([[math.cos(z), -math.sin(z), 0], [math.sin(z), math.cos(z), 0], [0, 0, 1]])
+    return Ry @ Rx @ Rz
+
+
+def write_chan(path, cameras):
+    """A Nuke ``.chan`` of ``cameras``, one frame each from 1 (module docs)."""
+    rows = []
+    for i, camera in enumerate(cameras):
+        c2w = camera.c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
+        rx, ry, rz = nuke_rotation(c2w)
+        vfov = math.degrees(2 * math.atan(camera.height / (2 * camera.K[1, 1])))
+        t = c2w[:3, 3]
+        rows.append(f'{i + 1} {t[0]:.9g} {t[1]:.9g} {t[2]:.9g} {rx:.9g} {ry:.9g} {rz:.9g} '
+                    f'{vfov:.9g}')
+    with atomic_write_path(path) as tmp, open(tmp, 'w') as f:
+        f.write('\n'.join(rows) + '\n')
+
+
+def _sfm_points(dataset_root, sfm):
+    """The structure-from-motion points of a photo run, in COLMAP's frame, or None."""
+    model_dir = os.path.join(dataset_root, 'colmap', 'sparse', '0')
+    if sfm is None or not os.path.isdir(model_dir):
+        return None
+    return read_model(model_dir).points
+
+
+def export_run(run, out, resolution=128, density=None, opened=None):
+    """Write the files of the module docs for run folder ``run`` into ``out``; returns the
+    paths written. ``opened``: :func:`mi_nerfpp.jobs.run.open_run` of the run, if already read."""
+    model, meta, _, dataset = opened or open_run(run)
+    check_writable_folder(out, 'export folder (--out)')
+    sfm = _undo_sfm(meta.get('dataset'))
+    cameras = {name: world_cameras(model, split.cameras, sfm) for name, split in
+               (('train', dataset.train), ('validation', dataset.validation),
+                ('test', dataset.test))}
+    video = world_cameras(model, orbit_cameras(dataset.train.cameras, VIDEO_FRAMES,
+                                               dataset.train.cameras[0]), sfm)
+    written = []
+    vertices, faces, colours = proxy_mesh(model, resolution, density)
+    if sfm is not None:
+        vertices = np.stack([sfm.to_world_point(v) for v in vertices]) if len(vertices) else \
+            vertices
+    write_ply(os.path.join(out, 'proxy.ply'), vertices, faces, colours)
+    write_proxy_usd(os.path.join(out, 'proxy.usda'), vertices, faces, colours)
+    written += [os.path.join(out, 'proxy.ply'), os.path.join(out, 'proxy.usda')]
+    written.append(write_usd(out, cameras, video, 'proxy.usda'))
+    points = _sfm_points(meta.get('dataset'), sfm)
+    if points is not None and len(points):
+        write_ply(os.path.join(out, 'sfm_points.ply'), points)
+        written.append(os.path.join(out, 'sfm_points.ply'))
+    table = []
+    for split, cams in list(cameras.items()) + [('video_orbit', video)]:
+        if not cams:
+            continue
+        write_chan(os.path.join(out, f'{split}.chan'), cams)
+        written.append(os.path.join(out, f'{split}.chan'))
+        table += [{'name': c.name, 'split': split, 'frame': i + 1, 'c2w': c.c2w.tolist(),
+                   'K': c.K.tolist(), 'width': c.width, 'height': c.height}
+                  for i, c in enumerate(cams)]
+    with atomic_write_path(os.path.join(out, 'cameras.json')) as tmp, open(tmp, 'w') as f:
+        json.dump({'frame': 'capture world (normalization undone)', 'cameras': table}, f,
+                  indent=1)
+    written.append(os.path.join(out, 'cameras.json'))
+    return written

@@ -1,0 +1,156 @@
+"""Novel-view videos of a trained model: an orbit around the scene, or the dataset's test path.
+
+A video is rendered as frame files first (``frame_NNNNN.png``, and the multi-layer
+``frame_NNNNN.exr`` on request), each written atomically, then assembled. A frame whose files
+exist is done, so an interrupted job resumes where it stopped. :func:`render_frames` is the one
+function that renders frames to files, in one process or on each worker of a cluster
+(:mod:`mi_nerfpp.jobs.cluster`).
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+
+import imageio.v2 as iio2
+import imageio.v3 as iio
+import numpy as np
+
+from mi_nerfpp.data import Camera
+from mi_nerfpp.files.atomic import (check_writable_folder,
+                                    remove_stale_temporaries, write_json)
+from mi_nerfpp.files.exr import write_exr
+from mi_nerfpp.files.preview import write_linear_png
+from mi_nerfpp.output.views import rgb
+
+
+def _look_at(center, target, up):
+    z = target - center
+    z /= np.linalg.norm(z)
+    x = np.cross(z, -up)
+    x /= np.linalg.norm(x)
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)    # OpenCV: x right, y down, z forward
+    c2w[:3, 3] = center
+    return c2w
+
+
+def orbit_cameras(cameras, frames, template: Camera):
+    """``frames`` cameras on a circle through the capture's mean height, looking at the origin.
+
+    The up axis is the mean of the cameras' up vectors (−y in OpenCV); the radius and height
+    are the cameras' mean distance from that axis and mean height along it (model frame).
+    """
+    centers = np.stack([c.center for c in cameras])
+    up = -np.mean([c.c2w[:3, 1] for c in cameras], axis=0)
+    up /= np.linalg.norm(up)
+    height = float(np.mean(centers @ up))
+    radial = centers - np.outer(centers @ up, up)
+    radius = float(np.mean(np.linalg.norm(radial, axis=1)))
+    e1 = radial[0] / np.linalg.norm(radial[0])
+    e2 = np.cross(up, e1)
+    out = []
+    for i in range(frames):
+        a = 2 * np.pi * i / frames
+        center = height * up + radius * (np.cos(a) * e1 + np.sin(a) * e2)
+        out.append(Camera(template.K, _look_at(center, np.zeros(3), up), template.width,
+                          template.height, f'orbit_{i:03d}'))
+    return out
+
+
+def resized(camera: Camera, width, height):
+    """The same camera with an image of ``width`` x ``height`` pixels: the horizontal field of
+    view and the pixels' shape are kept, so another aspect ratio (a 16:9 video of a 4:3
+    capture) shows more or less above and below."""
+    K = camera.K.copy()
+    K[0] *= width / camera.width
+    K[1, 1] *= width / camera.width
+    K[1, 2] *= height / camera.height
+    return Camera(K, camera.c2w, width, height, camera.name)
+
+
+VIDEO_FORMATS = ('.mp4', '.gif')
+
+
+def check_video_path(path):
+    """Refuse, before any frame is rendered, a video path whose format cannot be written: an
+    extension other than ``.mp4`` / ``.gif``, a folder, ``.mp4`` without imageio-ffmpeg."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in VIDEO_FORMATS:
+        raise ValueError(f'{path}: video must be .mp4 or .gif')
+    if os.path.isdir(path):
+        raise ValueError(f'{path} is a folder: give a file name to write')
+    if ext == '.mp4' and importlib.util.find_spec('imageio_ffmpeg') is None:
+        raise RuntimeError(f'{path}: writing MP4 needs the imageio-ffmpeg package '
+                           f'(pip install imageio-ffmpeg), or ask for a .gif')
+
+
+def write_video(path, frames, fps=24):
+    """Write uint8 frames to ``.mp4`` (needs imageio-ffmpeg) or ``.gif``."""
+    check_video_path(path)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    if os.path.splitext(path)[1].lower() == '.gif':
+        iio.imwrite(path, np.stack(frames), duration=1000 / fps, loop=0)
+        return
+    with iio2.get_writer(path, fps=fps, codec='libx264', quality=8,
+                         macro_block_size=1) as writer:
+        for f in frames:
+            writer.append_data(f)
+
+
+FRAME_NAME = 'frame_{:05d}'
+MANIFEST = 'frames.json'
+
+
+def frame_files(frames_dir, index, exr=False):
+    """The final files of frame ``index``: its PNG, and its EXR (all layers) with ``exr``."""
+    base = os.path.join(frames_dir, FRAME_NAME.format(index))
+    return [base + '.png'] + ([base + '.exr'] if exr else [])
+
+
+def pending_frames(frames_dir, count, exr=False):
+    """The indices of the ``count`` frames whose files are not all written yet."""
+    return [i for i in range(count)
+            if not all(os.path.exists(p) for p in frame_files(frames_dir, i, exr))]
+
+
+def prepare_frames_dir(frames_dir, job: dict):
+    """Create ``frames_dir`` for ``job`` (what determines the frames: run, path, size, ...), or
+    check that the frames it already holds are of the same job (ValueError otherwise); remove
+    the temporary files of writers that were killed."""
+    check_writable_folder(frames_dir, what='frames folder')
+    manifest = os.path.join(frames_dir, MANIFEST)
+    if os.path.exists(manifest):
+        with open(manifest) as f:
+            held = json.load(f)
+        if held != job:
+            changed = ', '.join(f'{k} {held.get(k)!r} -> {job.get(k)!r}'
+                                for k in list(job) + [k for k in held if k not in job]
+                                if held.get(k) != job.get(k))
+            raise ValueError(f'{frames_dir} holds the frames of another video ({changed}): '
+                             f'remove it or choose another --frames-dir')
+    write_json(manifest, job)
+    remove_stale_temporaries(frames_dir)
+
+
+def render_frames(renderer, cameras: dict, frames_dir, exr=False, on_frame=None):
+    """Render the frames ``cameras`` (index -> camera) whose files are missing with
+    ``renderer`` (a :class:`~mi_nerfpp.output.views.ViewRenderer`), writing each atomically: the EXR
+    with all layers first (with ``exr``), then the PNG. Returns the indices rendered."""
+    done = []
+    for index in sorted(cameras):
+        files = frame_files(frames_dir, index, exr)
+        if not all(os.path.exists(p) for p in files):
+            layers, attributes = renderer.render(cameras[index], with_attributes=True)
+            if exr:
+                write_exr(files[1], layers, attributes=attributes)
+            write_linear_png(files[0], rgb(layers))
+            done.append(index)
+        if on_frame is not None:
+            on_frame(index)
+    return done
+
+
+def read_frames(frames_dir, count):
+    """The PNG frames, in order, as uint8 arrays (to assemble the video)."""
+    return [iio.imread(frame_files(frames_dir, i)[0]) for i in range(count)]

@@ -1,0 +1,596 @@
+"""The options of a training run: one dataclass per concern, gathered in :class:`TrainConfig`.
+
+:class:`TrainConfig` holds seven groups - :class:`DataOptions` (how the images are read),
+:class:`ModelOptions` (the volumes, their fields and what else is learned),
+:class:`SamplingOptions` (samples per ray, empty-space skipping), :class:`OptimizerOptions`
+(Adam and its learning rates), :class:`LossOptions` (colour loss and priors),
+:class:`ScheduleOptions` (budget, batches, seed) and :class:`OutputOptions` (checkpoints,
+previews, evaluations) - and each group is the one home of its options' defaults and help
+texts: the ``optimize`` command line is generated from them (:mod:`.options`), one section
+of ``--help`` per group. On the command line (and in :meth:`TrainConfig.from_options`) the
+options stay flat, each under its own name (``--batch-rays``, ``batch_rays=``).
+
+To add an option, add a field ``name: type = option(default, 'help text')`` to its group and
+check its value in the group's ``_validate``; give it ``shapes_model=True`` when a checkpoint
+trained with another value cannot be resumed.
+
+A checkpoint stores the config as :meth:`TrainConfig.to_dict` (the groups nested);
+:meth:`TrainConfig.from_stored` also reads the flat dict of checkpoints written before the
+groups, and fills options they do not know with today's defaults.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import inspect
+import json
+import math
+from dataclasses import dataclass
+
+from mi_nerfpp.core import appearance as app
+from mi_nerfpp.core import occupancy as occ
+from mi_nerfpp.core import poses
+from mi_nerfpp.core.fields import BACKGROUND_COLOR, COLOR_MODES, GridField
+from mi_nerfpp.core.frame import NERF_CAMERA_RADIUS
+from mi_nerfpp.core.model import FIELD_KINDS, default_field_config
+from mi_nerfpp.core.render import SKIPPING, Sampling
+from mi_nerfpp.training import optim
+from mi_nerfpp.training.options import (flag, group, groups, option,
+                                        option_name, options_of)
+
+MODEL_KINDS = ('nerfpp', 'nerf')
+# The embedded default job (``optimize`` without a dataset, :func:`mi_nerfpp.jobs.run.default_job`):
+# the default capture trained for these minutes, evaluated after these minutes too.
+DEFAULT_JOB_MINUTES = 10.0
+DEFAULT_JOB_EVAL_AT = (2.0, 5.0)
+# The largest --seed: the background field is seeded with seed + 1, and Dr.Jit's generators
+# take 64-bit seeds.
+MAX_SEED = 2 ** 64 - 2
+# Options that shape the colour MLP are bounded by sense rather than memory: each layer is
+# traced into the step's kernels (thousands of layers compile for hours), and direction
+# frequencies 2^k beyond float32's 24-bit mantissa are noise.
+MAX_COLOR_LAYERS = 64
+MAX_DIR_OCTAVES = 24
+# The budget of a run given neither iterations nor minutes (:func:`default_minutes`): the
+# default capture's training pixels (48 views of 128x96) get DEFAULT_JOB_MINUTES, other
+# captures minutes in proportion to the square root of their training pixels, within these
+# bounds.
+BUDGET_REFERENCE_PIXELS = 48 * 128 * 96
+DEFAULT_MINUTES_RANGE = (2.0, 60.0)
+
+
+def default_minutes(train_pixels: int) -> float:
+    """The training minutes of a capture of ``train_pixels`` training pixels when no budget is
+    given: ``DEFAULT_JOB_MINUTES * sqrt(train_pixels / BUDGET_REFERENCE_PIXELS)``, rounded to
+    whole minutes within :data:`DEFAULT_MINUTES_RANGE`.
+
+    A step takes a fixed batch of rays whatever the capture, so a minute is a fixed number of
+    rays. Minutes in proportion to the pixels would give every capture the same number of
+    passes over its pixels, hours for a photo set (118 photos of 1200x800 are 190 times the
+    default capture); a field's detail grows with the images' side rather than their area,
+    hence the square root (4 times the pixels, twice the minutes)."""
+    low, high = DEFAULT_MINUTES_RANGE
+    minutes = DEFAULT_JOB_MINUTES * math.sqrt(max(train_pixels, 0) / BUDGET_REFERENCE_PIXELS)
+    return float(min(max(round(minutes), low), high))
+
+
+def _grid_default(name):
+    """A default of the grid field, read from :class:`~mi_nerfpp.core.fields.GridField` (its home)."""
+    return inspect.signature(GridField.__init__).parameters[name].default
+
+
+def _comma_floats(text):
+    """``'1,1,1'`` -> ``(1.0, 1.0, 1.0)`` (the ``--background`` option)."""
+    try:
+        values = tuple(float(v) for v in text.split(','))
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expects three numbers like 1,1,1, got '{text}'")
+    return values
+
+
+def _as_tuple(value):
+    """An option of one or more numbers as a tuple (from Python, one number may be given
+    bare; from JSON, a list); the values are checked where the option is validated."""
+    return (value,) if isinstance(value, (int, float)) else tuple(value)
+
+
+def _finite(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def per_volume(values):
+    """An option of one value for both volumes or one per volume, as (foreground, background)."""
+    return tuple(values) * (2 // len(values))
+
+
+class _Options:
+    """What every group does: lists from JSON become tuples, then its values are checked."""
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            if isinstance(getattr(self, f.name), list):
+                setattr(self, f.name, tuple(getattr(self, f.name)))
+        self._validate()
+
+    def _validate(self):
+        pass
+
+    def _bad(self, name, need):
+        """Refuse the value of option ``name``: one message naming the flag and the value."""
+        value = getattr(self, name)
+        shown = ' '.join(map(str, value)) if isinstance(value, tuple) else value
+        raise ValueError(f'{flag(type(self), name)} must be {need}, got {shown}')
+
+    def _check(self, names, ok, need):
+        for name in names:
+            if not ok(getattr(self, name)):
+                self._bad(name, need)
+
+
+@dataclass
+class DataOptions(_Options):
+    downscale: int | None = option(
+        None, 'integer image downscale factor', type=int,
+        default_help="(default: the photos' own resolution, or the smallest factor that "
+                     'makes the images and training fit in the available memory; announced)')
+    background: tuple = option((1.0, 1.0, 1.0), 'colour that transparent (RGBA) images are '
+                               'composited over', type=_comma_floats, metavar='R,G,B',
+                               default_help='(default: 1,1,1)')
+
+    def _validate(self):
+        if self.downscale is not None and self.downscale < 1:        # None: automatic
+            self._bad('downscale', 'at least 1')
+        if len(self.background) != 3 or not all(_finite(c) for c in self.background):
+            self._bad('background', 'three finite numbers R,G,B')
+
+
+@dataclass
+class ModelOptions(_Options):
+    kind: str = option('nerfpp', "'nerfpp': a foreground volume in the unit sphere and an "
+                       "inverted-sphere background; 'nerf': the paper's baseline, one bounded "
+                       'volume', choices=MODEL_KINDS, flag='--model', shapes_model=True)
+    field: str = option('grid', "field kind of both volumes: 'grid' (feature grids and a small "
+                        "colour MLP), 'nerf' (NeRF's MLP) or 'vanilla' (an MLP taking position "
+                        'and direction at its input)', choices=FIELD_KINDS, shapes_model=True)
+    bg_field: str | None = option(None, 'field kind of the background volume', type=str,
+                                  choices=FIELD_KINDS, default_help='(default: as --field)',
+                                  shapes_model=True)
+    grid_levels: tuple = option(tuple(_grid_default('resolutions')),
+                                'grid field: resolution of each level',
+                                metavar='RES', shapes_model=True)
+    bg_grid_levels: tuple | None = option(None, 'grid field: resolution of each level of the '
+                                          'background grid', type=int, nargs='+', metavar='RES',
+                                          default_help='(default: as --grid-levels)',
+                                          shapes_model=True)
+    grid_planes: tuple = option(tuple(_grid_default('planes')), 'grid field: resolution of each '
+                                'plane level of the foreground grid: three planes of RES x RES '
+                                'cells over the coordinate pairs, summed (a factorized level: '
+                                'fine cells for 3 RES² entries instead of RES³)', type=int,
+                                nargs='*', metavar='RES', shapes_model=True)
+    bg_grid_planes: tuple | None = option(None, 'grid field: resolution of each plane level of '
+                                          'the background grid (longitude x colatitude 2RES x '
+                                          'RES, longitude and colatitude x s with RES/2 along s)',
+                                          type=int, nargs='*', metavar='RES',
+                                          default_help='(default: as --grid-planes)',
+                                          shapes_model=True)
+    grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
+                                shapes_model=True)
+    fg_warp: float = option(_grid_default('warp_radius'), 'grid field: radius of the inner ball '
+                            "that the foreground grid magnifies (it fills half the grid's "
+                            'radius; 0: a linear grid)', shapes_model=True)
+    bg_s_ratio: tuple = option((_grid_default('s_ratio'),), 'grid field: cells along s (inverse '
+                               'radius) per cell of colatitude in the background grid: one '
+                               'ratio, or one per background level', type=float, nargs='+',
+                               metavar='Q', shapes_model=True)
+    color: str = option(_grid_default('color'), "grid field: colour of the foreground volume: "
+                        "'deferred' composites the grid features along each ray and runs the "
+                        "colour MLP once per ray; 'sample' runs it at every sample",
+                        choices=COLOR_MODES, shapes_model=True)
+    bg_color: str = option(BACKGROUND_COLOR, "grid field: colour of the background volume, "
+                           "'deferred' or 'sample' as --color", choices=COLOR_MODES,
+                           shapes_model=True)
+    antialias: bool = option(True, "grid field: weigh each grid level by whether its cells "
+                             "resolve the pixel's footprint at the sample (levels finer than "
+                             'the footprint fade out), so renders at other resolutions than the '
+                             "training images' neither alias nor blur", shapes_model=True)
+    dir_octaves: int = option(_grid_default('dir_octaves'),
+                              'grid field: frequencies of the view-direction encoding',
+                              shapes_model=True)
+    color_layers: int = option(_grid_default('color_layers'),
+                               'grid field: hidden layers of the colour MLP', shapes_model=True)
+    color_width: int = option(_grid_default('hidden'), 'grid field: width of the colour MLP',
+                              shapes_model=True)
+    density_bias: float = option(0.0, 'grid field: initial density logit; 0 gives σ = 1 '
+                                 'everywhere, above the occupancy threshold, so that empty '
+                                 'space is carved out rather than grown into (the grid '
+                                 "field's own default, for random models, is more "
+                                 'transparent)', shapes_model=True)
+    grid_init: float = option(_grid_default('init'), 'grid field: standard deviation of the '
+                              'noise the grid levels start with; 0 starts them neutral, so '
+                              'that cells no training ray reaches hold no colour of their own')
+    composite: str = option('linear', "sRGB photos: 'linear' decodes each sample's colour and "
+                            'composites in linear light, so that the EXR layers recombine '
+                            "exactly; 'srgb' sums the encoded colours (the layers recombine "
+                            'only approximately)', choices=('linear', 'srgb'),
+                            shapes_model=True)
+    appearance: bool = option(False, 'learn a colour transform (exposure, white-balance gain and '
+                              'bias) per training image; training image 0 is the reference; '
+                              'held-out views are then scored NeRF-W style (transform fitted on '
+                              'the left half, right half scored)', shapes_model=True)
+    refine_poses: bool = option(False, 'learn an SE(3) correction of each training camera '
+                                '(rotation about its centre, translation) jointly with the '
+                                'fields; training image 0 is the reference; held-out views keep '
+                                'their given poses', shapes_model=True)
+
+    def _validate(self):
+        if self.kind not in MODEL_KINDS:
+            self._bad('kind', "'nerfpp' or 'nerf'")
+        for name in ('field', 'bg_field'):
+            if getattr(self, name) is not None and getattr(self, name) not in FIELD_KINDS:
+                self._bad(name, ' or '.join(f"'{k}'" for k in FIELD_KINDS))
+        self._check(('grid_channels', 'color_layers', 'color_width'),
+                    lambda v: v >= 1, 'at least 1')
+        self._check(('dir_octaves',), lambda v: 0 <= v <= MAX_DIR_OCTAVES,
+                    f'0 or more and at most {MAX_DIR_OCTAVES} (frequencies 2^k beyond '
+                    f'float32 precision are noise)')
+        self._check(('color_layers',), lambda v: v <= MAX_COLOR_LAYERS,
+                    f'at most {MAX_COLOR_LAYERS} (every layer is traced into the training '
+                    f'kernels)')
+        self._check(('density_bias',), _finite, 'a finite number')
+        self._check(('grid_init',), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+        if not self.grid_levels or min(self.grid_levels) < 2:
+            self._bad('grid_levels', 'one or more resolutions of at least 2')
+        if self.bg_grid_levels is not None and (not self.bg_grid_levels
+                                                or min(self.bg_grid_levels) < 2):
+            self._bad('bg_grid_levels', 'one or more resolutions of at least 2')
+        self.grid_planes = _as_tuple(self.grid_planes)
+        if self.bg_grid_planes is not None:
+            self.bg_grid_planes = _as_tuple(self.bg_grid_planes)
+        for name in ('grid_planes', 'bg_grid_planes'):
+            if any(r < 2 for r in getattr(self, name) or ()):
+                self._bad(name, 'resolutions of at least 2')
+        if not (_finite(self.fg_warp) and 0 <= self.fg_warp < 1):
+            self._bad('fg_warp', 'a radius in [0, 1)')
+        self.bg_s_ratio = _as_tuple(self.bg_s_ratio)
+        if (not self.bg_s_ratio or not all(_finite(q) and 0 < q <= 1 for q in self.bg_s_ratio)
+                or len(self.bg_s_ratio) not in (1, len(self.levels('inverted_sphere')))):
+            self._bad('bg_s_ratio', 'one number in (0, 1], or one per background grid level')
+        if self.composite not in ('linear', 'srgb'):
+            self._bad('composite', "'linear' or 'srgb'")
+        if self.bg_field is None:
+            self.bg_field = self.field
+
+    def levels(self, domain):
+        """The final grid resolutions of one volume's grid field."""
+        if domain == 'inverted_sphere' and self.bg_grid_levels is not None:
+            return self.bg_grid_levels
+        return self.grid_levels
+
+    def planes(self, domain):
+        """The plane levels' resolutions of one volume's grid field."""
+        if domain == 'inverted_sphere' and self.bg_grid_planes is not None:
+            return self.bg_grid_planes
+        return self.grid_planes
+
+
+@dataclass
+class SamplingOptions(_Options):
+    fg_samples: int = option(SKIPPING.fg_samples, 'coarse foreground samples per ray',
+                             joint='--samples', metavar='FG')
+    bg_samples: int = option(SKIPPING.bg_samples, 'coarse background samples per ray',
+                             joint='--samples', metavar='BG')
+    fine_samples: int = option(SKIPPING.fine_samples, 'fine samples per ray and volume',
+                               joint='--samples', metavar='FINE')
+    occupancy: bool = option(True, 'skip empty space: an occupancy grid per volume places the '
+                             'samples', shapes_model=True)
+    occupancy_res: int = option(occ.DEFAULT_RESOLUTION, 'resolution of the occupancy grids',
+                                shapes_model=True)
+    occupancy_threshold: float = option(
+        occ.DEFAULT_THRESHOLD, 'density below which an occupancy cell is empty (per unit '
+        'length in the foreground, per unit of s in the background)')
+    occupancy_every: int = option(occ.DEFAULT_EVERY,
+                                  'steps between refreshes of the occupancy grids')
+
+    def _validate(self):
+        self._check(('fg_samples', 'bg_samples', 'occupancy_res', 'occupancy_every'),
+                    lambda v: v >= 1, 'at least 1')
+        self._check(('fine_samples',), lambda v: v >= 0, '0 or more')
+        self._check(('occupancy_threshold',), lambda v: _finite(v) and v >= 0,
+                    'a finite number >= 0')
+
+
+@dataclass
+class OptimizerOptions(_Options):
+    lr_grid: float = option(optim.LR_GRID, 'learning rate of the feature grids')
+    lr_mlp: float = option(optim.LR_MLP, 'learning rate of the MLPs')
+    lr_final: float = option(optim.LR_FINAL, 'learning rates decay exponentially to this '
+                             'fraction of their start over the run')
+    adam_beta2: float = option(optim.ADAM_BETA2, "decay of Adam's second-moment estimate")
+    lazy_adam: bool = option(False, 'leave parameters whose gradient is zero untouched in an Adam '
+                             'step (moments included)')
+    lr_appearance: float = option(app.LR_APPEARANCE, 'learning rate of the appearance transforms')
+    lr_poses: float = option(poses.LR_POSES, 'learning rate of the pose corrections (radians and '
+                             'model-frame units: the cameras lie in the unit sphere)')
+    poses_start: float = option(poses.START, 'fraction of the run after which the pose '
+                                'corrections are learned (before it the fields are too rough '
+                                'to steer them)')
+
+    def _validate(self):
+        self._check(('lr_grid', 'lr_mlp', 'lr_final', 'lr_appearance', 'lr_poses'),
+                    lambda v: _finite(v) and v > 0, 'a positive finite number')
+        if not (_finite(self.adam_beta2) and 0 < self.adam_beta2 < 1):
+            self._bad('adam_beta2', 'a number in (0, 1)')
+        self._check(('poses_start',), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+
+
+@dataclass
+class LossOptions(_Options):
+    color_loss: str = option('charbonnier', "colour loss of the rendered pixels: "
+                             "'charbonnier' (mip-NeRF 360's robust loss) or 'mse' (the "
+                             "paper's squared error)", choices=tuple(optim.COLOR_LOSSES))
+    distortion: float = option(0.01, 'weight of the mip-NeRF 360 distortion loss, which '
+                               'gathers the weights along a ray against floaters and haze '
+                               '(0: off)')
+    distortion_scope: str = option('ray', "'ray': the distortion loss of whole rays, both "
+                                   'volumes on one axis, so that a surface split between the '
+                                   'volumes counts as spread out (crisper foreground mattes); '
+                                   "'volume': of each volume on its own",
+                                   choices=('volume', 'ray'))
+    opacity_entropy: float = option(0.0, 'weight of the binary-entropy prior on the foreground '
+                                    'opacity of each ray (pushes it to 0 or 1)')
+    entropy_start: float = option(0.0, 'fraction of the run after which the entropy prior applies')
+    sparsity: tuple = option((0.01,), 'weight of the sparsity prior: Cauchy loss log(1 + 2σ²) '
+                             'of the density at random points of each volume (Plenoxels), which '
+                             'removes haze and floaters: one for both volumes, or one for the '
+                             'foreground and one for the background',
+                             type=float, nargs='+', metavar='W', default_help='(default: 0.01)')
+    sparsity_start: tuple = option((0.15, 0.5), 'fraction of the run after which the sparsity '
+                                   'prior applies: one for both volumes, or one for the '
+                                   'foreground and one for the background. Starting late lets '
+                                   'the young, dense foreground keep the ground inside its '
+                                   'sphere (cleaner mattes) and the background form its '
+                                   'geometry before its prior starts',
+                                   type=float, nargs='+', metavar='F',
+                                   default_help='(default: 0.15 0.5)')
+    near_gradient: float = option(0.5, 'scale the gradients of samples within this distance of '
+                                  'their camera (in the units of the unit sphere of NeRF++) by '
+                                  '(distance / this)² (Floaters No More: fewer '
+                                  'floaters near the cameras; 0: off)')
+    far_smoothness: float = option(0.0, "weight of the smoothness prior on the background "
+                                   "grid's far slice (what directions no training view saw "
+                                   'show), which continues the neighbouring colours there')
+    unseen_fill: bool = option(False, 'every --occupancy-every steps, grid entries that no '
+                               'training sample has reached yet take the mean of their '
+                               'neighbours (a harmonic fill): what no photo constrains '
+                               'continues its surroundings smoothly instead of keeping its '
+                               'start (not with --coarse-to-fine)')
+    tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
+    tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
+    appearance_prior: float = option(app.PRIOR, 'weight of the L2 prior that keeps the '
+                                     'appearance transforms near the identity')
+
+    def _validate(self):
+        if self.color_loss not in optim.COLOR_LOSSES:
+            self._bad('color_loss', ' or '.join(f"'{k}'" for k in optim.COLOR_LOSSES))
+        if self.distortion_scope not in ('volume', 'ray'):
+            self._bad('distortion_scope', "'volume' or 'ray'")
+        self._check(('distortion', 'opacity_entropy', 'tv', 'far_smoothness', 'entropy_start',
+                     'appearance_prior',
+                     'near_gradient'), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+        self._check(('tv_cells',), lambda v: v >= 1, 'at least 1')
+        for name, ok, one in (('sparsity', lambda w: w >= 0, 'one finite number >= 0'),
+                              ('sparsity_start', lambda f: 0 <= f <= 1, 'one fraction in [0, 1]')):
+            v = _as_tuple(getattr(self, name))          # per volume: see per_volume()
+            setattr(self, name, v)
+            if len(v) not in (1, 2) or not all(_finite(x) and ok(x) for x in v):
+                self._bad(name, f'{one}, or two (foreground, background)')
+
+
+@dataclass
+class ScheduleOptions(_Options):
+    iterations: int | None = option(
+        None, 'training steps', type=int, exclusive='budget',
+        default_help=f'(default: a time budget chosen from the training pixels, '
+                     f'{DEFAULT_MINUTES_RANGE[0]:g} to {DEFAULT_MINUTES_RANGE[1]:g} minutes, '
+                     f'announced; the embedded default run: --minutes '
+                     f'{DEFAULT_JOB_MINUTES:g})')
+    minutes: float | None = option(
+        None, 'wall-time budget in minutes of training steps', type=float, exclusive='budget')
+    batch_rays: int = option(1024, 'rays per step')
+    seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
+    freeze: bool = option(True, 'record the kernels of a training step once and replay them '
+                          '(drjit.freeze) instead of tracing every step in Python; re-recorded '
+                          'when a prior starts or the grids change resolution')
+    coarse_to_fine: tuple = option((), 'grid field: fractions of the run at which the grids '
+                                   'double in resolution (they start at RES / 2^n)', type=float,
+                                   nargs='*', metavar='F', shapes_model=True)
+    pyramid: tuple = option((0.1, 0.3), 'image pyramid: fractions of the run at which training '
+                            'moves to the next finer level of box-filtered images (it starts at '
+                            '1/2^n of their size, the last fraction reaches full size; none: '
+                            'full size throughout)', type=float, nargs='*', metavar='F')
+
+    def _validate(self):        # neither iterations nor minutes: chosen from the capture
+        if self.minutes is not None and not (_finite(self.minutes) and self.minutes > 0):
+            self._bad('minutes', 'a positive number of minutes')
+        if self.iterations is not None and self.iterations < 1:
+            self._bad('iterations', 'at least 1')
+        self._check(('batch_rays',), lambda v: v >= 1, 'at least 1')
+        self._check(('seed',), lambda v: 0 <= v <= MAX_SEED,
+                    f'a whole number from 0 to {MAX_SEED} (2^64 - 2)')
+        for name in ('coarse_to_fine', 'pyramid'):
+            if not all(_finite(f) and 0 < f < 1 for f in getattr(self, name)):
+                self._bad(name, 'fractions between 0 and 1')
+
+    def pyramid_factor(self, progress):
+        """The image pyramid's factor at ``progress`` (fraction of the run): 2^(fractions of
+        ``pyramid`` not reached yet)."""
+        return 1 << sum(progress < f for f in self.pyramid)
+
+
+@dataclass
+class OutputOptions(_Options):
+    checkpoint_every: int = option(500, 'iterations between checkpoints (0: only at the end)')
+    preview_every: int = option(500, 'iterations between held-out previews (0: never)')
+    eval_at: tuple | None = option(None, 'also evaluate the held-out views after these minutes '
+                                   'of training; recorded in metrics.json as "progress"',
+                                   type=float, nargs='*', metavar='MIN',
+                                   default_help='(default: none; the embedded default run: '
+                                                + ' '.join(f'{m:g}' for m in DEFAULT_JOB_EVAL_AT)
+                                                + ')')
+
+    def _validate(self):
+        self._check(('checkpoint_every', 'preview_every'), lambda v: v >= 0, '0 or more')
+        self.eval_at = tuple(sorted(self.eval_at or ()))
+        if not all(_finite(m) and m > 0 for m in self.eval_at):
+            self._bad('eval_at', 'positive numbers of minutes')
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run is told; the ``optimize`` command line is generated from it."""
+    data: DataOptions = group(DataOptions, 'data', 'how the images are read')
+    model: ModelOptions = group(ModelOptions, 'model',
+                                'the volumes, their fields and what else is learned (fixed '
+                                'for a run: --resume refuses other values)')
+    sampling: SamplingOptions = group(SamplingOptions, 'sampling',
+                                      'samples per ray and empty-space skipping; the sample '
+                                      'counts are stored with the model and renders use them')
+    optimizer: OptimizerOptions = group(OptimizerOptions, 'optimizer',
+                                        'Adam and its learning rates')
+    losses: LossOptions = group(LossOptions, 'losses and priors')
+    schedule: ScheduleOptions = group(ScheduleOptions, 'schedule',
+                                      'how long, in what batches, from which seed')
+    output: OutputOptions = group(OutputOptions, 'output',
+                                  'what the run writes along the way')
+
+    # ------------------------------------------------------------------ flat options
+    @classmethod
+    def from_options(cls, **options):
+        """A config from options by their command-line names (``batch_rays=512``,
+        ``model='nerf'``); options not given take their defaults. Raises ValueError naming the
+        flag of a bad value, TypeError for an unknown name."""
+        kwargs = {}
+        for name, sub, _ in groups(cls):
+            own = {f.name: options.pop(option_name(f)) for _, f in options_of(sub)
+                   if option_name(f) in options}
+            kwargs[name] = sub(**own)
+        if options:
+            raise TypeError(f'unknown training options: {", ".join(sorted(options))}')
+        return cls(**kwargs)
+
+    def options(self) -> dict:
+        """Every option by its command-line name (what :meth:`from_options` takes)."""
+        return {option_name(f): getattr(getattr(self, name), f.name)
+                for name, f in options_of(type(self))}
+
+    def replace(self, **options):
+        """A copy with some options (by their command-line names) changed, checked anew."""
+        return type(self).from_options(**dict(self.options(), **options))
+
+    def to_dict(self) -> dict:
+        """The config as JSON-ready nested dicts (as checkpoints and metrics.json store it)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def stored_options(cls, stored: dict) -> dict:
+        """The options (by command-line name) of a stored config: :meth:`to_dict`'s nested
+        groups, or the flat dict of checkpoints written before the groups; names this version
+        does not know are left out."""
+        known = {option_name(f): (name, f.name) for name, f in options_of(cls)}
+        if any(isinstance(stored.get(name), dict) for name, _, _ in groups(cls)):
+            where = {v: k for k, v in known.items()}
+            return {where[(name, key)]: value for name, _, _ in groups(cls)
+                    for key, value in (stored.get(name) or {}).items() if (name, key) in where}
+        return {k: v for k, v in stored.items() if k in known}
+
+    @classmethod
+    def from_stored(cls, stored: dict):
+        """The config a checkpoint's ``meta['config']`` stores (see :meth:`stored_options`);
+        options it does not store take today's defaults."""
+        return cls.from_options(**cls.stored_options(stored))
+
+    # ------------------------------------------------------------------ derived
+    def field_config(self, kind, domain):
+        """The field config of one volume: the grid options apply to grid fields only."""
+        if kind != 'grid':
+            return default_field_config(kind, domain)
+        m = self.model
+        start = [max(r >> len(self.schedule.coarse_to_fine), 4) for r in m.levels(domain)]
+        ratio = m.bg_s_ratio[0] if len(m.bg_s_ratio) == 1 else list(m.bg_s_ratio)
+        extra = ({'s_ratio': ratio} if domain == 'inverted_sphere' else
+                 {'warp_radius': m.fg_warp})
+        return dict(kind='grid', domain=domain, resolutions=start,
+                    channels=m.grid_channels, dir_octaves=m.dir_octaves,
+                    color_layers=m.color_layers, hidden=m.color_width,
+                    color=m.bg_color if domain == 'inverted_sphere' else m.color,
+                    density_bias=m.density_bias, antialias=m.antialias, init=m.grid_init,
+                    planes=list(m.planes(domain)), **extra)
+
+    @property
+    def render_sampling(self) -> Sampling:
+        """Samples per ray of the model (it stores them and renders with them,
+        :meth:`~mi_nerfpp.core.render.Sampling.of_model`)."""
+        s = self.sampling
+        return Sampling.of_model(self.model.kind, s.fg_samples, s.bg_samples, s.fine_samples)
+
+    @property
+    def samples_per_ray(self):
+        """Field evaluations per training ray (coarse + fine, every volume)."""
+        s = self.render_sampling
+        n = s.fg_samples + s.fine_samples
+        return n if self.model.kind == 'nerf' else n + s.bg_samples + s.fine_samples
+
+    def flag(self, option: str) -> str:
+        """The command-line spelling of ``option`` (for messages, :mod:`mi_nerfpp.core.budget`
+        among them)."""
+        return flag(type(self), option)
+
+    # The options whose values, raised far enough, blow the parameters up (prior weights and
+    # learning rates): the suspects named when a run diverges.
+    STEP_SIZES = ('tv', 'sparsity', 'distortion', 'opacity_entropy', 'appearance_prior',
+                  'lr_grid', 'lr_mlp', 'lr_appearance', 'lr_poses')
+
+    def divergence_hint(self) -> str:
+        """What to change when the run's state stops being finite: the prior weights and
+        learning rates raised furthest above their defaults (the likely cause), else the
+        learning rates."""
+        defaults, now = type(self)().options(), self.options()
+        raised = []
+        for name in self.STEP_SIZES:
+            value, default = max(_as_tuple(now[name])), max(_as_tuple(defaults[name]))
+            if value > default:
+                raised.append((value / default if default > 0 else math.inf, name, now[name]))
+        if not raised:
+            return 'Lower the learning rates (--lr-grid, --lr-mlp)'
+        shown = [f'{flag(TrainConfig, name)} '
+                 f'{" ".join(f"{v:g}" for v in _as_tuple(value))}'
+                 for _, name, value in sorted(raised, key=lambda r: -r[0])[:3]]
+        return (f'Most likely {" or ".join(shown)} (above the default'
+                f'{"s" if len(shown) > 1 else ""}): lower {"them" if len(shown) > 1 else "it"}')
+
+    def model_normalization(self, dataset_normalization):
+        """The model frame: the dataset's, or for the NeRF baseline one shrunk into
+        :data:`~mi_nerfpp.core.frame.NERF_CAMERA_RADIUS`."""
+        if self.model.kind == 'nerf':
+            return dataset_normalization.with_camera_radius(NERF_CAMERA_RADIUS)
+        return dataset_normalization
+
+    def resume_conflicts(self, stored: dict) -> list[str]:
+        """The model-shaping options in which a stored config (:meth:`to_dict`, or a flat one
+        of an older checkpoint) differs from this one, as readable lines."""
+        now = json.loads(json.dumps(self.options()))
+        stored = self.stored_options(stored)
+        stored.setdefault('bg_field', stored.get('field'))
+        if 'color' in stored:
+            stored.setdefault('bg_color', stored['color'])
+        if isinstance(stored.get('bg_s_ratio'), (int, float)):    # before per-level ratios
+            stored['bg_s_ratio'] = [stored['bg_s_ratio']]
+        out = []
+        for _, f in options_of(type(self)):
+            name = option_name(f)
+            if f.metadata.get('shapes_model') and name in stored and stored[name] != now[name]:
+                out.append(f'{flag(TrainConfig, name)}: the checkpoint has {stored[name]!r}, '
+                           f'this run asks for {now[name]!r}')
+        return out

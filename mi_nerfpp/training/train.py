@@ -1,0 +1,746 @@
+"""Fitting the foreground and background volumes to posed images (Dr.Jit AD on the CPU).
+
+One training step: draw a batch of random rays across all training images, render
+them with :func:`mi_nerfpp.core.render.render_rays` (the same code the integrator uses),
+take the colour loss (Charbonnier by default, or the squared error) of the coarse and the
+fine composite against the pixels (radiance is
+composited in linear light; for sRGB photos the composite is sRGB-encoded before the loss,
+see :meth:`~mi_nerfpp.core.model.NeRFPPModel.radiance_fields`),
+back-propagate with Dr.Jit and take an Adam step (``drjit.opt``). Learning rates
+decay exponentially to ``lr_final`` times their start over the run (:mod:`.optim`, shared
+with :mod:`.ambiguity`). With ``freeze`` (the default) the kernels of a step are recorded once
+by :func:`drjit.freeze` and replayed: a step is a function of :meth:`Trainer._step_inputs`
+alone (optimizer, occupancy grids, ray bank, random draws as Dr.Jit arrays, and the phase of
+the run as Python values, whose change records the step anew).
+
+The run directory holds ``model.npz`` (the latest checkpoint, written atomically with
+the optimizer and RNG state and the loss history, so ``resume=True`` continues exactly); a
+run (:mod:`.run`) adds ``preview/`` and, at the end, the evaluation outputs. The options of
+training are a :class:`~mi_nerfpp.training.config.TrainConfig`; the model stores the sample counts it
+is trained with as its render settings (:class:`~mi_nerfpp.core.model.RenderSettings`), so that
+renders of it use them.
+"""
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import gc
+import math
+import os
+import signal
+import threading
+import time
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_nerfpp.core import appearance as app
+from mi_nerfpp.core import poses
+from mi_nerfpp.core.arrays import owned
+from mi_nerfpp.core.frame import reframe_cameras
+from mi_nerfpp.core.model import NeRFPPModel
+from mi_nerfpp.core.profiling import stage
+from mi_nerfpp.core.render import distortion, ray_distortion, render_rays
+from mi_nerfpp.data.storage import MAX_STORED_BYTES
+from mi_nerfpp.files.atomic import remove_stale_temporaries
+from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
+                                        save_checkpoint)
+from mi_nerfpp.training import optim, priors
+from mi_nerfpp.training.config import TrainConfig, default_minutes, per_volume
+
+# Gradients scattered into arrays of up to this many entries are summed in one copy per thread
+# and added up after the kernel (Dr.Jit's "expand" reduction) instead of by atomic adds, in steps
+# of at least EXPAND_MIN_SAMPLES field samples: a copy per thread of the 8.4 M-entry grid levels
+# costs a fixed memset and reduction per step, atomics a cost per sample. Measured on the default
+# capture (median step, `benchmarks/train.py --batch-rays B`): 1,024 rays of 48 samples 31.5 ms
+# with atomics against 42.5 ms expanded, 2,048 rays 43.5 against 50.1 ms, 4,096 rays 71.9
+# against 65.8 ms.
+GRADIENT_EXPAND_THRESHOLD = 1 << 25
+EXPAND_MIN_SAMPLES = 1 << 17
+# Whether a step's atomic gradient sums first add up, within a SIMD packet, the operands that
+# target the same entry (Dr.Jit's JitFlag.ScatterReduceLocal, on by default). Off, measured on
+# the default capture: the grids' gradient kernels 8.8 against 13.6 ms per step (kernel
+# history, two runs one after the other), and steps 1.01-1.06x as fast side by side in five
+# runs (`python benchmarks/versus.py train --base HEAD --rounds 16`): the pre-reduction costs
+# more than the atomic collisions it saves.
+GRADIENT_LOCAL_REDUCTION = False
+
+
+class TrainingError(RuntimeError):
+    """Training cannot go on (diverged, or a resume that does not match)."""
+
+
+class RayBank:
+    """The training pixels of a split as rays, built per batch from the cameras (Dr.Jit arrays).
+
+    Ray ``index = (image · H + y) · W + x`` of a split of images of H x W pixels starts at the
+    centre of camera ``image`` and goes through the centre of pixel (x, y), as
+    :func:`~mi_nerfpp.data.pixel_rays` computes it (in Float64, then rounded to float32); its
+    colour is the pixel's stored value (:mod:`mi_nerfpp.data.storage`) converted to float32
+    as :attr:`Split.images <mi_nerfpp.data.dataset.Split.images>` converts it. The bank holds
+    per image its camera (``fx, s, cx, fy, cy`` of K, the rotation and the centre, Float64)
+    and the stored pixels: a training pixel costs the bytes its file stored (3 for 8 bits).
+
+    Image pyramid (:meth:`level`): at ``factor`` F the images are H/F x W/F pixels (a
+    remainder cropped, as :func:`~mi_nerfpp.data.images.downscale_image`); ray ``(image,
+    y, x)`` goes through the centre of the F x F block of pixels at ``(F·x, F·y)``, as the
+    camera :meth:`downscaled <mi_nerfpp.data.Camera.downscaled>` by F sees it, and its colour
+    is the block's mean: a box-filtered downsample, read from the same stored pixels (no copy
+    per level). :meth:`footprint` gives each ray's pixel width per unit distance at its level.
+    """
+
+    def __init__(self, split):
+        if len(split) == 0:
+            raise TrainingError('the training split is empty')
+        images = split.images
+        if images.nbytes > MAX_STORED_BYTES:
+            raise TrainingError(f'the training images take {images.nbytes / 2 ** 30:.1f} GiB '
+                                f'as stored, more than the {MAX_STORED_BYTES / 2 ** 30:.0f} GiB '
+                                f'a training step can address: choose a --downscale')
+        h, w = images.stored[0].shape[:2]
+        n = len(split)
+        cams = split.cameras
+        K = np.array([[c.K[0, 0], c.K[0, 1], c.K[0, 2], c.K[1, 1], c.K[1, 2]] for c in cams])
+        R = np.array([c.c2w[:3, :3] for c in cams])
+        center = np.array([c.c2w[:3, 3] for c in cams])
+        # Owned copies (:mod:`.arrays`): a frozen step of another Trainer may outlive this one.
+        self.cameras = tuple(owned(a.ravel(), _Float64) for a in (K, R, center))
+        kind = images.dtype.name
+        stored = [a.astype('<u2').view(np.uint8) if kind == 'uint16' else a
+                  for a in images.stored]
+        self.pixels = _owned_concatenation(stored, _STORE_TYPES[kind])
+        self.layout = (n, h, w, kind, images.scale)
+        self.factor = 1
+        self.size = n * h * w
+
+    def level(self, factor):
+        """The same bank at pyramid level ``factor`` (a power of two; 1: the images as
+        stored), sharing its arrays."""
+        return RayBank.from_arrays(dict(self.arrays(), factor=int(factor)))
+
+    def max_factor(self):
+        """The coarsest pyramid factor that leaves the images at least one pixel."""
+        h, w = self.layout[1:3]
+        return 1 << (min(h, w).bit_length() - 1)
+
+    def arrays(self):
+        """The bank's Dr.Jit arrays and its layout and level as Python values (a frozen step
+        takes them as inputs; another layout or level records the step anew)."""
+        return {'cameras': self.cameras, 'pixels': self.pixels, 'layout': self.layout,
+                'factor': self.factor}
+
+    @classmethod
+    def from_arrays(cls, arrays):
+        """A bank over what :meth:`arrays` returned."""
+        bank = cls.__new__(cls)
+        bank.cameras, bank.pixels, bank.layout = (arrays['cameras'], arrays['pixels'],
+                                                  arrays['layout'])
+        bank.factor = int(arrays.get('factor', 1))
+        n, h, w = bank.layout[:3]
+        if bank.factor < 1 or h // bank.factor < 1 or w // bank.factor < 1:
+            raise ValueError(f'pyramid factor {bank.factor} leaves no pixel of {w}x{h} images')
+        bank.size = n * (h // bank.factor) * (w // bank.factor)
+        return bank
+
+    def _pixel(self, i):
+        """``(image, x, y)`` of rays ``i`` at this level (UInt32)."""
+        f = self.factor
+        h, w = self.layout[1] // f, self.layout[2] // f
+        image = i // (h * w)
+        within = i - image * (h * w)                  # the pixel (x, y) in its image
+        y = within // w
+        return image, within - y * w, y
+
+    def _camera_plane(self, image, x, y):
+        """``K⁻¹ [u', v', 1] = (u, v, 1)`` at the centre ``(u', v')`` of this level's pixel
+        ``(x, y)`` (in the stored image's pixel units), by back substitution (K is upper
+        triangular), in Float64; and ``k(j)``, the gather of entry j of each ray's K."""
+        K = self.cameras[0]
+        f = self.factor
+
+        def k(j):
+            return dr.gather(_Float64, K, image * 5 + j)
+        v = (_Float64(y) * f + 0.5 * f - k(4)) / k(3)
+        u = (_Float64(x) * f + 0.5 * f - k(1) * v - k(2)) / k(0)
+        return u, v, k
+
+    def batch(self, index):
+        """``(origin, direction, colour)`` of the rays ``index``."""
+        i = mi.UInt32(index)
+        image, x, y = self._pixel(i)
+        u, v, _ = self._camera_plane(image, x, y)
+        _, R, center = self.cameras
+        d = [dr.gather(_Float64, R, image * 9 + 3 * a) * u
+             + dr.gather(_Float64, R, image * 9 + 3 * a + 1) * v
+             + dr.gather(_Float64, R, image * 9 + 3 * a + 2) for a in range(3)]
+        norm = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        o = [dr.gather(_Float64, center, image * 3 + a) for a in range(3)]
+        return (mi.Point3f(*[mi.Float(c) for c in o]),
+                mi.Vector3f(*[mi.Float(c / norm) for c in d]),
+                mi.Color3f(*self._colour(image, x, y)))
+
+    def footprint(self, index):
+        """The pixel footprint of the rays ``index``: the width of their pixel at this level
+        per unit distance, ``F·sqrt(cos³θ / (fx·fy))`` (the square root of the pixel's solid
+        angle, θ the ray's angle to the optical axis), as
+        :func:`~mi_nerfpp.core.geometry.pixel_footprint` measures it on a Mitsuba camera."""
+        image, x, y = self._pixel(mi.UInt32(index))
+        u, v, k = self._camera_plane(image, x, y)
+        cos = dr.rsqrt(u * u + v * v + 1.0)
+        return mi.Float(self.factor * dr.sqrt(cos * cos * cos / (k(0) * k(3))))
+
+    def images(self, index):
+        """The training-image index of the rays ``index`` (UInt32)."""
+        return self._pixel(mi.UInt32(index))[0]
+
+    def _colour(self, image, x, y):
+        """The colour (three Floats) of this level's pixels ``(x, y)`` of ``image``: the mean
+        of the stored F x F block, summed in Float64 (integers exactly) and rounded once."""
+        n, h, w, kind, scale = self.layout
+        f = self.factor
+        first = image * (h * w) + (y * f) * w + x * f      # the block's top-left pixel
+        out = []
+        for c in range(3):
+            total = None
+            for dy in range(f):
+                for dx in range(f):
+                    value = self._stored(3 * (first + (dy * w + dx)) + c)
+                    total = value if total is None else total + value
+            if kind in ('uint8', 'uint16'):
+                # In Float64, then rounded: the float32 quotient value / scale, as NumPy's.
+                out.append(mi.Float(_Float64(total) / (scale * f * f)))
+            else:                                   # exact for F = 1
+                out.append(mi.Float(total / (f * f)))
+        return out
+
+    def _stored(self, at):
+        """The stored value at flat position ``at``: UInt32 for integer stores, Float64 for
+        float stores."""
+        kind = self.layout[3]
+        if kind == 'uint8':
+            return mi.UInt32(dr.gather(_UInt8, self.pixels, at))
+        if kind == 'uint16':                      # little-endian byte pairs
+            return (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at))
+                    | (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at + 1)) << 8))
+        return _Float64(dr.gather(_STORE_TYPES[kind], self.pixels, at))
+
+
+_Float64 = dr.float64_array_t(mi.Float)
+_UInt8 = dr.uint8_array_t(mi.Float)
+# The Dr.Jit array a split's stored dtype is kept in (16-bit integers as their bytes).
+_STORE_TYPES = {'uint8': _UInt8, 'uint16': _UInt8, 'float16': dr.float16_array_t(mi.Float),
+                'float32': mi.Float}
+
+
+def _owned_concatenation(arrays, tp):
+    """The NumPy ``arrays`` one after the other in one Dr.Jit array of type ``tp`` that owns its
+    memory (:func:`~mi_nerfpp.core.arrays.owned`), copied one array at a time: no concatenated
+    copy of them all is ever made."""
+    out = dr.empty(tp, sum(a.size for a in arrays))
+    offset = 0
+    for a in arrays:
+        src = tp(np.ascontiguousarray(a).ravel())
+        dr.scatter(out, src, dr.arange(mi.UInt32, a.size) + dr.opaque(mi.UInt32, offset))
+        dr.eval(out)
+        dr.sync_thread()      # the copy is done before NumPy may move on
+        offset += a.size
+    return out
+
+
+def in_model_frame(dataset, normalization):
+    """The dataset's splits with their cameras moved into the model frame of ``normalization``:
+    ``{'train': Split, 'validation': Split, 'test': Split}``."""
+    return {name: dataclasses.replace(split, cameras=reframe_cameras(
+                split.cameras, dataset.normalization, normalization))
+            for name, split in (('train', dataset.train), ('validation', dataset.validation),
+                                ('test', dataset.test))}
+
+
+def psnr_from_mse(m):
+    return -10.0 * math.log10(m) if m > 0 else float('inf')
+
+
+class Trainer:
+    """Owns the model, the optimizer, the ray bank and the run directory."""
+
+    def __init__(self, dataset, out_dir, config: TrainConfig, resume=False):
+        self.dataset, self.out, self.cfg = dataset, out_dir, config
+        os.makedirs(out_dir, exist_ok=True)
+        self.checkpoint_path = os.path.join(out_dir, 'model.npz')
+        remove_stale_temporaries(out_dir, 'model.npz')    # left by a process killed mid-save
+        normalization = config.model_normalization(dataset.normalization)
+        # --near-gradient is a length in the dataset's frame (NeRF++'s unit sphere); the NeRF
+        # baseline's model frame is shrunk about it.
+        self.near_gradient = (config.losses.near_gradient * normalization.scale
+                              / dataset.normalization.scale)
+        splits = in_model_frame(dataset, normalization)
+        self.train, self.validation, self.test = (splits[k] for k in ('train', 'validation',
+                                                                      'test'))
+        self.rays = RayBank(self.train)
+        if config.schedule.iterations is None and config.schedule.minutes is None:
+            # No budget given (:func:`mi_nerfpp.jobs.run.prepare` chooses and announces it first).
+            self.cfg = config = config.replace(minutes=default_minutes(self.rays.size))
+        self.iteration, self.elapsed, self.history = 0, 0.0, []
+
+        meta, state = {}, {}
+        if resume and os.path.exists(self.checkpoint_path):
+            self.model, meta, state = load_checkpoint(self.checkpoint_path)
+            stored = meta.get('config', {})
+            conflicts = (config.resume_conflicts(stored)
+                         + data_conflicts(meta.get('data', {}), self.data_summary()))
+            if (self.model.composite != config.model.composite
+                    and self.model.color_space == 'srgb'
+                    and 'composite' not in TrainConfig.stored_options(stored)):  # pre-issue-11
+                conflicts.append(f'--composite: the checkpoint composites in '
+                                 f'{self.model.composite!r}, this run asks for '
+                                 f'{config.model.composite!r}')
+            if conflicts:
+                raise TrainingError(f'{self.checkpoint_path} cannot be resumed with other model '
+                                    f'options or data: ' + '; '.join(conflicts))
+            self.iteration = int(meta['iteration'])
+            self.elapsed = float(meta['elapsed'])
+            self.history = meta.get('history', [])
+            self.model.sampling = config.render_sampling     # --samples may change
+        elif resume:
+            raise TrainingError(f'--resume: no checkpoint at {self.checkpoint_path}')
+        else:
+            m, s = config.model, config.sampling
+            self.model = NeRFPPModel.create(
+                background=m.kind == 'nerfpp', seed=config.schedule.seed,
+                normalization=normalization,
+                color_space=dataset.color_space, composite=m.composite,
+                appearance_images=len(self.train) if m.appearance else 0,
+                pose_images=len(self.train) if m.refine_poses else 0,
+                fg_config=config.field_config(m.field, 'ball'),
+                bg_config=config.field_config(m.bg_field, 'inverted_sphere'),
+                sampling=config.render_sampling)
+            if s.occupancy:
+                self.model.enable_occupancy(s.occupancy_res, s.occupancy_threshold)
+        self.saved_iteration = self.iteration if resume else None
+        self.rng = np.random.default_rng(config.schedule.seed)
+        if 'rng' in meta:
+            self.rng.bit_generator.state = meta['rng']
+
+        o = config.optimizer
+        self.opt = optim.adam(self.model.parameters(), o.lr_mlp, lazy=o.lazy_adam,
+                              beta_2=o.adam_beta2)
+        self._restore_optimizer(state)
+        # One step's kernels, recorded on the first call and replayed after (drjit.freeze):
+        # tracing the step in Python took ~18 of ~76 ms (README, "Measured performance").
+        self._compute = (dr.freeze(self._forward_backward) if config.schedule.freeze
+                         else self._forward_backward)
+
+    # ------------------------------------------------------------------ optimizer state
+    def _optimizer_state(self):
+        state = {}
+        for k, (_, _, _, (t, m, v, _)) in self.opt.state.items():
+            state[f'adam.t/{k}'] = np.array(t, dtype=np.uint32)
+            state[f'adam.m/{k}'] = np.array(m, dtype=np.float32)
+            state[f'adam.v/{k}'] = np.array(v, dtype=np.float32)
+        return state
+
+    def _restore_optimizer(self, state):
+        # drjit.opt.Adam keeps (value, promoted, lr, (t, m, v, v_max)) per key (drjit 1.5).
+        for k in list(self.opt.keys()):
+            if f'adam.m/{k}' not in state:
+                continue
+            value, promoted, lr, _ = self.opt.state[k]
+            # Owned copies: the first frozen step releases them (see :mod:`.arrays`).
+            self.opt.state[k] = (value, promoted, lr,
+                                 (dr.opaque(mi.UInt32, int(np.ravel(state[f'adam.t/{k}'])[0])),
+                                  owned(state[f'adam.m/{k}'], mi.Float),
+                                  owned(state[f'adam.v/{k}'], mi.Float), None))
+
+    # ------------------------------------------------------------------ training
+    def progress(self):
+        """Fraction of the run done, by iterations or by time (whichever is nearer the end)."""
+        p, schedule = 0.0, self.cfg.schedule
+        if schedule.iterations:
+            p = max(p, self.iteration / schedule.iterations)
+        if schedule.minutes:
+            p = max(p, self.elapsed / (60.0 * schedule.minutes))
+        return p
+
+    def step(self):
+        """One optimization step. Returns ``(loss, fine-pass MSE)`` as Python floats.
+
+        A Ctrl-C (or SIGTERM) anywhere in the step raises :class:`KeyboardInterrupt`, also when
+        it lands in Python code that Dr.Jit calls and re-raises wrapped (:func:`_interrupt_in`)."""
+        try:
+            if self.model.poses is None:
+                return self._step()
+            with poses.gradient_scope():
+                return self._step()
+        except RuntimeError as e:
+            interrupt = _interrupt_in(e)
+            if interrupt is None:
+                raise
+            raise interrupt from None
+
+    def _step(self):
+        o = self.cfg.optimizer
+        self._coarse_to_fine()
+        optim.set_learning_rates(self.opt, self.progress(), o.lr_grid, o.lr_mlp, o.lr_final,
+                                 {'appearance': o.lr_appearance, 'poses': o.lr_poses})
+        refresh = self.iteration % self.cfg.sampling.occupancy_every == 0
+        # Not with coarse-to-fine grids: a resampled level's moments start anew, so that zero
+        # moments no longer tell which cells were seen.
+        if (self.cfg.losses.unseen_fill and refresh and self.iteration > 0
+                and not self.cfg.schedule.coarse_to_fine):
+            with stage('unseen fill'):
+                self._unseen_fill()
+        if self.model.occupancy and refresh:
+            with stage('occupancy refresh'):
+                self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+                self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
+        inputs = self._step_inputs()
+        # No cyclic garbage collection while a step is recorded: releasing a collected
+        # array that maps NumPy memory cannot be recorded (:mod:`.arrays`).
+        collecting = gc.isenabled()
+        gc.disable()
+        threshold = dr.expand_threshold()
+        local = dr.flag(dr.JitFlag.ScatterReduceLocal)
+        dr.set_flag(dr.JitFlag.ScatterReduceLocal, GRADIENT_LOCAL_REDUCTION)
+        if self.cfg.schedule.batch_rays * self.cfg.samples_per_ray >= EXPAND_MIN_SAMPLES:
+            dr.set_expand_threshold(GRADIENT_EXPAND_THRESHOLD)
+        try:
+            loss, fine = self._compute(inputs)
+        finally:
+            dr.set_expand_threshold(threshold)
+            dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
+            if collecting:
+                gc.enable()
+        self._non_finite = inputs['non_finite']   # the step's guard (see parameters_finite)
+        # The model's fields read the parameters after the update (previews, evaluations);
+        # a replayed frozen step runs no Python, so the step itself cannot set them.
+        self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+        self.iteration += 1
+        return float(loss.array[0]), float(fine.array[0])
+
+    def _step_inputs(self):
+        """Everything a step reads, as :func:`drjit.freeze` traverses it: the optimizer (its
+        parameters, moments and learning rates), the occupancy grids, this step's random
+        draws (Dr.Jit arrays from a generator seeded by the run's RNG, so a resumed run
+        draws the same), and as Python values the phase of the run (which priors apply) and
+        the grids' shapes: a change of either records the step anew."""
+        cfg, n, p = self.cfg.losses, self.cfg.schedule.batch_rays, self.progress()
+        gen = dr.rng(seed=int(self.rng.integers(0, 2 ** 63)))
+        rays = self._level()
+        sparse = [field is not None and weight > 0 and p >= start
+                  for field, weight, start in zip((self.model.fg, self.model.bg),
+                                                  per_volume(cfg.sparsity),
+                                                  per_volume(cfg.sparsity_start))]
+        grids = [k for k in self.opt.keys() if optim.is_grid_level(k)] if cfg.tv > 0 else []
+        draws = {
+            'index': gen.integers(mi.UInt32, n, 0, rays.size),
+            'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
+            'sparsity': [[gen.random(mi.Float, n) for _ in range(4)] if on else None
+                         for on in sparse],
+            'tv': {k: gen.integers(mi.UInt32, min(cfg.tv_cells, self._cells(k)), 0,
+                                   self._cells(k)) for k in grids},
+        }
+        dr.eval(draws)
+        phase = dict(refine=self.model.poses is not None and p >= self.cfg.optimizer.poses_start,
+                     entropy=cfg.opacity_entropy > 0 and p >= cfg.entropy_start,
+                     shapes=tuple(tuple(self.opt[k].shape) for k in self.opt.keys()))
+        return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': rays.arrays(),
+                'occupancy': {k: g.density for k, g in self.model.occupancy.items()},
+                'non_finite': dr.opaque(mi.UInt32, 0, 1)}     # set by the step's guard
+
+    def _level(self):
+        """The ray bank at this point of the run's image pyramid (``--pyramid``), at most as
+        coarse as leaves the images a pixel."""
+        factor = self.cfg.schedule.pyramid_factor(self.progress())
+        if factor == 1:
+            return self.rays
+        return self.rays.level(min(factor, self.rays.max_factor()))
+
+    def _cells(self, key):
+        shape = self.opt[key].shape
+        return shape[0] * shape[1] * shape[2]
+
+    def _forward_backward(self, inputs):
+        """Loss, gradients and the Adam update of one step from :meth:`_step_inputs` alone
+        (recorded once and replayed when ``freeze`` is on). Returns ``(loss, fine-pass
+        MSE)`` as Dr.Jit arrays."""
+        cfg, model = self.cfg.losses, self.model
+        opt, draws, phase = inputs['opt'], inputs['draws'], inputs['phase']
+        rays = RayBank.from_arrays(inputs['rays'])
+        index = draws['index']
+        o, d, gt = rays.batch(index)
+        # The pixels' footprints, for fields that filter their lookups by them.
+        footprint = rays.footprint(index) if model.antialias else None
+        occupancy = {}
+        for k, grid in model.occupancy.items():       # the model's grids are left untouched
+            occupancy[k] = copy.copy(grid)
+            occupancy[k].density = inputs['occupancy'][k]
+        model.set_parameters({k: opt[k] for k in opt.keys()})
+        refine = phase['refine']
+        if model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
+            params = opt['poses'] if refine else dr.detach(opt['poses'])
+            o, d = poses.correct_rays(params, rays.images(index), o, d)
+        res = render_rays(o, d, *model.radiance_fields(), model.sampling, seed=draws['seed'],
+                          occupancy=occupancy, ray_gradients=refine,
+                          near_gradient=self.near_gradient, footprint=footprint)
+        # Radiance is linear; the loss compares it in the encoding of the images, after the
+        # image's colour transform when appearance is learned.
+        encode = model.loss_encoding
+        if model.appearance is not None:
+            image, params = rays.images(index), opt['appearance']
+            encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
+        pred = encode(res.fine.rgb)
+        loss = optim.COLOR_LOSS_WEIGHT * optim.COLOR_LOSSES[cfg.color_loss](pred, gt)
+        fine = dr.detach(optim.mse(pred, gt))     # for the PSNR shown while training
+        if model.appearance is not None and cfg.appearance_prior > 0:
+            loss += cfg.appearance_prior * app.prior(opt['appearance'])
+        if cfg.distortion > 0 and cfg.distortion_scope == 'ray':
+            loss += cfg.distortion * dr.mean(ray_distortion(res))
+        elif cfg.distortion > 0:
+            for vol in (res.fg, res.bg):
+                if vol is not None:
+                    loss += cfg.distortion * dr.mean(distortion(vol.weights, vol.position, vol.n))
+        if phase['entropy']:
+            loss += cfg.opacity_entropy * priors.opacity_entropy(res.fg.fine.opacity)
+        loss += self._sparsity_loss(draws['sparsity'])
+        if cfg.tv > 0:
+            loss += cfg.tv * sum((priors.grid_tv(opt[k], idx) for k, idx in draws['tv'].items()),
+                                 mi.Float(0.0))
+        if cfg.far_smoothness > 0 and model.bg is not None and model.bg.kind == 'grid':
+            loss += cfg.far_smoothness * sum(
+                (priors.far_field_smoothness(opt[k]) for k in opt.keys()
+                 if k.startswith('bg.') and optim.is_grid_level(k)), mi.Float(0.0))
+        with stage('losses and reverse pass'):
+            dr.backward(loss)
+        with stage('adam'):
+            opt.step(eval=False)
+            flag_non_finite(opt, inputs['non_finite'])
+            dr.eval()
+        return loss, fine
+
+    def _coarse_to_fine(self):
+        """Double the grids' resolution at each ``coarse_to_fine`` fraction of the run passed."""
+        stages = self.cfg.schedule.coarse_to_fine
+        due = sum(self.progress() >= f for f in stages)
+        for volume, field in (('fg', self.model.fg), ('bg', self.model.bg)):
+            if field is None or field.kind != 'grid':
+                continue
+            for level, final in enumerate(self.cfg.model.levels(field.domain)):
+                target = max(final >> (len(stages) - due), 4)
+                if field.resolutions[level] < target:
+                    key = f'{volume}.grid{level}'
+                    field.set_parameters({f'grid{level}': dr.detach(self.opt[key])})
+                    field.upsample(level, target)
+                    self.opt[key] = field.params[f'grid{level}']   # new shape: fresh Adam moments
+
+    def _unseen_fill(self):
+        """One step of :func:`~mi_nerfpp.training.priors.unseen_fill` on every grid level: its entries
+        that no sample has reached yet (Adam's second moment still zero) take their neighbours'
+        mean."""
+        with dr.suspend_grad():
+            for key in [k for k in self.opt.keys() if optim.is_grid_level(k)]:
+                field = self.model.fg if key.startswith('fg.') else self.model.bg
+                moment = self.opt.state[key][3][2]    # (t, m, v, v_max): see _optimizer_state
+                self.opt[key] = priors.unseen_fill(self.opt[key], moment == 0,
+                                                   periodic=field.domain == 'inverted_sphere')
+        dr.eval()
+
+    def _sparsity_loss(self, points):
+        """Cauchy sparsity of each volume's density at ``batch_rays`` random points, weighted
+        by the volume's ``sparsity`` (``points``: 4 uniform Floats per volume, None where the
+        volume is absent, its weight is 0 or the run has not reached its ``sparsity_start``)."""
+        total = mi.Float(0.0)
+        for field, weight, u in zip((self.model.fg, self.model.bg),
+                                    per_volume(self.cfg.losses.sparsity), points):
+            if u is not None:
+                total += weight * priors.cauchy_sparsity(
+                    field.density(priors.random_points(field.domain, u)))
+        return total
+
+    def data_summary(self):
+        """What a checkpoint records of its training data, to refuse resuming on other data."""
+        return {'dataset': os.path.abspath(self.dataset.root), 'train_views': len(self.train),
+                'training_rays': self.rays.size}
+
+    def parameters_finite(self) -> bool:
+        """Whether every parameter (and its Adam moments) stayed finite in the last step: a
+        flag the step sets in the kernel of its Adam update (:func:`flag_non_finite`), so the
+        guard costs no pass over the parameters."""
+        flag = getattr(self, '_non_finite', None)
+        return flag is None or int(flag.array[0]) == 0
+
+    def _kept(self):
+        """What is on disk of this run, in words (for the messages of a stopped run)."""
+        if self.saved_iteration is None:
+            return 'nothing was saved before'
+        return (f'the last good checkpoint ({self.checkpoint_path}, iteration '
+                f'{self.saved_iteration}) is kept')
+
+    def _diverged(self, what):
+        """The :class:`TrainingError` of a run whose state stopped being finite."""
+        again = ('train again' if self.saved_iteration is None else
+                 'resume with --resume')
+        return TrainingError(f'{what} at iteration {self.iteration}; stopping before it is '
+                             f'used or saved: {self._kept()}. {self.cfg.divergence_hint()}, '
+                             f'then {again}')
+
+    def save(self):
+        """Write the checkpoint atomically. A failed write (disk full, read-only) raises
+        :class:`TrainingError` at once, and so does state that is not finite (NaN or inf
+        parameters or optimizer moments, which :func:`save_checkpoint` refuses): the previous
+        checkpoint stays as it was."""
+        self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+        meta = {'iteration': self.iteration, 'elapsed': self.elapsed,
+                'rng': self.rng.bit_generator.state, 'history': self.history,
+                'config': self.cfg.to_dict(), 'dataset': self.dataset.root,
+                'data': self.data_summary()}
+        try:
+            save_checkpoint(self.checkpoint_path, self.model, meta=meta,
+                            state=self._optimizer_state())
+        except NonFiniteStateError as e:
+            raise self._diverged(f'{e}, so the checkpoint was not written') from None
+        except OSError as e:
+            kept = ('nothing was saved before' if self.saved_iteration is None else
+                    f'the previous checkpoint (iteration {self.saved_iteration}) is intact')
+            raise TrainingError(f'cannot save the checkpoint {self.checkpoint_path} at iteration '
+                                f'{self.iteration}: {e.strerror or e}; {kept}. Free space or '
+                                f'choose a writable --out, then --resume') from e
+        self.saved_iteration = self.iteration
+
+    def done(self):
+        schedule = self.cfg.schedule
+        return ((schedule.iterations is not None and self.iteration >= schedule.iterations)
+                or (schedule.minutes is not None and self.elapsed >= 60.0 * schedule.minutes))
+
+    def run(self, on_step=None, on_preview=None):
+        """Train until done; checkpoints periodically, on Ctrl-C and at the end.
+
+        ``on_step(trainer, loss, psnr)`` is called after every step; ``on_preview(trainer)``
+        every ``preview_every`` iterations. Raises :class:`TrainingError` on a non-finite
+        loss or parameters (checked after every step, before they are used or saved),
+        leaving the last good checkpoint in place. Returns False if interrupted: SIGINT
+        (Ctrl-C) and SIGTERM (a scheduler's) stop training and save the checkpoint, also in a
+        process that was started with SIGINT ignored (a background job of a script, which
+        Python leaves deaf to SIGINT), since their handlers are set here.
+        """
+        with _stop_signals(_in_main_thread()):
+            return self._run(on_step, on_preview)
+
+    def _run(self, on_step, on_preview):
+        try:
+            while not self.done():
+                t0 = time.perf_counter()
+                loss, fine = self.step()
+                self.elapsed += time.perf_counter() - t0
+                if not math.isfinite(loss):
+                    raise self._diverged(f'the loss became {loss}')
+                if not self.parameters_finite():
+                    raise self._diverged('the parameters became NaN or infinite (the loss '
+                                         'was still finite)')
+                p = psnr_from_mse(fine)
+                if self.iteration % 10 == 0 or self.iteration == 1:
+                    self.history.append([self.iteration, round(self.elapsed, 3), loss, p])
+                if on_step:
+                    on_step(self, loss, p)
+                output = self.cfg.output
+                if output.checkpoint_every and self.iteration % output.checkpoint_every == 0:
+                    self.save()
+                if on_preview and output.preview_every and \
+                        self.iteration % output.preview_every == 0:
+                    on_preview(self)
+        except KeyboardInterrupt:
+            with _signals_deferred(_in_main_thread()):    # a second Ctrl-C must not
+                self.save()                               # break the save
+            return False
+        self.save()
+        return True
+
+    def samples_per_second(self):
+        """Field evaluations per second of training so far (coarse + fine, both volumes)."""
+        return samples_per_second(self.cfg, self.iteration, self.elapsed)
+
+
+def _in_main_thread():
+    return threading.current_thread() is threading.main_thread()
+
+
+def flag_non_finite(opt, flag):
+    """Set ``flag`` (UInt32 of one entry) to 1 where a parameter of ``opt`` or one of its
+    Adam moments is NaN or infinite after a step taken with ``opt.step(eval=False)``: a
+    masked scatter that never runs in a healthy step, fused into the kernel of the update
+    (the next ``dr.eval()``), so the guard reads no parameter again. Each parameter scatters
+    into a flag of its own: scatters of kernels of different sizes into one array would
+    order them, and split the updates from their checks."""
+    flags = []
+    for value, _, _, extra in opt.state.values():
+        finite = dr.isfinite(dr.detach(value).array)
+        for moment in (extra[1], extra[2]) if isinstance(extra, tuple) and len(extra) > 2 \
+                else ():
+            finite &= dr.isfinite(moment)
+        own = dr.zeros(mi.UInt32, 1)
+        dr.scatter(own, mi.UInt32(1), mi.UInt32(0), active=~finite)
+        flags.append(own)
+    if flags:
+        dr.scatter(flag, mi.UInt32(1), mi.UInt32(0), active=sum(flags[1:], flags[0]) > 0)
+
+
+@contextlib.contextmanager
+def _stop_signals(enabled):
+    """SIGINT and SIGTERM raise :class:`KeyboardInterrupt` inside (main thread only), their
+    previous handlers restored after. Set here rather than inherited: Python installs no
+    SIGINT handler in a process started with SIGINT ignored (``cmd &`` in a script), where
+    a SIGINT would otherwise go unanswered."""
+    if not enabled:
+        yield
+        return
+    saved = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT,
+                                                                    signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+
+
+@contextlib.contextmanager
+def _signals_deferred(enabled):
+    """SIGINT and SIGTERM ignored inside (main thread only), their handlers restored after."""
+    if not enabled:
+        yield
+        return
+    saved = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(f'signal {signum}')
+
+
+def _interrupt_in(error):
+    """The :class:`KeyboardInterrupt` that ``error`` wraps, or None. Dr.Jit re-raises an
+    exception from Python code that it calls - a step being recorded by ``drjit.freeze``, a
+    loop body, a search predicate - as a RuntimeError caused by it, once per level: a Ctrl-C
+    or SIGTERM that lands there arrives as such a chain."""
+    while error is not None:
+        if isinstance(error, KeyboardInterrupt):
+            return error
+        error = error.__cause__
+    return None
+
+
+def data_conflicts(stored: dict, now: dict) -> list[str]:
+    """How the training data of a checkpoint (:meth:`Trainer.data_summary`) differs from now."""
+    names = {'dataset': 'dataset', 'train_views': 'training views',
+             'training_rays': 'training rays (images, sizes or --downscale)'}
+    return [f'{names[k]}: the checkpoint was trained on {stored[k]!r}, this run has {now[k]!r}'
+            for k in names if k in stored and stored[k] != now[k]]
+
+
+def samples_per_second(cfg, iterations, seconds):
+    rays = iterations * cfg.schedule.batch_rays
+    return rays * cfg.samples_per_ray / seconds if seconds > 0 else 0.0

@@ -9,6 +9,8 @@ Each script in ``benchmarks/`` that measures something writes one JSON file per 
 ``benchmarks/results/<name>.json``, with these keys (in this order)::
 
     benchmark  the script's name without .py, e.g. "train"
+    variant    optional: what this file measures when one benchmark measures different things,
+               e.g. "train" or "render" for versus (see "Kinds" below)
     title      a heading for the page
     command    exactly what reproduces it, from the repository root
     date       ISO 8601, UTC, when it finished
@@ -19,12 +21,25 @@ Each script in ``benchmarks/`` that measures something writes one JSON file per 
     notes      optional paragraph: what was compared, caveats
     raw        optional: anything else the script keeps (not shown on the page)
 
-Numbers in rows are plain JSON numbers; this script formats them. This script renders every such file as one section of the page, in a fixed order (the benchmarks
-in ``ORDER`` first, then the others alphabetically; files of one benchmark by name): its
-title, its tables (numbers formatted here), its figures (PNG files next to the JSON), its
-notes, and the line that says how it was measured: the command, the date, the machine and
-the git revision of the code measured. There are no hand-written numbers on the page; with
-no result files it says how to produce them.
+Numbers in rows are plain JSON numbers; this script formats them.
+
+Kinds. The page shows the current figure of each kind of result once: a kind is a benchmark
+and its variant, and of the files of one kind the page shows the latest (by "date"; the file
+name breaks a tie). A file's variant is its "variant" key; without one it is "" except for
+the benchmarks in ``COMMAND_VARIANTS``, whose positional arguments say what was measured and
+are the variant: ``versus`` (its mode, train or render, and any name=value options of the new
+version) and ``profile`` (name=value options: a configuration other than the defaults). So a
+held_out file replaces the held_out section whatever runs it compares, while a versus train
+result and a versus render result each keep a section. Older files of a kind stay in
+``benchmarks/results/`` and are listed at the end of the page ("Older results": file, date,
+title), without their tables.
+
+Each shown file is one section of the page, in a fixed order (the benchmarks in ``ORDER``
+first, then the others alphabetically; the variants of one benchmark alphabetically, "" first):
+its title, its tables (numbers formatted here), its figures (PNG files next to the JSON), its
+notes, and the line that says how it was measured: the command, the date, the machine and the
+git revision of the code measured. There are no hand-written numbers on the page; with no
+result files it says how to produce them.
 
 ``tests/test_docs.py`` regenerates the page and fails when the committed file differs.
 """
@@ -36,6 +51,7 @@ import json
 import math
 import os
 import re
+import shlex
 import sys
 from pathlib import Path
 
@@ -49,6 +65,10 @@ ORDER = ('versus', 'held_out', 'resolution', 'profile', 'quality', 'train', 'ren
          'compare', 'cluster', 'objects', 'appearance', 'poses', 'coverage', 'converged',
          'noise_ceiling', 'render_samples', 'ablation', 'photo_set_memory')
 REQUIRED = ('benchmark', 'title', 'command', 'date', 'machine', 'git', 'tables')
+# Benchmarks whose positional arguments say what a file measures (its variant, when the file
+# has no "variant" key): versus's mode (train / render) and name=value options, profile's
+# name=value options. Every --option of these scripts takes one value.
+COMMAND_VARIANTS = ('versus', 'profile')
 MACHINE_KEYS = ('cpu', 'memory_gib', 'os', 'python', 'mitsuba', 'drjit')
 
 
@@ -83,6 +103,9 @@ def load_result(path: Path) -> dict:
         if not isinstance(result[key], str) or not result[key].strip():
             raise ResultError(f'{_where(path)}: {key!r} must be a non-empty string')
     _parse_date(result['date'], path)
+    if 'variant' in result and (not isinstance(result['variant'], str)
+                                or not result['variant'].strip()):
+        raise ResultError(f'{_where(path)}: "variant", when present, must be a non-empty string')
     if not isinstance(result['machine'], dict):
         raise ResultError(f'{_where(path)}: "machine" must be an object with '
                           f'{", ".join(MACHINE_KEYS)}')
@@ -108,17 +131,61 @@ def load_result(path: Path) -> dict:
     return result
 
 
+def variant(result: dict) -> str:
+    """What a result measures within its benchmark: its "variant" key, else for the benchmarks
+    in COMMAND_VARIANTS the positional arguments of its command, else ""."""
+    if result.get('variant'):
+        return result['variant'].strip()
+    if result['benchmark'] not in COMMAND_VARIANTS:
+        return ''
+    try:
+        words = shlex.split(result['command'])
+    except ValueError:
+        return ''
+    script = next((i for i, w in enumerate(words) if w.endswith('.py')), None)
+    if script is None:
+        return ''
+    positional, rest = [], iter(words[script + 1:])
+    for word in rest:
+        if word.startswith('--'):
+            if '=' not in word:
+                next(rest, None)                     # its value
+        else:
+            positional.append(word)
+    return ' '.join(positional)
+
+
+def kind(result: dict) -> tuple[str, str]:
+    """The kind of a result: its benchmark and variant. The page shows each kind once."""
+    return result['benchmark'], variant(result)
+
+
+def _kind_key(item):
+    name, var = kind(item[1])
+    return (ORDER.index(name) if name in ORDER else len(ORDER)), name, var
+
+
 def load_results(results_dir: Path) -> list[tuple[Path, dict]]:
-    """Every results_dir/*.json, in the page's order."""
+    """Every results_dir/*.json, in the page's order (kinds in order; within a kind by name)."""
     found = [(path, load_result(path)) for path in sorted(Path(results_dir).glob('*.json'))]
+    return sorted(found, key=lambda item: (_kind_key(item), item[0].name))
 
-    def key(item):
-        path, result = item
-        name = result['benchmark']
-        rank = ORDER.index(name) if name in ORDER else len(ORDER)
-        return rank, name, path.name
 
-    return sorted(found, key=key)
+def _when(item) -> tuple:
+    path, result = item
+    return _parse_date(result['date'], path).timestamp(), path.name
+
+
+def current_and_older(results) -> list[tuple[tuple[Path, dict], list[tuple[Path, dict]]]]:
+    """For each kind, in the page's order: its latest result and its older ones, newest first."""
+    kinds: dict[tuple, list] = {}
+    for item in results:
+        kinds.setdefault(_kind_key(item), []).append(item)
+    out = []
+    for key in sorted(kinds):
+        items = sorted(kinds[key], key=_when, reverse=True)
+        out.append((items[0], items[1:]))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -223,12 +290,15 @@ def render_page(results_dir: Path = RESULTS, page: Path = PAGE) -> str:
     out = [f'<!-- Generated by `{REGENERATE}` from {_where(results_dir)}/*.json; '
            'do not edit by hand. -->', '',
            '# Benchmarks', '',
-           'Speed and quality as measured by the scripts in `benchmarks/`. Each section is one '
-           f'result file in [{_where(results_dir)}]({where}/), with the command that reproduces '
+           'Speed and quality as measured by the scripts in `benchmarks/`: the current figure '
+           'of each kind of measurement, that is the latest result file of each benchmark (and '
+           f'variant) in [{_where(results_dir)}]({where}/), with the command that reproduces '
            'it (run from the repository root), when it finished, the machine and the git '
            'revision of the code measured. Numbers from different machines, or from a machine '
-           'that was doing other work, do not compare. The history of earlier measurements is '
-           'in the [changelog](../CHANGELOG.md).', '']
+           'that was doing other work, do not compare. Earlier result files are listed at the '
+           'end; what changed when, with the figure that justified it, is in the '
+           '[changelog](../CHANGELOG.md), and what was tried and not kept in '
+           '[experiments](experiments.md).', '']
     if not results:
         out += ['## No results yet', '',
                 f'`{_where(results_dir)}/` holds no result files. Every script in `benchmarks/` '
@@ -239,14 +309,34 @@ def render_page(results_dir: Path = RESULTS, page: Path = PAGE) -> str:
                 '', '```', 'python benchmarks/<script>.py ...      # see each script\'s --help',
                 REGENERATE, '```', '']
         return '\n'.join(out)
+    shown = current_and_older(results)
     titles, seen = [], {}
-    for _, result in results:
+    for (_, result), _ in shown:
         title = result['title'].strip()
         seen[title] = seen.get(title, 0) + 1
-        titles.append(title if seen[title] == 1 else f'{title} ({seen[title]})')
-    out += ['**Contents:** ' + ', '.join(f'[{t}](#{_anchor(t)})' for t in titles) + '.', '']
-    for (path, result), title in zip(results, titles):
+        if seen[title] > 1:
+            title = f'{title} ({variant(result) or seen[title]})'
+        titles.append(title)
+    older = [(title, items) for title, (_, items) in zip(titles, shown) if items]
+    contents = [f'[{t}](#{_anchor(t)})' for t in titles]
+    if older:
+        contents.append('[Older results](#older-results)')
+    out += ['**Contents:** ' + ', '.join(contents) + '.', '']
+    for ((path, result), _), title in zip(shown, titles):
         out += render_section(path, result, page_dir, title)
+    if older:
+        out += ['## Older results', '',
+                'Earlier results of the benchmarks above, newest first: their files stay in '
+                f'[{_where(results_dir)}]({where}/), and this page shows only the latest of each '
+                'kind.', '']
+        for title, items in older:
+            out.append(f'- [{title}](#{_anchor(title)}):')
+            for path, result in items:
+                date = _parse_date(result['date'], path).strftime('%Y-%m-%d %H:%M UTC')
+                source = Path(os.path.relpath(path, page_dir)).as_posix()
+                out.append(f'  - [{path.name}]({source}) - {date}, '
+                           f'{_cell(result["title"].strip())}')
+        out.append('')
     return '\n'.join(out)
 
 

@@ -3,6 +3,7 @@ the docs resolves, and the generated pages (docs/reference.md, docs/benchmarks.m
 their scripts make from the code and from benchmarks/results/ now."""
 from __future__ import annotations
 
+import datetime
 import importlib.util
 import json
 import re
@@ -185,9 +186,12 @@ def test_options_named_in_the_guides_exist():
     accepted = {option for _, sub in reference._subcommands(build_parser())
                 for action in sub._actions for option in action.option_strings}
     generated = {DOCS / 'reference.md', DOCS / 'benchmarks.md'}
-    # paper-section-3.md documents the experiment scripts' own options
+    # paper-section-3.md documents the experiment scripts' own options; experiments.md is a
+    # record of what was measured, with the options of its day (some since removed) and the
+    # benchmark scripts' own
     pages = [README] + [p for p in sorted(DOCS.glob('*.md'))
-                        if p not in generated and p.name != 'paper-section-3.md']
+                        if p not in generated
+                        and p.name not in ('paper-section-3.md', 'experiments.md')]
     unknown = {}
     for page in pages:
         name = page.relative_to(ROOT).as_posix()
@@ -306,6 +310,87 @@ def test_benchmarks_page_from_result_files(tmp_path):
     assert benchmarks_page.main(['--results', str(results), '--out', str(page), '--check']) == 0
 
 
+def test_the_benchmarks_page_shows_each_kind_once():
+    """One section per kind of result in benchmarks/results (a benchmark and its variant): the
+    latest file of the kind; every older file is named under "Older results", without tables."""
+    results = benchmarks_page.load_results(benchmarks_page.RESULTS)
+    assert results, 'benchmarks/results/ has no result files'
+    text = (DOCS / 'benchmarks.md').read_text(encoding='utf-8')
+    body, _, older = text.partition('\n## Older results\n')
+    sections = re.findall(r'^## (.+)$', body, flags=re.M)
+    kinds = {}
+    for path, result in results:
+        kinds.setdefault(benchmarks_page.kind(result), []).append(path)
+    assert len(sections) == len(kinds), (sections, sorted(kinds))
+    assert {name for name, _ in kinds} == {result['benchmark'] for _, result in results}
+
+    def when(path):
+        date = json.loads(path.read_text(encoding='utf-8'))['date'].replace('Z', '+00:00')
+        return datetime.datetime.fromisoformat(date).astimezone(datetime.timezone.utc), path.name
+
+    for paths in kinds.values():
+        latest, *rest = sorted(paths, key=when, reverse=True)
+        assert body.count(f'[{latest.name}](') == 1, f'{latest.name}: not shown once'
+        for path in rest:
+            assert f'[{path.name}](' not in body and f'[{path.name}](' in older, path.name
+
+
+def test_benchmarks_page_shows_only_the_latest_result_of_a_kind(tmp_path):
+    results, page = tmp_path / 'benchmarks' / 'results', tmp_path / 'docs' / 'benchmarks.md'
+    old = _result('held_out', 'Held-out quality', date='2026-11-26T10:30:00+02:00')
+    old['tables'][0]['rows'] = [['old run', 11.11, 1111]]
+    new = _result('held_out', 'Held-out quality', date='2026-11-26T09:00:00+00:00')
+    new['tables'][0]['rows'] = [['new run', 22.22, 2222]]
+    # the older file's name sorts last, and its local time reads later: only the date in UTC
+    # (08:30 against 09:00) says which is newer
+    _write(results, 'held_out_a', new)
+    _write(results, 'held_out_z', old)
+    text = benchmarks_page.render_page(results, page)
+    assert re.findall(r'^## (.+)$', text, flags=re.M) == ['Held-out quality', 'Older results']
+    assert '| new run | 22.22 | 2,222 |' in text
+    assert 'old run' not in text and '11.11' not in text and '1,111' not in text
+    body, older = text.split('## Older results\n')
+    assert '[held_out_a.json](' in body and '[held_out_z.json](' not in body
+    line = next(l for l in older.splitlines() if '[held_out_z.json](' in l)
+    assert '2026-11-26 08:30 UTC' in line and 'Held-out quality' in line
+    assert '[Older results](#older-results)' in text
+    link = re.search(r'\[held_out_z.json\]\(([^)]+)\)', line).group(1)
+    assert (page.parent / link).resolve() == (results / 'held_out_z.json').resolve()
+
+
+def test_benchmarks_page_keeps_a_section_per_variant(tmp_path):
+    """Files of one benchmark that measure different things are different kinds: versus's
+    mode, profile's option overrides, or a "variant" key in the file."""
+    results = tmp_path / 'results'
+    later = '2026-11-26T14:03:00+00:00'
+    _write(results, 'versus_train', _result(
+        'versus', 'Training throughput', command='python benchmarks/versus.py train --base c93a164'
+        ' --rounds 8'))
+    _write(results, 'versus_render', _result(
+        'versus', 'Render time', date=later, command='python benchmarks/versus.py render --base '
+        'c93a164 --base-run A --run B --rounds 7 --name versus_render'))
+    _write(results, 'profile', _result('profile', 'Where the time goes',
+                                       command='python benchmarks/profile.py --steps 30'))
+    _write(results, 'profile_small', _result(
+        'profile', 'Where the time goes (small grids)', date=later,
+        command="python benchmarks/profile.py --steps 30 --name profile_small "
+                "'grid_levels=[32,64]' --at=0.6 'bg_grid_levels=[32,64]'"))
+    _write(results, 'held_out_plaza', _result('held_out', 'Held-out quality', variant='plaza512'))
+    _write(results, 'held_out_default', _result('held_out', 'Held-out quality', date=later))
+    found = {path.stem: benchmarks_page.kind(result)
+             for path, result in benchmarks_page.load_results(results)}
+    assert found == {'versus_train': ('versus', 'train'), 'versus_render': ('versus', 'render'),
+                     'profile': ('profile', ''),
+                     'profile_small': ('profile', 'grid_levels=[32,64] bg_grid_levels=[32,64]'),
+                     'held_out_plaza': ('held_out', 'plaza512'),
+                     'held_out_default': ('held_out', '')}
+    text = benchmarks_page.render_page(results, tmp_path / 'benchmarks.md')
+    assert re.findall(r'^## (.+)$', text, flags=re.M) == [
+        'Render time', 'Training throughput', 'Held-out quality', 'Held-out quality (plaza512)',
+        'Where the time goes', 'Where the time goes (small grids)']
+    assert 'Older results' not in text
+
+
 def test_benchmarks_page_without_results(tmp_path):
     text = benchmarks_page.render_page(tmp_path / 'results', tmp_path / 'benchmarks.md')
     assert '## No results yet' in text and 'python scripts/benchmarks_page.py' in text
@@ -318,6 +403,7 @@ def test_benchmarks_page_without_results(tmp_path):
     (lambda r: r.update(figures=['absent.png']), "figure 'absent.png' is not in"),
     (lambda r: r['tables'][0]['rows'].append([1, 2]), 'row 2 has 2 cells for 3 columns'),
     (lambda r: r.update(tables=[]), 'non-empty list of tables'),
+    (lambda r: r.update(variant=' '), '"variant", when present, must be a non-empty string'),
 ])
 def test_benchmarks_page_refuses_bad_result_files(tmp_path, change, message):
     result = _result('train', 'Training throughput')

@@ -4,5 +4,5 @@
 # Results (metrics, EXRs, previews, plot, render.xml) land in runs/default/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+bash scripts/setup.sh         # libLLVM, .venv and the package: what the job needs, no test tools
 .venv/bin/python optimize.py --out runs/default "$@"

@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
-# Idempotent set-up: libLLVM >= 17 (Dr.Jit's CPU backend), oiiotool (compositing tests),
-# Blender (the export test builds its camera from the USD headless), a virtual environment in
-# .venv, and this package installed in it (editable, with the test, cluster and export extras:
-# the Ray and usd-core tests run).
+# Idempotent set-up of what the main job needs: libLLVM >= 17 (Dr.Jit's CPU backend), a virtual
+# environment in .venv, and this package installed in it (editable). `scripts/setup.sh --test`
+# adds what the tests use: oiiotool (the compositing tests composite the EXR layers with it),
+# Blender (the export test builds its camera from the USD headless) and the package's test,
+# cluster and export extras (the Ray and usd-core tests run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+tests=0
+[ "${1:-}" = "--test" ] && tests=1
 
 # apt_install PACKAGE WHY: install a Debian package quietly (sudo when not root); 1 without apt-get.
 apt_install() {
@@ -26,23 +29,26 @@ if [ -z "${DRJIT_LIBLLVM_PATH:-}" ] && ! have_llvm; then
     fi
 fi
 
-# oiiotool (OpenImageIO): the tests composite the EXR layers with it, as a real client.
-if ! command -v oiiotool >/dev/null 2>&1; then
-    if ! apt_install openimageio-tools "oiiotool, used by the compositing tests"; then
-        echo "setup: oiiotool not found and no apt-get: install OpenImageIO's oiiotool, or set" \
-             "MI_NERFPP_NO_OIIOTOOL=1 to skip the compositing checks that use it" >&2
+if [ "$tests" = 1 ]; then
+    # oiiotool (OpenImageIO): the tests composite the EXR layers with it, as a real client.
+    if ! command -v oiiotool >/dev/null 2>&1; then
+        if ! apt_install openimageio-tools "oiiotool, used by the compositing tests"; then
+            echo "setup: oiiotool not found and no apt-get: install OpenImageIO's oiiotool, or set" \
+                 "MI_NERFPP_NO_OIIOTOOL=1 to skip the compositing checks that use it" >&2
+        fi
     fi
-fi
-
-# Blender (Debian's 3.4, ~50 s to install): the export test checks the USD camera in it.
-if ! command -v blender >/dev/null 2>&1; then
-    if ! apt_install blender "used headless by the export test"; then
-        echo "setup: blender not found and no apt-get: install Blender, or set" \
-             "MI_NERFPP_NO_BLENDER=1 to skip the Blender camera check" >&2
+    # Blender (Debian's 3.4, ~50 s to install): the export test checks the USD camera in it.
+    if ! command -v blender >/dev/null 2>&1; then
+        if ! apt_install blender "used headless by the export test"; then
+            echo "setup: blender not found and no apt-get: install Blender, or set" \
+                 "MI_NERFPP_NO_BLENDER=1 to skip the Blender camera check" >&2
+        fi
     fi
 fi
 
 if [ ! -x .venv/bin/python ]; then
     python3 -m venv .venv
 fi
-.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test,cluster,export]'
+extras=""
+[ "$tests" = 1 ] && extras="[test,cluster,export]"
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".${extras}"

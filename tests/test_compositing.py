@@ -165,7 +165,7 @@ def _oiiotool():
     if tool is None:
         if os.environ.get(OIIOTOOL_OPT_OUT):
             pytest.skip(f'oiiotool not installed and {OIIOTOOL_OPT_OUT} is set')
-        pytest.fail('oiiotool (OpenImageIO) is not installed: run scripts/setup.sh (apt '
+        pytest.fail('oiiotool (OpenImageIO) is not installed: run scripts/setup.sh --test (apt '
                     f'package openimageio-tools), or set {OIIOTOOL_OPT_OUT}=1 to skip this check')
     return tool
 

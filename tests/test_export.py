@@ -178,7 +178,7 @@ def test_blender_builds_the_usd_camera_and_projects_like_the_exr_header(exported
     if blender is None:
         if os.environ.get('MI_NERFPP_NO_BLENDER'):
             pytest.skip('blender not installed and MI_NERFPP_NO_BLENDER is set')
-        pytest.fail('blender is not installed: run scripts/setup.sh (apt package blender), or '
+        pytest.fail('blender is not installed: run scripts/setup.sh --test (apt package blender), or '
                     'set MI_NERFPP_NO_BLENDER=1 to skip this check')
     from mi_nerfpp.output.views import camera_attributes
     run, out = exported

@@ -43,7 +43,7 @@ COLOR_MODES = ('deferred', 'sample')
 # the grid field's own default (deferred). After 10 minutes, time-matched on the default capture
 # (seeds 0-2) and gt_plaza (seeds 0-1), per-sample colour in the background scored 0.2-0.5 dB
 # above deferred colour in four runs of five (0.1 dB below in the fifth), with 25 % fewer
-# steps (CHANGELOG, 2026-11-26 afternoon).
+# steps (CHANGELOG.md, 2026-11-26).
 BACKGROUND_COLOR = 'sample'
 
 
@@ -307,7 +307,7 @@ class GridField(Field):
     ``init``: the standard deviation of the normal noise the dense levels start with (the
     colour MLP starts the same whatever it is); 0 starts them neutral, so that a cell no sample
     reaches holds no colour of its own (after 10 minutes 0.1-0.2 dB lower than with noise on two
-    captures; CHANGELOG, 2026-11-26 evening).
+    captures; docs/experiments.md, 2026-11-26).
 
     Ball domain: level ``R`` is an ``R³`` grid over ``[-1, 1]³``, indexed by the point itself or,
     with ``warp_radius > 0``, by :func:`~mi_nerfpp.core.geometry.ball_warp` of it (finer cells in the

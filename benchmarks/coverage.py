@@ -38,8 +38,8 @@ from mi_nerfpp.core.render import Sampling
 from mi_nerfpp.jobs.run import open_run
 from mi_nerfpp.output.views import ViewRenderer, encoded_rgb
 
-# Samples per volume (coarse, coarse, fine) of a render without empty-space skipping.
-WHOLE_RAY = (64, 64, 128)
+# Samples per volume of a render without empty-space skipping: whole rays' (one home).
+WHOLE_RAY = Sampling()
 
 
 def ceilings(pred, gt, seen):
@@ -93,7 +93,8 @@ def main():
                     'optimize (on one capture, to compare them)')
     ap.add_argument('--without-occupancy', action='store_true', help='also render each run '
                     'without its occupancy grids (every interval sampled, %d + %d + %d samples): '
-                    'what empty-space skipping changes' % tuple(WHOLE_RAY))
+                    'what empty-space skipping changes' % (WHOLE_RAY.fg_samples, WHOLE_RAY.bg_samples,
+                                                          WHOLE_RAY.fine_samples))
     ap.add_argument('--name', default='coverage', help='results file name (default coverage)')
     a = ap.parse_args()
     print(f'{"run":>12} {"view":>4} {"unseen":>6} {"model":>6} {"seen":>6} {"unseen":>6} '
@@ -114,7 +115,7 @@ def main():
         for name, renderer in variants:
             if renderer is None:
                 model.occupancy = {}
-                renderer = ViewRenderer(model, sampling=Sampling(*WHOLE_RAY))
+                renderer = ViewRenderer(model, sampling=WHOLE_RAY)
             r, images = score(renderer, model, data)
             for i, row in enumerate(r):
                 print(f'{name[-12:]:>12} {i:4d} {100 * row[0]:5.0f}% ' + ' '.join(

@@ -15,8 +15,8 @@ import sys
 
 from mi_nerfpp import _llvm
 from mi_nerfpp._llvm import LLVMNotFoundError
+from mi_nerfpp.version import __version__  # noqa: F401  (mi_nerfpp.__version__)
 
-__version__ = '0.1.0'
 DEFAULT_VARIANT = 'llvm_ad_rgb'
 
 

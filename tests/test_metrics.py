@@ -150,3 +150,43 @@ def test_equivalent_blur_of_a_perfect_and_of_a_hopeless_prediction(gt):
     assert metrics.equivalent_blur(gt, gt) == 0.0
     # An error no blur of the reference comes near: a constant offset of half the range.
     assert metrics.equivalent_blur(np.clip(gt + 0.5, 0, 1), gt) == math.inf
+
+
+# ----------------------------------------------------------------------------- error split
+
+def test_the_error_split_finds_known_errors_by_region_and_frequency():
+    """A constant colour error in one half (low frequency) and a checkerboard error in the other
+    (high frequency): each region's error lands in its band, the shares follow the regions'
+    summed errors, and the capture's noise is subtracted."""
+    from mi_nerfpp.training.metrics import error_split
+    h, w = 64, 64
+    gt = np.full((h, w, 3), 0.5)
+    pred = gt.copy()
+    left = np.zeros((h, w), bool)
+    left[:, :w // 2] = True
+    pred[:, :w // 2] += 0.1                                   # low: a wrong colour
+    checker = (np.indices((h, w)).sum(0) % 2) * 2.0 - 1.0
+    pred[:, w // 2:] += 0.05 * checker[:, w // 2:, None]     # high: missing detail / noise
+    split = error_split(pred, gt, {'colour': left, 'detail': ~left}, noise_mse=0.0001)
+    colour, detail, whole = split['colour'], split['detail'], split['all']
+    assert colour['pixels'] == detail['pixels'] == 0.5 and whole['pixels'] == 1.0
+    assert colour['mse'] == pytest.approx(0.01) and detail['mse'] == pytest.approx(0.0025)
+    # Away from the seam the split is exact: a constant survives blurring, a checkerboard does not.
+    assert colour['low'] > 0.9 * colour['mse'] and colour['high'] < 0.05 * colour['mse']
+    assert detail['high'] > 0.9 * detail['mse'] and detail['low'] < 0.1 * detail['mse']
+    assert colour['share'] == pytest.approx(0.01 / 0.0125) and \
+        colour['share'] + detail['share'] == pytest.approx(1.0)
+    assert colour['psnr'] == pytest.approx(20.0)
+    assert colour['excess'] == pytest.approx(0.0099)
+    assert colour['excess_psnr'] == pytest.approx(10 * np.log10(1 / 0.0099))
+    assert whole['mse'] == pytest.approx(0.00625)
+
+
+def test_the_error_split_refuses_a_mask_of_another_size_and_reports_empty_regions():
+    from mi_nerfpp.training.metrics import error_split
+    image = np.zeros((8, 8, 3))
+    with pytest.raises(ValueError, match="region 'x': mask shape"):
+        error_split(image, image, {'x': np.ones((4, 4), bool)})
+    empty = error_split(image, image, {'none': np.zeros((8, 8), bool)})
+    assert empty['none']['pixels'] == 0.0 and np.isnan(empty['none']['mse'])
+    assert empty['all']['mse'] == 0.0 and empty['all']['psnr'] == float('inf')

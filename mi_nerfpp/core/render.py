@@ -295,6 +295,65 @@ def near_gradient_scale(distance, radius):
     return dr.minimum(dr.square(distance * (1.0 / radius)), 1.0)
 
 
+# ----------------------------------------------------------------------------- field lookups
+# What a pass of :func:`render_volume` asks of a field at its samples: ``(density, values)``,
+# the values those that the quadrature composites. One lookup per render, chosen by
+# :func:`field_lookup`.
+
+class SampleColour:
+    """Density and colour per sample (fields with per-sample colour): the colour is composited
+    sample by sample."""
+    shades_later = False
+
+    def __init__(self, field):
+        self.field = field
+
+    def __call__(self, x, d, ray, width):
+        sigma, rgb = self.field(x, d, ray, **width)
+        return sigma, [rgb.x, rgb.y, rgb.z]
+
+
+class Features:
+    """Density and features per sample (deferred colour): the features are composited and the
+    colour network runs once per ray (:func:`composite_features`)."""
+    shades_later = False
+
+    def __init__(self, field):
+        self.field = field
+
+    def __call__(self, x, d, ray, width):
+        return self.field.features(x, **width)
+
+
+class DensityOnly:
+    """Density alone (primal renders of fields with per-sample colour): the colour is evaluated
+    afterwards at the samples that can show (:func:`_shade_visible`)."""
+    shades_later = True
+
+    def __init__(self, field):
+        self.field = field
+
+    def __call__(self, x, d, ray, width):
+        return self.field.density(x, **width), []
+
+
+class KeptFeatures(Features):
+    """Density and features, kept for the samples that show (a grid field with per-sample
+    colour in a primal render): its features come with its density, so only its colour network
+    runs where the samples show (:meth:`~.fields.GridField.sample_color`)."""
+    shades_later = True
+
+
+def field_lookup(field, visible_only: bool):
+    """The lookup of ``field`` for a render that evaluates colour only where samples show
+    (``visible_only``: primal renders with fine samples) or everywhere."""
+    if getattr(field, 'deferred', False):
+        return Features(field)           # the same render either way
+    if not visible_only:
+        return SampleColour(field)
+    return KeptFeatures(field) if hasattr(field, 'sample_color') else DensityOnly(field)
+
+
 def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_only=False,
                   near_gradient=0.0, fused=False, level=SURFACE_LEVEL):
     """Hierarchical sampling and quadrature of one volume (see module docs).
@@ -316,25 +375,16 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
     (:func:`_fused_quadrature`), without per-sample arrays in the result; its ``surface`` is
     taken at accumulated weight ``level`` (a number or one per ray)."""
     deferred = getattr(field, 'deferred', False)
-    lazy = visible_only and n_fine > 0 and not deferred
-    # A grid field's features come with its density: the passes keep them, and the samples
-    # that show need only the colour network (:meth:`~.fields.GridField.sample_color`).
-    keep = lazy and hasattr(field, 'sample_color')
+    lookup = field_lookup(field, visible_only and n_fine > 0)
+    lazy = lookup.shades_later
+    keep = isinstance(lookup, KeptFeatures)
     fused = fused and n_fine > 0 and not lazy
     n_rays = dr.width(volume.lo)
 
     def evaluate(ray, t):
         """Density and the per-sample values to composite (features, or colour) at ``t``."""
         x, width = volume.inputs(ray, t), _footprint(volume.footprint_at(ray, t))
-        if keep:
-            out = field.features(x, **width)
-        elif lazy:
-            out = (field.density(x, **width), [])
-        elif deferred:
-            out = field.features(x, **width)
-        else:
-            sigma, rgb = field(x, volume.d, ray, **width)
-            out = (sigma, [rgb.x, rgb.y, rgb.z])
+        out = lookup(x, volume.d, ray, width)
         if near_gradient > 0 and not lazy:
             scale = near_gradient_scale(dr.detach(volume.distance(ray, t)), near_gradient)
             out = (scale_gradient(out[0], scale), [scale_gradient(f, scale) for f in out[1]])

@@ -26,7 +26,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import OpenEXR
 
-from mi_nerfpp import __version__
+from mi_nerfpp.version import __version__
 from mi_nerfpp.core.color import (COLOR_SPACE, COLOR_SPACE_DESCRIPTION,
                                   REC709_CHROMATICITIES)
 from mi_nerfpp.core.layers import FULL_PRECISION_CHANNELS, rst_table

@@ -136,3 +136,52 @@ def equivalent_blur(pred: np.ndarray, reference: np.ndarray) -> float:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if score(mid) > target else (lo, mid)
     return 0.5 * (lo + hi)
+
+
+# The scale (pixels, Gaussian sigma) that separates an error's low frequencies (what blur or a
+# wrong colour leaves: it survives blurring) from its high frequencies (missing detail, noise).
+SPLIT_SIGMA = 2.0
+
+
+def error_split(pred: np.ndarray, gt: np.ndarray, regions: dict[str, np.ndarray],
+                noise_mse: float = 0.0, sigma: float = SPLIT_SIGMA) -> dict[str, dict]:
+    """Where an image's error is: per region and by frequency.
+
+    ``regions``: ``{name: H x W boolean mask}`` (they may overlap; ``'all'`` is added). The error
+    ``e = pred - gt`` splits into its low frequencies ``e_low = G_sigma * e`` (Gaussian blur per
+    channel) and the residual ``e_high = e - e_low``. Per region: ``pixels`` (share of the
+    image), ``mse``, ``low`` and ``high`` (mean squared ``e_low`` and ``e_high`` there; the two
+    add up to ``mse`` up to their cross term, which is small where the split is clean),
+    ``share`` (of the image's summed squared error), ``psnr``, and ``excess``: ``mse`` less
+    ``noise_mse``, the error a capture's own noise leaves (the MSE between two renders of the
+    ground truth, ``benchmarks/noise_ceiling.py``), never below 0, with its PSNR
+    ``excess_psnr``."""
+    pred, gt = _check_pair(pred, gt)
+    error = pred - gt
+    low = np.stack([gaussian_filter(error[..., c], sigma, mode='reflect')
+                    for c in range(error.shape[-1])], axis=-1)
+    high = error - low
+    squared = np.mean(error ** 2, axis=-1)
+    total = float(squared.sum())
+    regions = dict(regions, all=np.ones(pred.shape[:2], bool))
+    out = {}
+    for name, mask in regions.items():
+        mask = np.asarray(mask, bool)
+        if mask.shape != pred.shape[:2]:
+            raise ValueError(f'region {name!r}: mask shape {mask.shape} does not match the '
+                             f'images {pred.shape[:2]}')
+        if not mask.any():
+            out[name] = {'pixels': 0.0, 'mse': float('nan'), 'low': float('nan'),
+                         'high': float('nan'), 'share': 0.0, 'psnr': float('nan'),
+                         'excess': float('nan'), 'excess_psnr': float('nan')}
+            continue
+        m = float(squared[mask].mean())
+        excess = max(m - noise_mse, 0.0)
+        out[name] = {
+            'pixels': float(mask.mean()), 'mse': m,
+            'low': float(np.mean(low[mask] ** 2)), 'high': float(np.mean(high[mask] ** 2)),
+            'share': float(squared[mask].sum() / total) if total > 0 else 0.0,
+            'psnr': float(10 * np.log10(1.0 / m)) if m > 0 else float('inf'),
+            'excess': excess,
+            'excess_psnr': float(10 * np.log10(1.0 / excess)) if excess > 0 else float('inf')}
+    return out

@@ -8,6 +8,7 @@ import json
 import os
 import re
 import socket
+import stat
 import sys
 import time
 import uuid
@@ -138,7 +139,23 @@ def lock_folder(folder, what: str = 'folder') -> FolderLock:
         _HELD[key][1] += 1
         return FolderLock(folder, key)
     path = os.path.join(folder, LOCK_NAME)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        # Never through a link: a lock file that links to a user's file would overwrite it.
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    except OSError as e:
+        if e.errno == errno.EISDIR:
+            raise ValueError(f'{path!r}: the lock file of this {what} is a folder: remove it '
+                             f'and run again') from None
+        if e.errno != errno.ELOOP:
+            raise
+        raise ValueError(
+            f'{path!r}: the lock file of this {what} is a symbolic link (to '
+            f'{os.readlink(path)!r}); mi-nerfpp does not write through it: remove the link and '
+            f'run again') from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise ValueError(f'{path!r}: the lock file of this {what} is not a regular file: '
+                               f'remove it and run again')
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -251,3 +251,24 @@ def test_lock_folder_refuses_a_second_holder(tmp_path, held):
     child = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
     assert child.returncode == 0 and child.stdout == ''            # free for another process
     assert FolderInUseError.__mro__[1] is RuntimeError
+
+
+def test_a_lock_file_that_is_a_link_is_refused_and_its_target_kept(capsys, capture, tmp_path):
+    """A ``.mi-nerfpp.lock`` that links to a user's file: the lock is never written through it
+    (issue 49, item 7); the command ends in one line naming the link, and the file is intact."""
+    from mi_nerfpp.files.atomic import LOCK_NAME, lock_folder
+    out = tmp_path / 'run'
+    out.mkdir()
+    precious = tmp_path / 'notes.txt'
+    precious.write_text('my notes\n')
+    (out / LOCK_NAME).symlink_to(precious)
+    with pytest.raises(ValueError, match='is a symbolic link .*remove the link'):
+        lock_folder(out)
+    status, _, err = _train(capsys, capture, out)
+    line = one_clear_line(err)
+    assert status == 1 and 'lock file of this run folder (--out) is a symbolic link' in line
+    assert precious.read_text() == 'my notes\n'
+    (out / LOCK_NAME).unlink()
+    (out / LOCK_NAME).mkdir()                    # not a regular file either
+    with pytest.raises(ValueError, match='is a folder: remove it'):
+        lock_folder(out)

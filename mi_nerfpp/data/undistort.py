@@ -50,6 +50,10 @@ CACHE_INDEX = 'cameras.json'
 PARTIAL_SUFFIX = '.partial'
 # Pinhole pixels interpolated per block (bounds the memory of the pixel map of one block).
 _BLOCK_PIXELS = 1 << 21
+# The least share of a photo's area that its undistorted image must keep: coefficients that
+# leave less (k1 = 1e6 leaves a 6x4 crop of a 32x24 photo) are refused, not trained on. COLMAP's
+# pinhole camera keeps no blank pixels, so even sound wide lenses lose their corners.
+MIN_KEPT_SHARE = 0.25
 
 
 def camera_options():
@@ -200,6 +204,8 @@ def undistort_views(views: list[View], out: str, sources: Iterable[str] = (),
               f'to pinhole cameras with COLMAP into {out}/ (once; redone when the cameras or '
               f'images change)')
     pinholes = _pinhole_cameras([view.camera for view in views])
+    for view, pinhole in zip(views, pinholes):
+        check_kept(view, pinhole, what)
     with atomic_folder(out) as tmp, _progress(len(views), progress) as bar:
         maps = {}
         for view, entry, pinhole in zip(views, entries, pinholes):
@@ -248,6 +254,56 @@ def _read_index(path: str) -> dict | None:
             else None
     except (OSError, ValueError):
         return None
+
+
+def kept_share(distorted, pinhole, samples: int = 64) -> float:
+    """The share of the distorted photo that its pinhole image keeps: the lesser of the share
+    of its area that the pinhole image shows (the pinhole image's border mapped into the photo,
+    clipped to it, as a polygon) and of its pixels (k1 = 1e6 keeps the whole view in 6x4
+    pixels of a 32x24 photo); 0 where the mapping is not finite."""
+    w, h = float(pinhole.width), float(pinhole.height)
+    if not (w >= 1 and h >= 1):
+        return 0.0
+    t = (np.arange(samples) + 0.5) / samples
+    zero, one = np.zeros_like(t), np.ones_like(t)
+    border = np.concatenate([np.stack([t * w, zero], 1), np.stack([one * w, t * h], 1),
+                             np.stack([(1 - t) * w, one * h], 1),
+                             np.stack([zero, (1 - t) * h], 1)])
+    with np.errstate(all='ignore'):
+        rays = pinhole.cam_from_img(border)
+        source = distorted.img_from_cam(np.column_stack([rays, np.ones(len(rays))]),
+                                        check_cheirality=False)
+    if not np.all(np.isfinite(source)):
+        return 0.0
+    x = np.clip(source[:, 0], 0.0, float(distorted.width))
+    y = np.clip(source[:, 1], 0.0, float(distorted.height))
+    area = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    photo = float(distorted.width) * float(distorted.height)
+    return min(area / photo, w * h / photo)
+
+
+def check_kept(view: View, pinhole, what: str = ''):
+    """Refuse a view whose undistorted image keeps less than :data:`MIN_KEPT_SHARE` of its
+    photo (absurd coefficients), naming the file, the largest coefficient and the share kept."""
+    distorted = pycolmap_camera(view.camera)
+    try:
+        share = kept_share(distorted, pinhole)
+    except Exception:  # noqa: BLE001 - pycolmap refuses some parameters with ValueError/RuntimeError
+        share = 0.0
+    if share >= MIN_KEPT_SHARE:
+        return
+    names = [n.strip() for n in distorted.params_info.split(',')]
+    coefficients = [(n, float(v)) for n, v in zip(names, view.camera.params)
+                    if n not in ('f', 'fx', 'fy', 'cx', 'cy')]
+    name, value = max(coefficients, key=lambda c: abs(c[1]) if np.isfinite(c[1]) else np.inf,
+                      default=('none', 0.0))
+    raise DatasetError(
+        f'{what or view.image_path}: the lens distortion of {view.image_path} '
+        f'({view.camera.model}, largest coefficient "{name}" = {value:g}) leaves '
+        f'{100 * share:.1f} % of the photo in its undistorted image, less than the '
+        f'{100 * MIN_KEPT_SHARE:.0f} % that must stay: check the coefficients (OpenCV\'s '
+        f'convention, for pixel coordinates normalized by the focal length), or give the '
+        f'images undistorted and drop the coefficients')
 
 
 def _pinhole(out: str, name: str, camera: dict) -> Pinhole:

@@ -6,6 +6,7 @@ image shows what its ray (pycolmap's ``cam_from_img``) sees of a few Gaussian bl
 known 3D points, so where a blob appears in an image is where the camera projects the point.
 """
 import json
+import re
 import os
 import signal
 import subprocess
@@ -428,3 +429,75 @@ def test_unsupported_lenses_name_the_file_and_the_field(tmp_path, keys, field):
     message = str(info.value)
     assert str(tmp_path / 'transforms.json') in message and field in message, message
     assert not os.path.exists(tmp_path / 'transforms_undistorted')
+
+
+def _write_lens(root, keys, n=2, size=(32, 24)):
+    """A transforms.json of ``n`` black ``size`` photos with the lens ``keys``."""
+    w, h = size
+    os.makedirs(root / 'images', exist_ok=True)
+    for i in range(n):
+        iio.imwrite(root / 'images' / f'{i}.png', np.zeros((h, w, 3), np.uint8))
+    cams = [orbit_camera(2 * np.pi * i / n, 0.2, 3.0, w, h, focal=0.8) for i in range(n)]
+    (root / 'transforms.json').write_text(json.dumps({
+        'fl_x': 30.0, 'fl_y': 30.0, 'cx': w / 2, 'cy': h / 2, 'w': w, 'h': h, **keys,
+        'frames': [frame(f'images/{i}.png', cam) for i, cam in enumerate(cams)]}))
+
+
+@pytest.mark.parametrize('keys, coefficient', [
+    ({'k1': 1e6}, '"k1" = 1e+06'), ({'k1': -1e6}, '"k1" = -1e+06'),
+    ({'k1': 1e308}, '"k1" = 1e+308'), ({'p1': 1e6}, '"p1" = 1e+06'),
+    ({'camera_model': 'OPENCV_FISHEYE', 'k1': 1e6, 'k2': 1e6, 'k3': 1e6, 'k4': 1e6}, '= 1e+06'),
+])
+def test_absurd_distortion_is_refused_naming_the_file_the_coefficient_and_the_share(
+        tmp_path, keys, coefficient):
+    """k1 = 1e6 undistorted a 32x24 photo to a 6x4 crop and trained on it (issue 49, item 1)."""
+    _write_lens(tmp_path, keys)
+    with pytest.raises(DatasetError) as info:
+        load_dataset(tmp_path)
+    message = str(info.value)
+    assert message.startswith(str(tmp_path / 'transforms.json'))
+    assert str(tmp_path / 'images' / '0.png') in message and coefficient in message, message
+    share = float(re.search(r'leaves ([\d.]+) % of the photo', message).group(1))
+    assert share < 100 * undistort_module.MIN_KEPT_SHARE
+    assert not os.path.exists(tmp_path / 'transforms_undistorted')
+
+
+def test_random_distortion_coefficients_are_trained_on_only_when_enough_of_the_photo_stays(
+        tmp_path):
+    """Property: for random coefficients (small ones, and one of a magnitude from 1e-4 to 1e8,
+    either sign), a dataset either loads, with undistorted images that keep at least
+    MIN_KEPT_SHARE of each photo, or is refused in one message naming the file and the share
+    kept."""
+    rng = np.random.default_rng(49)
+    refused = loaded = 0
+    for case in range(12):
+        names = ['k1', 'k2', 'p1', 'p2'] if case % 2 else ['k1', 'k2', 'k3', 'k4']
+        keys = {'camera_model': 'OPENCV' if case % 2 else 'OPENCV_FISHEYE'}
+        large = rng.integers(len(names))
+        for k, name in enumerate(names):
+            keys[name] = float(rng.choice([-1, 1])
+                               * 10 ** rng.uniform(-4, 8 if k == large else -2))
+        root = tmp_path / f'case{case}'
+        _write_lens(root, keys)
+        try:
+            dataset = load_dataset(root)
+        except DatasetError as e:
+            assert str(root / 'transforms.json') in str(e) and '% of the photo' in str(e)
+            refused += 1
+            continue
+        loaded += 1
+        distorted = pycolmap.Camera(model=keys['camera_model'], width=32, height=24,
+                                    params=[30.0, 30.0, 16.0, 12.0] + [keys[n] for n in names])
+        pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), distorted)
+        assert undistort_module.kept_share(distorted, pinhole) >= \
+            undistort_module.MIN_KEPT_SHARE
+        assert dataset.train.cameras[0].width * dataset.train.cameras[0].height >= \
+            undistort_module.MIN_KEPT_SHARE * 32 * 24
+    assert refused >= 2 and loaded >= 2           # the draws reach both sides
+
+
+def test_sound_lenses_keep_most_of_the_photo():
+    for _, (_, model, distortion) in LENSES.items():
+        distorted = colmap_camera(cameras(1)[0].K, model, distortion)
+        pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), distorted)
+        assert undistort_module.kept_share(distorted, pinhole) > 0.6, model

@@ -224,14 +224,18 @@ def grid_level_entries(config, domain, levels=None, channels=None) -> list[int]:
     return [max(int(r * q), 4) * r * 2 * r * channels for r, q in zip(levels, ratios)]
 
 
-def grid_plane_entries(config, domain) -> list[int]:
+def grid_plane_entries(config, domain, planes=None, channels=None,
+                       largest: bool = False) -> list[int]:
     """Entries of each plane level of one volume's grid field (its three planes,
-    :func:`~mi_nerfpp.core.fields.plane_shapes`), times ``--grid-channels``."""
+    :func:`~mi_nerfpp.core.fields.plane_shapes`), times ``--grid-channels``; ``largest``: of
+    its largest plane only (one array). ``planes``, ``channels``: in place of the config's."""
     m = config.model
     if not _has_grid(config, domain):
         return []
-    return [sum(h * w for _, (h, w) in plane_shapes(domain, r)) * m.grid_channels
-            for r in m.planes(domain)]
+    planes = m.planes(domain) if planes is None else planes
+    channels = channels or m.grid_channels
+    combine = max if largest else sum
+    return [combine(h * w for _, (h, w) in plane_shapes(domain, r)) * channels for r in planes]
 
 
 def occupancy_cells(config, resolution=None) -> list[int]:
@@ -253,6 +257,8 @@ class Sizes:
     bg_grid_levels: tuple
     grid_channels: int
     occupancy_res: int
+    grid_planes: tuple = ()
+    bg_grid_planes: tuple = ()
 
     @classmethod
     def of(cls, config, **values) -> Sizes:
@@ -261,17 +267,36 @@ class Sizes:
         m = config.model
         fg = values.get('grid_levels') or m.grid_levels
         bg = values.get('bg_grid_levels') or m.bg_grid_levels or fg
+        fg_planes = values.get('grid_planes', m.grid_planes)
+        bg_planes = values.get('bg_grid_planes') or m.bg_grid_planes or fg_planes
         return cls(values.get('batch_rays') or config.schedule.batch_rays,
                    values.get('samples_per_ray') or config.samples_per_ray,
                    tuple(fg), tuple(bg), values.get('grid_channels') or m.grid_channels,
-                   values.get('occupancy_res') or config.sampling.occupancy_res)
+                   values.get('occupancy_res') or config.sampling.occupancy_res,
+                   tuple(fg_planes), tuple(bg_planes))
+
+
+def _grid_parts(config, sizes: Sizes) -> dict:
+    """Entries of the grids by the option that sizes them: ``{option: entries}``."""
+    channels = sizes.grid_channels
+    return _sum_into({}, [
+        ('grid_levels', sum(grid_level_entries(config, 'ball', sizes.grid_levels, channels))),
+        (_levels_option(config, 'inverted_sphere'), sum(grid_level_entries(
+            config, 'inverted_sphere', sizes.bg_grid_levels, channels))),
+        ('grid_planes', sum(grid_plane_entries(config, 'ball', sizes.grid_planes, channels))),
+        (_planes_option(config, 'inverted_sphere'), sum(grid_plane_entries(
+            config, 'inverted_sphere', sizes.bg_grid_planes, channels)))])
+
+
+def _sum_into(parts: dict, items) -> dict:
+    """``parts`` with each ``(option, entries)`` of ``items`` added to its option's entries."""
+    for option, entries in items:
+        parts[option] = parts.get(option, 0) + entries
+    return parts
 
 
 def _entries(config, sizes: Sizes) -> dict:
-    fg = grid_level_entries(config, 'ball', sizes.grid_levels, sizes.grid_channels)
-    bg = grid_level_entries(config, 'inverted_sphere', sizes.bg_grid_levels, sizes.grid_channels)
-    return {'grids': sum(fg + bg + grid_plane_entries(config, 'ball')
-                         + grid_plane_entries(config, 'inverted_sphere')),
+    return {'grids': sum(_grid_parts(config, sizes).values()),
             'occupancy': sum(occupancy_cells(config, sizes.occupancy_res)),
             'samples': sizes.batch_rays * sizes.samples_per_ray}
 
@@ -288,6 +313,13 @@ def _levels_option(config, domain):
     if domain == 'inverted_sphere' and config.model.bg_grid_levels is not None:
         return 'bg_grid_levels'
     return 'grid_levels'
+
+
+def _planes_option(config, domain):
+    """The option that sets the plane levels of ``domain``'s grid."""
+    if domain == 'inverted_sphere' and config.model.bg_grid_planes is not None:
+        return 'bg_grid_planes'
+    return 'grid_planes'
 
 
 def _exceeded(config, machine: Machine, **values):
@@ -313,6 +345,14 @@ def _exceeded(config, machine: Machine, **values):
                 return (option, f'a {"background " if domain != "ball" else ""}level of '
                                 f'resolution {r} has {n:,} entries (--grid-channels '
                                 f'{s.grid_channels}), {array}')
+    for domain, planes in (('ball', s.grid_planes), ('inverted_sphere', s.bg_grid_planes)):
+        for r, n in zip(planes, grid_plane_entries(config, domain, planes, s.grid_channels,
+                                                   largest=True)):
+            if n > MAX_ARRAY_ENTRIES:
+                return (_planes_option(config, domain),
+                        f'a {"background " if domain != "ball" else ""}plane level of '
+                        f'resolution {r} has a plane of {n:,} entries (--grid-channels '
+                        f'{s.grid_channels}), {array}')
     for cells in occupancy_cells(config, s.occupancy_res):
         if cells > MAX_ARRAY_ENTRIES:
             return 'occupancy_res', f'a grid of {cells:,} cells is {array}'
@@ -331,10 +371,8 @@ def _exceeded(config, machine: Machine, **values):
     if heaviest == 'grids':
         if s.grid_channels > default_channels:
             return 'grid_channels', what
-        fg = sum(grid_level_entries(config, 'ball', s.grid_levels, s.grid_channels))
-        bg = sum(grid_level_entries(config, 'inverted_sphere', s.bg_grid_levels,
-                                    s.grid_channels))
-        return _levels_option(config, 'ball' if fg >= bg else 'inverted_sphere'), what
+        parts = _grid_parts(config, s)
+        return max(parts, key=parts.get), what
     if heaviest == 'occupancy':
         return 'occupancy_res', what
     default_batch = type(config.schedule)().batch_rays
@@ -347,8 +385,8 @@ def largest_that_fits(config, option: str, machine: Machine) -> int:
     ``grid_channels``, ``occupancy_res``) with which the config fits on ``machine``; 0 when
     none does."""
     m = config.model
-    if option in ('grid_levels', 'bg_grid_levels'):
-        levels = list(m.grid_levels if option == 'grid_levels' else m.bg_grid_levels)
+    if option in ('grid_levels', 'bg_grid_levels', 'grid_planes', 'bg_grid_planes'):
+        levels = list(getattr(m, option))
         i = levels.index(max(levels))
         values = lambda r: {option: tuple(levels[:i] + [r] + levels[i + 1:])}  # noqa: E731
         high = levels[i]
@@ -358,8 +396,8 @@ def largest_that_fits(config, option: str, machine: Machine) -> int:
         high = {'batch_rays': config.schedule.batch_rays, 'samples': config.samples_per_ray,
                 'grid_channels': m.grid_channels,
                 'occupancy_res': config.sampling.occupancy_res}[option]
-    low = {'grid_levels': 2, 'bg_grid_levels': 2, 'grid_channels': 2,
-           'occupancy_res': 4}.get(option, 1)
+    low = {'grid_levels': 2, 'bg_grid_levels': 2, 'grid_planes': 2, 'bg_grid_planes': 2,
+           'grid_channels': 2, 'occupancy_res': 4}.get(option, 1)
 
     def ok(value):
         return _exceeded(config, machine, **values(value)) is None
@@ -457,7 +495,8 @@ def check(config, run_plan: Plan):
                     config.schedule if option == 'batch_rays' else config.model, option)
     shown = ' '.join(map(str, shown)) if isinstance(shown, tuple) else shown
     largest_text = (f'the finest level fits at resolution {best:,} at most'
-                    if option.endswith('grid_levels') else f'at most {best:,} fits')
+                    if option.endswith(('grid_levels', 'grid_planes'))
+                    else f'at most {best:,} fits')
     if best == 0:
         largest_text = 'not even the smallest value fits: lower the other options'
     raise ValueError(f'{config.flag(option)} {shown} is too large: {what}; {largest_text}')

@@ -547,10 +547,13 @@ class TrainConfig:
         among them)."""
         return flag(type(self), option)
 
-    # The options whose values, raised far enough, blow the parameters up (prior weights and
-    # learning rates): the suspects named when a run diverges.
-    STEP_SIZES = ('tv', 'sparsity', 'distortion', 'opacity_entropy', 'appearance_prior',
-                  'lr_grid', 'lr_mlp', 'lr_appearance', 'lr_poses')
+    @classmethod
+    def step_sizes(cls) -> list[str]:
+        """The options whose values, raised far enough, blow the parameters up - every learning
+        rate (``lr_*``, the final decay included) and every loss weight (help text "weight of
+        ..."): the suspects named when a run diverges."""
+        return [option_name(f) for _, f in options_of(cls)
+                if f.name.startswith('lr_') or f.metadata['help'].startswith('weight of')]
 
     def divergence_hint(self) -> str:
         """What to change when the run's state stops being finite: the prior weights and
@@ -558,7 +561,7 @@ class TrainConfig:
         learning rates."""
         defaults, now = type(self)().options(), self.options()
         raised = []
-        for name in self.STEP_SIZES:
+        for name in self.step_sizes():
             value, default = max(_as_tuple(now[name])), max(_as_tuple(defaults[name]))
             if value > default:
                 raised.append((value / default if default > 0 else math.inf, name, now[name]))

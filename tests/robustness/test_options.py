@@ -56,6 +56,9 @@ def test_largest_seed_trains(capture, tmp_path, capsys):
     (['--occupancy-res', '4096'], '--occupancy-res 4096', {'occupancy_res': 4096}),
     (['--grid-channels', '100000'], '--grid-channels 100000', {'grid_channels': 100_000}),
     (['--bg-grid-levels', '4000'], '--bg-grid-levels 4000', {'bg_grid_levels': (4000,)}),
+    # Blamed --grid-levels 32 128 (issue 49, item 6): the planes are sized on their own.
+    (['--grid-planes', '100000'], '--grid-planes 100000', {'grid_planes': (100_000,)}),
+    (['--bg-grid-planes', '60000'], '--bg-grid-planes 60000', {'bg_grid_planes': (60_000,)}),
 ])
 def test_options_that_size_arrays_name_the_largest_value_that_fits(capsys, tmp_path, option,
                                                                    flag, values):
@@ -249,3 +252,19 @@ def test_an_unexpected_error_is_one_line_naming_the_input(capsys, tmp_path, monk
         assert status == 1 and 'Traceback (most recent call last)' in err
         assert 'ZeroDivisionError: division by zero' in err
         assert err.rstrip().splitlines()[-1].startswith('error: optimize: unexpected ')
+
+
+@pytest.mark.parametrize('name', TrainConfig.step_sizes())
+def test_a_divergence_names_the_step_size_that_was_raised(name):
+    """--lr-final 1e30 or --far-smoothness 1e30 made runs diverge with "lower --lr-grid,
+    --lr-mlp" (issue 49, item 6): every learning rate and loss weight is a suspect, and the one
+    raised is named."""
+    value = (1e30,) if isinstance(getattr(TrainConfig().losses, name, None), tuple) else 1e30
+    hint = TrainConfig().replace(**{name: value}).divergence_hint()
+    flag = TrainConfig().flag(name)
+    assert hint == f'Most likely {flag} 1e+30 (above the default): lower it'
+
+
+def test_the_step_sizes_are_every_learning_rate_and_loss_weight():
+    assert {'lr_final', 'far_smoothness', 'lr_grid', 'tv'} <= set(TrainConfig.step_sizes())
+    assert 'near_gradient' not in TrainConfig.step_sizes()       # a radius, not a step size

@@ -15,7 +15,7 @@ import sys
 
 from mi_nerfpp import _llvm
 from mi_nerfpp._llvm import LLVMNotFoundError
-from mi_nerfpp.version import __version__  # noqa: F401  (mi_nerfpp.__version__)
+from mi_nerfpp.version import __version__
 
 DEFAULT_VARIANT = 'llvm_ad_rgb'
 
@@ -55,4 +55,4 @@ from mi_nerfpp.files.checkpoint import load_checkpoint  # noqa: E402
 from mi_nerfpp.files.checkpoint import save_checkpoint
 from mi_nerfpp.integrator import NeRFPPIntegrator  # noqa: E402
 
-__all__ = ['NeRFPPIntegrator', 'LLVMNotFoundError', 'load_checkpoint', 'save_checkpoint']
+__all__ = ['NeRFPPIntegrator', 'LLVMNotFoundError', '__version__', 'load_checkpoint', 'save_checkpoint']

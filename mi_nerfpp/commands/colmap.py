@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+from mi_nerfpp.commands.arguments import thread_count
 from mi_nerfpp.data.sfm import (CAMERA_MODES, DEFAULT_HOLD,
                                 DEFAULT_MAX_IMAGE_SIZE, DEFAULT_OVERLAP,
                                 MATCHING, run_sfm)
@@ -51,7 +52,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument('--max-image-size', type=int, default=DEFAULT_MAX_IMAGE_SIZE,
                    help='photos are shrunk to this many pixels (longer side) for feature '
                         'extraction (default %(default)s)')
-    p.add_argument('--threads', type=int, default=-1,
+    p.add_argument('--threads', type=thread_count, default=-1,
                    help='CPU threads for COLMAP (default: all)')
     p.set_defaults(func=run)
     return p

@@ -2,8 +2,9 @@
 Nuke and Blender (:mod:`mi_nerfpp.jobs.export`)."""
 from __future__ import annotations
 
-from mi_nerfpp.commands.arguments import positive_int
-from mi_nerfpp.jobs.export import export_run
+from mi_nerfpp.commands.arguments import at_least, positive_float
+from mi_nerfpp.core import budget
+from mi_nerfpp.jobs.export import MIN_RESOLUTION, export_run, largest_resolution
 from mi_nerfpp.jobs.run import open_run
 
 
@@ -12,9 +13,10 @@ def add_parser(sub):
                                       'mesh of its foreground (USD, PLY) for DCC tools')
     p.add_argument('run', help='run folder written by optimize (holds model.npz)')
     p.add_argument('--out', required=True, metavar='DIR', help='folder to write into')
-    p.add_argument('--resolution', type=positive_int, default=128,
-                   help='marching-cubes grid over the unit sphere (default 128)')
-    p.add_argument('--density', type=float,
+    p.add_argument('--resolution', type=at_least(MIN_RESOLUTION), default=128,
+                   help=f'marching-cubes grid over the unit sphere (default 128, at least '
+                        f'{MIN_RESOLUTION})')
+    p.add_argument('--density', type=positive_float,
                    help='density of the proxy surface (default: opacity 1/2 over one grid '
                         'step)')
     p.set_defaults(func=run)
@@ -31,6 +33,11 @@ def run(args):
     except ImportError:
         raise RuntimeError("usd-core is not installed: pip install -e '.[export]' "
                            "(scripts/setup.sh installs it)") from None
+    largest = largest_resolution()
+    if args.resolution > largest:
+        raise ValueError(f'--resolution {args.resolution} is too large: its grid of '
+                         f'{args.resolution ** 3:,} points takes more than this machine\'s '
+                         f'{budget.memory_text()}; the largest that fits is {largest}')
     opened = open_run(args.run)                # errors: reported by mi_nerfpp.commands.cli
     written = export_run(args.run, args.out, args.resolution, args.density, opened=opened)
     for path in written:

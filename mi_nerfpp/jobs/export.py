@@ -42,6 +42,7 @@ import mitsuba as mi
 import numpy as np
 from skimage.measure import marching_cubes
 
+from mi_nerfpp.core import budget
 from mi_nerfpp.core.color import to_srgb8
 from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.data.colmap import read_model
@@ -135,6 +136,21 @@ def write_usd(folder, cameras, video=None, proxy='proxy.usda'):
     stage.GetRootLayer().Save()
     os.replace(path + '.tmp.usda', path)
     return path
+
+
+# The coarsest marching-cubes grid: at 2 or 3 points a side no grid point lies inside the unit
+# sphere but its centre, and the mesh says nothing of the surface.
+MIN_RESOLUTION = 8
+# Bytes per point of the marching-cubes grid: its coordinates (3 float64), the density and
+# the volume (float32), marching cubes' own arrays.
+BYTES_PER_POINT = 48
+
+
+def largest_resolution(memory: int | None = None) -> int:
+    """The largest marching-cubes resolution whose grid fits in ``memory`` bytes (this
+    machine's by default)."""
+    memory = budget.memory_bytes() if memory is None else memory
+    return int(round((memory / BYTES_PER_POINT) ** (1 / 3) - 0.5))
 
 
 def proxy_mesh(model, resolution=128, level=None, chunk=1 << 18):

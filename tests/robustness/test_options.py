@@ -268,3 +268,36 @@ def test_a_divergence_names_the_step_size_that_was_raised(name):
 def test_the_step_sizes_are_every_learning_rate_and_loss_weight():
     assert {'lr_final', 'far_smoothness', 'lr_grid', 'tv'} <= set(TrainConfig.step_sizes())
     assert 'near_gradient' not in TrainConfig.step_sizes()       # a radius, not a step size
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['colmap', 'photos', '--out', 'data', '--threads', '-5'],
+     "--threads: expects -1 (every core) or a whole number of at least 1, got '-5'"),
+    (['export', 'run', '--out', 'x', '--density', '-1'],
+     "--density: expects a finite number above 0, got '-1'"),
+    (['export', 'run', '--out', 'x', '--density', 'nan'],
+     "--density: expects a finite number above 0, got 'nan'"),
+    (['export', 'run', '--out', 'x', '--resolution', '2'],
+     "--resolution: expects a whole number of at least 8, got '2'"),
+])
+def test_command_options_out_of_range_are_refused_by_argparse_naming_them(capsys, argv,
+                                                                         message):
+    """colmap --threads -5 and export --density -1 reached the libraries' own text; export
+    --resolution 2 said "pass a lower --density" (issue 49, items 5 and 6)."""
+    status, _, err = run_cli(capsys, *argv)
+    assert status == 2 and message in err, err
+
+
+def test_an_export_grid_beyond_the_memory_names_the_largest_resolution(capsys, tmp_path):
+    """export --resolution 100000 said "lower --batch-rays, --samples..." (issue 49, item 5)."""
+    from mi_nerfpp.jobs.export import BYTES_PER_POINT, largest_resolution
+    status, _, err = run_cli(capsys, 'export', tmp_path / 'run', '--out', tmp_path / 'x',
+                             '--resolution', '100000')
+    line = one_clear_line(err)
+    best = largest_resolution()
+    assert status == 1 and line == (
+        f"error: export: --resolution 100000 is too large: its grid of 1,000,000,000,000,000 "
+        f"points takes more than this machine's {budget.memory_text()}; the largest that fits "
+        f"is {best}")
+    assert best ** 3 * BYTES_PER_POINT <= budget.memory_bytes() < \
+        (best + 1) ** 3 * BYTES_PER_POINT

@@ -2,8 +2,15 @@
 failed run."""
 from __future__ import annotations
 
+import errno
 import re
 
+# What to do, after the operating system's reason, for the errors a user can fix.
+ADVICE = {
+    errno.ENOSPC: ': free space on that disk or write somewhere else (--out)',
+    errno.EDQUOT: ': free space within your quota or write somewhere else (--out)',
+    errno.EROFS: ': write somewhere else (--out)',
+}
 _EXCEPTION_LINE = re.compile(r'^(?:[A-Za-z_][\w.]*(?:Error|Exception)): (.+)$')
 
 
@@ -15,7 +22,8 @@ def error_line(error: BaseException) -> str:
         error = error.__cause__           # Dr.Jit wraps errors raised inside mi.render
     if isinstance(error, OSError) and error.strerror:
         where = f'{error.filename}: ' if error.filename else ''
-        return f'{where}{error.strerror}'
+        advice = ADVICE.get(error.errno, '')
+        return f'{where}{error.strerror}{advice}'
     text = str(error).strip() or type(error).__name__
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     inner = [m.group(1) for m in map(_EXCEPTION_LINE.match, lines) if m]

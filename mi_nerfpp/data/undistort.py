@@ -93,6 +93,11 @@ def atomic_folder(out: str) -> Iterator[str]:
         DatasetError: the folder cannot be created (e.g. the dataset is on a read-only disk).
     """
     tmp = out + PARTIAL_SUFFIX
+    for path in (out, tmp):
+        if os.path.lexists(path) and not os.path.isdir(path):
+            raise DatasetError(f'{path}: a file stands where the undistorted images are '
+                               f'written (the folder {os.path.basename(out)}/ beside the '
+                               f'dataset file): move it away and run again')
     try:
         shutil.rmtree(tmp, ignore_errors=True)
         os.makedirs(tmp)

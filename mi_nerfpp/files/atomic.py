@@ -54,7 +54,8 @@ def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
     """Yield a temporary path next to ``path``; move it onto ``path`` on success.
 
     The parent directory is created if needed. Readers never see a partially
-    written file, and on error the temporary file is removed.
+    written file, and on error the temporary file is removed; an operating-system error that
+    names no file (a full disk while writing) is given ``path``.
     """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
@@ -66,9 +67,11 @@ def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
     try:
         yield tmp
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
+        if isinstance(e, OSError) and not e.filename:
+            e.filename = path
         raise
 
 

@@ -501,3 +501,17 @@ def test_sound_lenses_keep_most_of_the_photo():
         distorted = colmap_camera(cameras(1)[0].K, model, distortion)
         pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), distorted)
         assert undistort_module.kept_share(distorted, pinhole) > 0.6, model
+
+
+@pytest.mark.parametrize('where', ['', '.partial'])
+def test_a_file_where_the_undistortion_cache_goes_is_named(tmp_path, where):
+    """A file at the cache folder said ".partial: Not a directory" and left the .partial folder
+    (issue 49, item 6)."""
+    _write_lens(tmp_path, {'k1': -0.1})
+    blocker = tmp_path / f'transforms_undistorted{where}'
+    blocker.write_text('not a folder')
+    with pytest.raises(DatasetError, match=re.escape(f'{blocker}: a file stands where the '
+                                                     f'undistorted images are written')):
+        load_dataset(tmp_path)
+    assert blocker.read_text() == 'not a folder'
+    assert sorted(os.listdir(tmp_path)) == sorted(['images', 'transforms.json', blocker.name])

@@ -272,3 +272,20 @@ def test_a_lock_file_that_is_a_link_is_refused_and_its_target_kept(capsys, captu
     (out / LOCK_NAME).mkdir()                    # not a regular file either
     with pytest.raises(ValueError, match='is a folder: remove it'):
         lock_folder(out)
+
+
+def test_a_full_disk_names_the_file_being_written(tmp_path):
+    """"No space left on device" named no path (issue 49, item 6): a write that fails inside
+    an atomic write is given the file it was writing, and the line says what to do."""
+    import errno as errno_module
+
+    from mi_nerfpp.errors import error_line
+    from mi_nerfpp.files.atomic import atomic_write_path
+    target = tmp_path / 'model.npz'
+    with pytest.raises(OSError) as info:
+        with atomic_write_path(target) as tmp:
+            open(tmp, 'w').close()
+            raise OSError(errno_module.ENOSPC, os.strerror(errno_module.ENOSPC))
+    assert error_line(info.value) == (f'{target}: No space left on device: free space on that '
+                                      f'disk or write somewhere else (--out)')
+    assert os.listdir(tmp_path) == []                   # the temporary file is gone

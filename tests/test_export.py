@@ -67,8 +67,12 @@ def test_usd_cameras_are_the_dataset_cameras(exported):
     for prim in stage.Traverse():
         if prim.IsA(UsdGeom.Camera) and prim.GetName() != 'video_orbit':
             split = prim.GetParent().GetName()
-            found[split, prim.GetCustomDataByKey('imageStem')] = prim
-            assert prim.GetDisplayName() == prim.GetCustomDataByKey('imageStem')
+            stem = prim.GetCustomDataByKey('imageStem')
+            found[split, stem] = prim
+            assert prim.GetDisplayName() == stem
+            # A valid identifier, unique over the splits (Blender flattens the hierarchy).
+            assert prim.GetName() == f'{split}_{stem}'
+    assert len({p.GetName() for p in found.values()}) == len(found)
     assert set(found) == set(dataset) and len(found) == 24
     rng = np.random.default_rng(1)
     for (split, stem), prim in found.items():
@@ -213,3 +217,101 @@ def test_blender_builds_the_usd_camera_and_projects_like_the_exr_header(exported
 def pxr_module_file():
     import pxr as module
     return module.__file__
+
+
+# ----------------------------------------------------------------------------- all or nothing
+
+def _files(folder):
+    """``{relative path: bytes}`` of every file under ``folder``."""
+    out = {}
+    for root, _, names in os.walk(folder):
+        for name in names:
+            path = os.path.join(root, name)
+            out[os.path.relpath(path, folder)] = open(path, 'rb').read()
+    return out
+
+
+def _export(run, out, resolution=16, **kw):
+    return export.export_run(run, str(out), resolution=resolution, density=1e-6, **kw)
+
+
+def test_an_export_cut_short_at_any_write_leaves_the_earlier_export_whole(tiny_run, tmp_path,
+                                                                         monkeypatch):
+    """A signal or a full disk during an export over an earlier one left a new proxy beside the
+    old USD files and a stub .tmp.usda (issue 49, item 3). Cut at every write of the export
+    (each file) and at every move of the swap: the folder holds the earlier export or the new
+    one, never a mix, a user's own file stays, and the next export completes."""
+    out = tmp_path / 'dcc'
+    out.mkdir()
+    (out / 'notes.txt').write_text('mine')
+    _export(tiny_run, out)
+    before = _files(out)
+    assert '.export.json' in before and 'scene.usda' in before and 'proxy.ply' in before
+    writers = ['write_ply', 'write_proxy_usd', 'write_usd', 'write_chan', 'atomic_write_path']
+    cut = 0
+    for name in writers:
+        real = getattr(export, name)
+        for k in range(1, 6):
+            calls = []
+
+            def failing(*args, _real=real, _k=k, **kwargs):
+                calls.append(1)
+                if len(calls) == _k:
+                    raise KeyboardInterrupt          # what SIGINT raises; SIGTERM ends the same
+                return _real(*args, **kwargs)
+            monkeypatch.setattr(export, name, failing)
+            try:
+                _export(tiny_run, out, opened=None)
+            except KeyboardInterrupt:
+                cut += 1
+                assert _files(out) == before, (name, k)
+            monkeypatch.setattr(export, name, real)
+    assert cut >= 8
+    # Cut during the swap itself, at each move: the next swap finishes it, to the new export
+    # (a finer proxy than the one before, so that a mix would show).
+    _export(tiny_run, tmp_path / 'reference', resolution=20)
+    new = _files(tmp_path / 'reference')
+    assert new['proxy.ply'] != before['proxy.ply']
+    real_replace = os.replace
+    for k in range(1, 12):
+        moves = []
+
+        def replace(a, b, _k=k):
+            swap = ('.export.partial' in str(a)) != ('.export.partial' in str(b)) \
+                or '.export.old' in str(b)              # a move of the swap, not a write
+            if swap:
+                moves.append(1)
+                if len(moves) == _k:
+                    raise KeyboardInterrupt
+            return real_replace(a, b)
+        monkeypatch.setattr(export.os, 'replace', replace)
+        try:
+            _export(tiny_run, out, resolution=20)
+        except KeyboardInterrupt:
+            pass
+        monkeypatch.setattr(export.os, 'replace', real_replace)
+        export.finish_swap(str(out))
+        after = _files(out)
+        assert after['notes.txt'] == b'mine'
+        del after['notes.txt']
+        assert after == new, k
+        assert not any(name.startswith('.export.partial') or name.startswith('.export.old')
+                       or '.tmp' in name for name in after)
+        _export(tiny_run, out)                      # back to the earlier export for the next cut
+    assert len(moves) < 11                          # every move of the swap was cut once
+
+
+def test_a_model_without_a_surface_exports_its_cameras_and_says_which_density_meshes(
+        tiny_run, tmp_path):
+    """A run whose density never reaches the mesh level exported no cameras at all (issue 49,
+    item 3): the cameras are written, the mesh is skipped with a warning naming a --density."""
+    warnings = []
+    written = export.export_run(tiny_run, str(tmp_path / 'dcc'), resolution=16, density=1e30,
+                                warn=warnings.append)
+    names = {os.path.basename(p) for p in written}
+    assert {'scene.usda', 'train.chan', 'cameras.json'} <= names
+    assert not names & {'proxy.ply', 'proxy.usda'}
+    assert len(warnings) == 1 and 'no proxy mesh' in warnings[0] and '--density ' in warnings[0]
+    stage = Usd.Stage.Open(str(tmp_path / 'dcc' / 'scene.usda'))
+    assert not stage.GetPrimAtPath('/World/proxy')
+    assert len([p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)]) > 10

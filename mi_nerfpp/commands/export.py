@@ -32,7 +32,7 @@ def run(args):
         import pxr  # noqa: F401  # deferred: usd-core is the optional extra [export]
     except ImportError:
         raise RuntimeError("usd-core is not installed: pip install -e '.[export]' "
-                           "(scripts/setup.sh installs it)") from None
+                           "(scripts/setup.sh --test installs it)") from None
     largest = largest_resolution()
     if args.resolution > largest:
         raise ValueError(f'--resolution {args.resolution} is too large: its grid of '

@@ -2,8 +2,10 @@
 
 ``python -m mi_nerfpp export RUN --out DIR`` (:func:`export_run`) writes::
 
-    DIR/scene.usda        USD (usd-core): one UsdGeom.Camera per dataset image, named after the
-                          image file's stem, under /cameras/<split>/; the video's orbit path
+    DIR/scene.usda        USD (usd-core): one UsdGeom.Camera per dataset image under
+                          /cameras/<split>/, named <split>_<image stem> (a valid identifier,
+                          unique over the splits: importers that flatten the hierarchy, such as
+                          Blender's, keep the names); the video's orbit path
                           (python -m mi_nerfpp video's default, 60 frames at 24 fps) as the
                           animated /cameras/video_orbit; the proxy referenced as /proxy
     DIR/proxy.usda        the proxy mesh as a UsdGeom.Mesh (vertex colours: displayColor)
@@ -29,13 +31,24 @@ Camera's film back to the aspect of the images and its rotation order to ZXY bef
 **Proxy.** Marching cubes (scikit-image) on the foreground's density on a ``resolution``³ grid
 over the unit sphere, at the density whose opacity over one grid step is 1/2 (``level``:
 ``ln 2 / step``) unless given; vertex colours are the field's radiance there seen along the
-inward normal, sRGB-encoded.
+inward normal, sRGB-encoded. A model whose density never reaches the level gets no proxy (a
+warning names the largest density reached and a ``--density`` that meshes); the cameras are
+written all the same.
+
+**All or nothing.** An export is written into ``DIR/.export.partial/`` and then moved into
+``DIR`` in place of the files of the export before it (listed in ``DIR/.export.json``); an
+export cut short (a signal, a full disk) leaves the earlier export as it was, and its partial
+folder is removed by the next export, or the move it had begun is finished. Files in ``DIR``
+that no export wrote are left alone.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import shutil
+import sys
 
 import drjit as dr
 import mitsuba as mi
@@ -85,9 +98,20 @@ def usd_camera_values(camera):
         'verticalApertureOffset': (K[1, 2] - camera.height / 2) / camera.height * vertical}
 
 
-def _identifier(name):
+def camera_prim_names(cameras) -> dict:
+    """``{(split, index): prim name}`` of the dataset cameras (``{split: [Camera]}``): the split
+    and the image stem as one valid identifier (``train_000000``), unique over the splits."""
     from pxr import Tf  # deferred: usd-core is the optional extra [export]
-    return Tf.MakeValidIdentifier(name) if name else '_'
+    names, taken = {}, set()
+    for split, cams in cameras.items():
+        for i, camera in enumerate(cams):
+            base = Tf.MakeValidIdentifier(f'{split}_{camera.name or i}')
+            name, k = base, 2
+            while name in taken:
+                name, k = f'{base}_{k}', k + 1
+            taken.add(name)
+            names[split, i] = name
+    return names
 
 
 def _define_camera(stage, path, cameras, times=None):
@@ -116,12 +140,13 @@ def write_usd(folder, cameras, video=None, proxy='proxy.usda'):
     root = UsdGeom.Xform.Define(stage, '/World')
     stage.SetDefaultPrim(root.GetPrim())
     UsdGeom.Scope.Define(stage, '/World/cameras')
+    names = camera_prim_names(cameras)
     for split, cams in cameras.items():
         if not cams:
             continue
         UsdGeom.Scope.Define(stage, f'/World/cameras/{split}')
-        for camera in cams:
-            prim = _define_camera(stage, f'/World/cameras/{split}/{_identifier(camera.name)}',
+        for i, camera in enumerate(cams):
+            prim = _define_camera(stage, f'/World/cameras/{split}/{names[split, i]}',
                                   [camera]).GetPrim()
             prim.SetDisplayName(camera.name)
             prim.SetCustomDataByKey('imageStem', camera.name)
@@ -153,9 +178,13 @@ def largest_resolution(memory: int | None = None) -> int:
     return int(round((memory / BYTES_PER_POINT) ** (1 / 3) - 0.5))
 
 
+class NoSurfaceError(ValueError):
+    """The foreground's density never reaches the proxy's level: nothing to mesh."""
+
+
 def proxy_mesh(model, resolution=128, level=None, chunk=1 << 18):
     """``(vertices (world), faces, colours (linear RGB))`` of the foreground's surface (module
-    docs). Raises ValueError when the density never reaches ``level``."""
+    docs). Raises :class:`NoSurfaceError` when the density never reaches ``level``."""
     step = 2.0 / (resolution - 1)
     level = math.log(2.0) / step if level is None else float(level)
     axis = np.linspace(-1.0, 1.0, resolution)
@@ -170,8 +199,10 @@ def proxy_mesh(model, resolution=128, level=None, chunk=1 << 18):
     density[np.linalg.norm(grid, axis=1) > 1.0] = 0.0
     volume = density.reshape(resolution, resolution, resolution)
     if not volume.max() > level:
-        raise ValueError(f'the foreground density never reaches {level:.4g} (its largest value '
-                         f'is {volume.max():.4g}): nothing to mesh; pass a lower --density')
+        raise NoSurfaceError(
+            f'the foreground density never reaches {level:.4g} on the {resolution}^3 grid (its '
+            f'largest value there is {volume.max():.4g}); --density {0.5 * volume.max():.4g} '
+            f'would mesh where it is densest')
     verts, faces, normals, _ = marching_cubes(volume, level, spacing=(step, step, step))
     verts = verts - 1.0                       # the grid starts at -1 on every axis
     colours = _surface_colour(fg, verts, normals)
@@ -284,11 +315,70 @@ def _sfm_points(dataset_root, sfm):
     return read_model(model_dir).points
 
 
-def export_run(run, out, resolution=128, density=None, opened=None):
-    """Write the files of the module docs for run folder ``run`` into ``out``; returns the
-    paths written. ``opened``: :func:`mi_nerfpp.jobs.run.open_run` of the run, if already read."""
+PARTIAL = '.export.partial'
+OLD = '.export.old'
+MANIFEST = '.export.json'
+
+
+def export_run(run, out, resolution=128, density=None, opened=None, warn=None):
+    """Write the files of the module docs for run folder ``run`` into ``out``, all or nothing
+    (module docs); returns the paths written. ``opened``: :func:`mi_nerfpp.jobs.run.open_run`
+    of the run, if already read; ``warn``: how a skipped proxy is reported."""
     model, meta, _, dataset = opened or open_run(run)
+    warn = warn or (lambda text: print(text, file=sys.stderr, flush=True))
     check_writable_folder(out, 'export folder (--out)')
+    finish_swap(out)
+    staging = os.path.join(out, PARTIAL)
+    shutil.rmtree(staging, ignore_errors=True)
+    os.makedirs(staging)
+    try:
+        names = _write_export(model, meta, dataset, staging, resolution, density, warn)
+        with atomic_write_path(os.path.join(staging, MANIFEST)) as tmp, open(tmp, 'w') as f:
+            json.dump({'files': names}, f)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    finish_swap(out)
+    return [os.path.join(out, name) for name in names]
+
+
+def finish_swap(out):
+    """Move a complete export staged in ``out/.export.partial/`` (its manifest written) into
+    ``out``, in place of the files of the export before it; remove an incomplete one. Also
+    finishes a move that was cut short."""
+    staging, old = os.path.join(out, PARTIAL), os.path.join(out, OLD)
+    manifest = os.path.join(staging, MANIFEST)
+    if not os.path.isfile(manifest):
+        shutil.rmtree(staging, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
+        return
+    with open(manifest) as f:
+        new = json.load(f)['files']
+    os.makedirs(old, exist_ok=True)
+    for name in _previous_export(out):
+        if name not in new:                    # the new export overwrites the others
+            with contextlib.suppress(FileNotFoundError):
+                os.replace(os.path.join(out, name), os.path.join(old, name))
+    for name in new:
+        source = os.path.join(staging, name)
+        if os.path.lexists(source):
+            os.replace(source, os.path.join(out, name))
+    os.replace(manifest, os.path.join(out, MANIFEST))
+    shutil.rmtree(staging, ignore_errors=True)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _previous_export(out) -> list[str]:
+    """The files the last export into ``out`` wrote (its manifest)."""
+    try:
+        with open(os.path.join(out, MANIFEST)) as f:
+            return list(json.load(f)['files'])
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+
+
+def _write_export(model, meta, dataset, out, resolution, density, warn) -> list[str]:
+    """The export's files, written into ``out``; their names."""
     sfm = _undo_sfm(meta.get('dataset'))
     cameras = {name: world_cameras(model, split.cameras, sfm) for name, split in
                (('train', dataset.train), ('validation', dataset.validation),
@@ -296,14 +386,19 @@ def export_run(run, out, resolution=128, density=None, opened=None):
     video = world_cameras(model, orbit_cameras(dataset.train.cameras, VIDEO_FRAMES,
                                                dataset.train.cameras[0]), sfm)
     written = []
-    vertices, faces, colours = proxy_mesh(model, resolution, density)
-    if sfm is not None:
-        vertices = np.stack([sfm.to_world_point(v) for v in vertices]) if len(vertices) else \
-            vertices
-    write_ply(os.path.join(out, 'proxy.ply'), vertices, faces, colours)
-    write_proxy_usd(os.path.join(out, 'proxy.usda'), vertices, faces, colours)
-    written += [os.path.join(out, 'proxy.ply'), os.path.join(out, 'proxy.usda')]
-    written.append(write_usd(out, cameras, video, 'proxy.usda'))
+    try:
+        vertices, faces, colours = proxy_mesh(model, resolution, density)
+    except NoSurfaceError as e:
+        warn(f'warning: export: no proxy mesh: {e}; the cameras are exported')
+        proxy = None
+    else:
+        if sfm is not None and len(vertices):
+            vertices = np.stack([sfm.to_world_point(v) for v in vertices])
+        write_ply(os.path.join(out, 'proxy.ply'), vertices, faces, colours)
+        write_proxy_usd(os.path.join(out, 'proxy.usda'), vertices, faces, colours)
+        written += [os.path.join(out, 'proxy.ply'), os.path.join(out, 'proxy.usda')]
+        proxy = 'proxy.usda'
+    written.append(write_usd(out, cameras, video, proxy))
     points = _sfm_points(meta.get('dataset'), sfm)
     if points is not None and len(points):
         write_ply(os.path.join(out, 'sfm_points.ply'), points)
@@ -321,4 +416,4 @@ def export_run(run, out, resolution=128, density=None, opened=None):
         json.dump({'frame': 'capture world (normalization undone)', 'cameras': table}, f,
                   indent=1)
     written.append(os.path.join(out, 'cameras.json'))
-    return written
+    return [os.path.relpath(path, out) for path in written]

@@ -2,8 +2,9 @@
 # Idempotent set-up of what the main job needs: libLLVM >= 17 (Dr.Jit's CPU backend), a virtual
 # environment in .venv, and this package installed in it (editable). `scripts/setup.sh --test`
 # adds what the tests use: oiiotool (the compositing tests composite the EXR layers with it),
-# Blender (the export test builds its camera from the USD headless) and the package's test,
-# cluster and export extras (the Ray and usd-core tests run).
+# Blender (the export test builds its camera from the USD headless), Blender 4.2 as a Python
+# module in .venv-bpy (its USD importer, which Debian's Blender lacks, reads the export) and the
+# package's test, cluster and export extras (the Ray and usd-core tests run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 tests=0
@@ -52,3 +53,16 @@ fi
 extras=""
 [ "$tests" = 1 ] && extras="[test,cluster,export]"
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".${extras}"
+
+# Blender 4.2 as a Python module (pip bpy, Python 3.11 only) in its own environment: its USD
+# importer reads the export in the tests.
+if [ "$tests" = 1 ] && [ ! -x .venv-bpy/bin/python ]; then
+    if python3 -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else 1)'; then
+        echo "setup: installing bpy 4.2 into .venv-bpy (Blender's USD importer, for the tests)"
+        python3 -m venv .venv-bpy
+        .venv-bpy/bin/python -m pip install -q --disable-pip-version-check 'bpy==4.2.23' \
+            || { rm -rf .venv-bpy; echo "setup: could not install bpy 4.2" >&2; exit 1; }
+    else
+        echo "setup: bpy 4.2 needs Python 3.11: the Blender USD import test will fail" >&2
+    fi
+fi

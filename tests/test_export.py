@@ -315,3 +315,38 @@ def test_a_model_without_a_surface_exports_its_cameras_and_says_which_density_me
     stage = Usd.Stage.Open(str(tmp_path / 'dcc' / 'scene.usda'))
     assert not stage.GetPrimAtPath('/World/proxy')
     assert len([p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)]) > 10
+
+
+BPY_IMPORT = r'''
+import json, sys
+import bpy
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.wm.usd_import(filepath=sys.argv[1])
+cameras = {o.name: {'lens': o.data.lens, 'sensor': o.data.sensor_width}
+           for o in bpy.data.objects if o.type == 'CAMERA'}
+print('CAMERAS ' + json.dumps(cameras))
+'''
+
+
+def test_blenders_usd_importer_keeps_one_named_camera_per_image(exported, tmp_path):
+    """Blender 4.2's USD importer (pip bpy: Debian's Blender has none) flattens the prim
+    hierarchy; the cameras arrived as _00000, _00000.001, ... (issue 49, item 3). Each
+    arrives as <split>_<image stem>, one per image, with the USD lens."""
+    python = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                          '.venv-bpy', 'bin', 'python')
+    if not os.path.exists(python):
+        pytest.fail('bpy 4.2 is not installed: run scripts/setup.sh --test (it makes .venv-bpy)')
+    run, out = exported
+    script = tmp_path / 'import.py'
+    script.write_text(BPY_IMPORT)
+    done = subprocess.run([python, str(script), os.path.join(out, 'scene.usda')],
+                          capture_output=True, text=True, timeout=300)
+    line = next((x for x in done.stdout.splitlines() if x.startswith('CAMERAS ')), None)
+    assert line, done.stdout + done.stderr
+    cameras = json.loads(line[len('CAMERAS '):])
+    expected = {f'{split}_{stem}' for split, stem in _dataset_cameras(run)} | {'video_orbit'}
+    assert set(cameras) == expected
+    stage = Usd.Stage.Open(os.path.join(out, 'scene.usda'))
+    lens = UsdGeom.Camera(stage.GetPrimAtPath('/World/cameras/train/train_000000'))
+    assert cameras['train_000000']['lens'] == pytest.approx(lens.GetFocalLengthAttr().Get(),
+                                                          rel=1e-5)

@@ -185,3 +185,13 @@ def test_a_deferred_import_without_a_reason_is_found(tmp_path):
                     '    import json\n    return json\n')
     assert deferred_imports(str(path)) == [(4, 'import ray  # deferred: an optional extra', True),
                                            (5, 'import json', False)]
+
+
+def test_every_module_says_its_job_in_its_first_docstring_line():
+    missing = []
+    for module, path in modules(ROOT, 'mi_nerfpp').items():
+        with open(path, encoding='utf-8') as f:
+            doc = ast.get_docstring(ast.parse(f.read(), path))
+        if not doc or not doc.strip().splitlines()[0].strip():
+            missing.append(module)
+    assert not missing, f'modules without a one-line docstring of their job: {missing}'

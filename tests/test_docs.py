@@ -175,9 +175,10 @@ FOREIGN_OPTIONS = {
     'docs/compositing.md': {'--ch', '--over', '--add', '--tocolorspace', '--flatten',
                             '--deepmerge'},
     'docs/rendering.md': {'--tocolorspace', '--flatten', '--deepmerge'},
+    'docs/testing.md': {'--test'},                                   # scripts/setup.sh --test
     'docs/videos-and-ray.md': {'--head', '--port', '--address', '--node-ip-address', '--num-cpus',
                                '--block', '--nodes', '--ntasks-per-node', '--cpus-per-task',
-                               '--exclusive', '--run'},
+                               '--exclusive', '--run', '--test'},
 }
 
 

@@ -5,12 +5,16 @@ Two variants are accepted: ``llvm_ad_rgb`` (the CPU, Dr.Jit's LLVM backend; the 
 this order of precedence (:func:`choose`):
 
 1. the variant the caller already selected with ``mi.set_variant`` before the import;
-2. the environment variable ``MI_NERFPP_VARIANT``;
-3. ``llvm_ad_rgb``: the CPU stays the default, CUDA only when asked for.
+2. on the command line, its option ``--variant NAME`` (before or after the command);
+3. the environment variable ``MI_NERFPP_VARIANT``;
+4. ``llvm_ad_rgb``: the CPU stays the default, CUDA only when asked for.
 
-On the command line, ``--variant`` (before or after the command) asks for one; a variant other
-than the one the process selected runs the command anew in a process that selects it
-(:mod:`mi_nerfpp.commands.cli`). A CUDA variant is checked when it is selected: without a CUDA
+The command line's ``--variant`` is read here, from ``sys.argv``, when the package is imported
+as the start of the command line (:func:`command_line`), because the import selects the variant
+before argparse reads the arguments: so ``--variant cuda_ad_rgb`` needs no libLLVM, and the
+process starts once. (Should argparse still find another variant, e.g. from an abbreviated
+``--var``, the command runs anew in a process that selects it: :mod:`mi_nerfpp.commands.cli`.)
+A CUDA variant is checked when it is selected: without a CUDA
 driver or GPU the import raises :class:`VariantError` with one line that says so and what to do,
 and the command line (``python -m mi_nerfpp``, ``mi-nerfpp``, ``optimize.py``) prints that line
 as ``error: <command>: ...`` and exits with status 1 (:func:`exit_if_command_line`).
@@ -53,10 +57,12 @@ def is_llvm(variant: str) -> bool:
     return variant.startswith('llvm_')
 
 
-def choose(selected: str | None = None, environ=os.environ) -> tuple[str, str]:
+def choose(selected: str | None = None, environ=os.environ,
+           option: str | None = None) -> tuple[str, str]:
     """``(variant, where the choice came from)``: ``selected`` (the variant the caller selected
-    in Mitsuba, or None), else ``MI_NERFPP_VARIANT``, else :data:`DEFAULT`. Raises
-    :class:`VariantError` for a variant mi_nerfpp does not run on."""
+    in Mitsuba, or None), else ``option`` (the command line's ``--variant``, when it names one
+    of :data:`VARIANTS`; argparse refuses other values), else ``MI_NERFPP_VARIANT``, else
+    :data:`DEFAULT`. Raises :class:`VariantError` for a variant mi_nerfpp does not run on."""
     if selected is not None:
         if selected not in VARIANTS:
             raise VariantError(
@@ -64,6 +70,8 @@ def choose(selected: str | None = None, environ=os.environ) -> tuple[str, str]:
                 f"'{selected}' is selected: select one of them before importing mi_nerfpp, or "
                 f"none ({ENV} then chooses)")
         return selected, SELECTED
+    if option in VARIANTS:
+        return option, OPTION
     value = environ.get(ENV, '').strip()
     if not value:
         return DEFAULT, 'default'
@@ -98,9 +106,10 @@ def check_available(variant: str, source: str) -> None:
         raise cuda_missing(source)
 
 
-def select(environ=os.environ) -> str:
-    """Choose the variant (:func:`choose`), make its backend ready and select it in Mitsuba;
-    returns it. An LLVM variant needs libLLVM (:func:`mi_nerfpp._llvm.configure`, which raises
+def select(environ=os.environ, argv=None) -> str:
+    """Choose the variant (:func:`choose`; ``--variant`` from ``argv``, default ``sys.argv``,
+    when it is the command line's), make its backend ready and select it in Mitsuba; returns
+    it. An LLVM variant needs libLLVM (:func:`mi_nerfpp._llvm.configure`, which raises
     :class:`~mi_nerfpp._llvm.LLVMNotFoundError`); a CUDA variant a CUDA backend
     (:func:`check_available`), and libLLVM only if one is there, so that Dr.Jit's CPU backend,
     which it starts as well, does not pick an old one."""
@@ -111,7 +120,9 @@ def select(environ=os.environ) -> str:
             selected = mi.variant()
         except Exception:
             selected = None
-    variant, source = choose(selected, environ)
+    argv = sys.argv if argv is None else argv
+    option = option_value(argv) if command_line(argv)[0] else None
+    variant, source = choose(selected, environ, option)
     if is_llvm(variant):
         _llvm.configure(environ)
     else:
@@ -150,6 +161,20 @@ def command_line(argv=None) -> tuple[bool, str | None]:
         elif not word.startswith('-'):
             return True, word
     return True, None
+
+
+def option_value(argv) -> str | None:
+    """The value of ``--variant NAME`` / ``--variant=NAME`` in ``argv[1:]`` (the last one given,
+    as argparse takes it), up to a ``--``; None without one."""
+    value, words = None, iter(argv[1:])
+    for word in words:
+        if word == '--':
+            break
+        if word == '--variant':
+            value = next(words, None)
+        elif word.startswith('--variant='):
+            value = word.partition('=')[2]
+    return value
 
 
 def exit_if_command_line(error: ImportError, argv=None) -> None:

@@ -53,6 +53,20 @@ def test_the_choice_is_the_callers_variant_then_the_variable_then_the_cpu():
         ('cuda_ad_rgb', 'MI_NERFPP_VARIANT')
     assert variant.choose('llvm_ad_rgb', {'MI_NERFPP_VARIANT': 'cuda_ad_rgb'}) == \
         ('llvm_ad_rgb', 'mi.set_variant')
+    # The command line's --variant: over the variable, under the caller's; argparse refuses
+    # what it does not know.
+    env = {'MI_NERFPP_VARIANT': 'cuda_ad_rgb'}
+    assert variant.choose(None, env, 'llvm_ad_rgb') == ('llvm_ad_rgb', '--variant')
+    assert variant.choose(None, env, 'cuda') == ('cuda_ad_rgb', 'MI_NERFPP_VARIANT')
+    assert variant.choose('llvm_ad_rgb', {}, 'cuda_ad_rgb') == ('llvm_ad_rgb', 'mi.set_variant')
+
+
+def test_the_variant_option_is_read_from_the_command_line():
+    assert variant.option_value(['-m', '--variant', 'cuda_ad_rgb', 'render']) == 'cuda_ad_rgb'
+    assert variant.option_value(['-m', 'render', 'x', '--variant=llvm_ad_rgb']) == 'llvm_ad_rgb'
+    assert variant.option_value(['-m', '--variant', 'a', 'render', '--variant', 'b']) == 'b'
+    assert variant.option_value(['-m', 'sweep', '--', '--variant', 'cuda_ad_rgb']) is None
+    assert variant.option_value(['-m', 'render', '--variant']) is None
 
 
 def test_a_variant_it_does_not_run_on_is_refused_naming_the_choices():
@@ -146,6 +160,25 @@ def test_a_bad_variant_option_is_a_usage_error(capsys):
     assert status == 2 and "argument --variant: invalid choice: 'scalar_rgb'" in err
     r = _python(['-m', 'mi_nerfpp', 'render', 'x.xml', '--variant', 'cuda'])
     assert r.returncode == 2 and "argument --variant: invalid choice: 'cuda'" in r.stderr
+
+
+@needs_llvm
+def test_the_variant_option_wins_over_the_variable(tmp_path):
+    r = _python(['-m', 'mi_nerfpp', 'render', *_small_render(tmp_path), '--variant',
+                 'llvm_ad_rgb'], MI_NERFPP_VARIANT='cuda_ad_rgb')
+    assert r.returncode == 0 and r.stdout.startswith('wrote'), r.stderr
+
+
+@needs_no_cuda
+def test_the_cuda_option_needs_no_libllvm():
+    """On a GPU machine without libLLVM, --variant cuda_ad_rgb must get as far as CUDA: here,
+    with libLLVM hidden, it ends at the missing driver, not at libLLVM."""
+    r = _python(['-m', 'mi_nerfpp', '--variant', 'cuda_ad_rgb', 'render', 'x.xml'],
+                DRJIT_LIBLLVM_PATH=os.path.join(ROOT, 'no-libLLVM.so'))
+    assert r.returncode == 1 and r.stdout == '' and 'Traceback' not in r.stderr
+    # Above the line: Dr.Jit's own words on the missing libLLVM.
+    assert r.stderr.rstrip().splitlines()[-1].startswith(
+        'error: render: ' + NO_CUDA.format('--variant')), r.stderr
 
 
 @needs_no_cuda

@@ -11,14 +11,15 @@ command) or ``MI_NERFPP_DEBUG=1`` prints the traceback above the line. Ctrl-C en
 with status 130. Usage errors (an unknown option, a value of the wrong type) are argparse's:
 usage and message, status 2.
 
-``--variant {llvm_ad_rgb,cuda_ad_rgb}`` (before or after the command) chooses the backend, as
-``MI_NERFPP_VARIANT`` does (:mod:`mi_nerfpp.variant`). The package has selected its variant by
-the time the arguments are read (importing it selects one), and Mitsuba's classes, the
-integrator among them, belong to one variant, so a process does not change its variant: a
-``--variant`` other than the selected one is checked here (no CUDA: the one-line error), then
-the command runs anew, ``python -m mi_nerfpp ARGS`` with ``MI_NERFPP_VARIANT`` set, in place of
-this process (``os.execve``). A caller of :func:`main` from Python (``argv`` given) chooses the
-variant before importing mi_nerfpp instead, and gets the error line for another one.
+``--variant {llvm_ad_rgb,cuda_ad_rgb}`` (before or after the command) chooses the backend, over
+``MI_NERFPP_VARIANT``. Importing the package selects the variant, before these arguments are
+parsed, so the package reads ``--variant`` from the command line itself
+(:mod:`mi_nerfpp.variant`). A process keeps its variant (Mitsuba's classes, the integrator's
+among them, belong to one), so should the parsed ``--variant`` still differ from the selected
+one (an abbreviated ``--var``), it is checked here (no CUDA: the one-line error) and the command
+runs anew, ``python -m mi_nerfpp ARGS`` with ``MI_NERFPP_VARIANT`` set, in place of this process
+(``os.execve``). A caller of :func:`main` from Python (``argv`` given) chooses the variant before
+importing mi_nerfpp, and gets the error line for another one.
 """
 from __future__ import annotations
 

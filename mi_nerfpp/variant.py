@@ -12,7 +12,8 @@ this order of precedence (:func:`choose`):
 The command line's ``--variant`` is read here, from ``sys.argv``, when the package is imported
 as the start of the command line (:func:`command_line`), because the import selects the variant
 before argparse reads the arguments: so ``--variant cuda_ad_rgb`` needs no libLLVM, and the
-process starts once. (Should argparse still find another variant, e.g. from an abbreviated
+process starts once. It is passed on as ``MI_NERFPP_VARIANT`` to the processes the command
+starts (Ray workers on this machine, say). (Should argparse still find another variant, e.g. from an abbreviated
 ``--var``, the command runs anew in a process that selects it: :mod:`mi_nerfpp.commands.cli`.)
 A CUDA variant is checked when it is selected: without a CUDA
 driver or GPU the import raises :class:`VariantError` with one line that says so and what to do,
@@ -123,6 +124,8 @@ def select(environ=os.environ, argv=None) -> str:
     argv = sys.argv if argv is None else argv
     option = option_value(argv) if command_line(argv)[0] else None
     variant, source = choose(selected, environ, option)
+    if source == OPTION:       # the processes the command starts (Ray workers) choose the same
+        environ[ENV] = variant
     if is_llvm(variant):
         _llvm.configure(environ)
     else:

@@ -163,6 +163,15 @@ def test_a_bad_variant_option_is_a_usage_error(capsys):
 
 
 @needs_llvm
+def test_the_variant_option_is_passed_on_to_the_processes_a_command_starts():
+    code = ('import os, sys; sys.argv = ["-m", "render", "--variant", "llvm_ad_rgb"]\n'
+            'import mi_nerfpp, mitsuba as mi\n'
+            'print(mi.variant(), os.environ["MI_NERFPP_VARIANT"])')
+    r = _python(['-c', code], MI_NERFPP_VARIANT='cuda_ad_rgb')
+    assert r.returncode == 0 and r.stdout.split() == ['llvm_ad_rgb', 'llvm_ad_rgb'], r.stderr
+
+
+@needs_llvm
 def test_the_variant_option_wins_over_the_variable(tmp_path):
     r = _python(['-m', 'mi_nerfpp', 'render', *_small_render(tmp_path), '--variant',
                  'llvm_ad_rgb'], MI_NERFPP_VARIANT='cuda_ad_rgb')

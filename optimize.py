@@ -9,4 +9,4 @@ import sys
 from mi_nerfpp.commands.cli import main
 
 if __name__ == '__main__':
-    sys.exit(main(['optimize'] + sys.argv[1:]))
+    sys.exit(main(['optimize'] + sys.argv[1:], replace=True))

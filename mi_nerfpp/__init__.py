@@ -2,57 +2,40 @@
 
 Importing the package
 
-1. points Dr.Jit at a libLLVM >= 17 when ``DRJIT_LIBLLVM_PATH`` is unset (and
-   fails with :class:`LLVMNotFoundError` saying what to install when none exists),
-2. selects the ``llvm_ad_rgb`` variant unless the caller already chose one
-   (``cuda_ad_rgb`` is accepted but untested: ``drjit.nn`` inside a Mitsuba plugin is
-   reported to crash on CUDA, mitsuba3 issue 1825),
-3. registers the ``nerfpp`` integrator with Mitsuba.
+1. chooses the Mitsuba variant (:mod:`mi_nerfpp.variant`): the one the caller already selected,
+   else ``MI_NERFPP_VARIANT``, else ``llvm_ad_rgb`` (the CPU); ``cuda_ad_rgb`` runs on an
+   NVIDIA GPU, and fails here with :class:`VariantError` where there is no CUDA driver or GPU,
+2. for ``llvm_ad_rgb``, points Dr.Jit at a libLLVM >= 17 when ``DRJIT_LIBLLVM_PATH`` is unset
+   (and fails with :class:`LLVMNotFoundError` saying what to install when none exists),
+3. selects the variant and registers the ``nerfpp`` integrator with Mitsuba.
+
+On the command line (``python -m mi_nerfpp``, ``mi-nerfpp``, ``optimize.py``) these errors end
+the process with one line, ``error: <command>: ...``, and exit status 1.
 """
 from __future__ import annotations
 
-import sys
-
-from mi_nerfpp import _llvm
+from mi_nerfpp import variant
 from mi_nerfpp._llvm import LLVMNotFoundError
+from mi_nerfpp.variant import VariantError
 from mi_nerfpp.version import __version__
 
-DEFAULT_VARIANT = 'llvm_ad_rgb'
-
-
-def _chosen_variant():
-    """The Mitsuba variant the caller already selected, or None."""
-    mi = sys.modules.get('mitsuba')
-    if mi is None:
-        return None
-    try:
-        return mi.variant()
-    except Exception:
-        return None
+DEFAULT_VARIANT = variant.DEFAULT
 
 
 def _setup():
-    chosen = _chosen_variant()
-    if chosen is None or chosen.startswith('llvm'):
-        _llvm.configure()
-    import mitsuba as mi  # deferred: Dr.Jit reads DRJIT_LIBLLVM_PATH (set above) when it loads
-    if chosen is None:
-        mi.set_variant(DEFAULT_VARIANT)
-    variant = mi.variant()
-    if '_ad_' not in variant or not variant.endswith('rgb'):
-        raise ImportError(
-            f"mi_nerfpp needs a differentiable RGB Mitsuba variant (llvm_ad_rgb or "
-            f"cuda_ad_rgb), but '{variant}' is selected. Call "
-            f"mi.set_variant('{DEFAULT_VARIANT}') before importing mi_nerfpp.")
-    from mi_nerfpp.integrator import \
-        register  # deferred: its module needs the variant set
+    variant.select()
+    from mi_nerfpp.integrator import register  # deferred: its module needs the variant set
     register()
 
 
-_setup()
+try:
+    _setup()
+except (LLVMNotFoundError, VariantError) as e:
+    variant.exit_if_command_line(e)
+    raise
 
-from mi_nerfpp.files.checkpoint import load_checkpoint  # noqa: E402
-from mi_nerfpp.files.checkpoint import save_checkpoint
+from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from mi_nerfpp.integrator import NeRFPPIntegrator  # noqa: E402
 
-__all__ = ['NeRFPPIntegrator', 'LLVMNotFoundError', '__version__', 'load_checkpoint', 'save_checkpoint']
+__all__ = ['NeRFPPIntegrator', 'LLVMNotFoundError', 'VariantError', '__version__',
+           'load_checkpoint', 'save_checkpoint']

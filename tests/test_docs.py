@@ -174,10 +174,12 @@ def test_the_reference_documents_exactly_the_integrators_parameters(reference_pa
 FOREIGN_OPTIONS = {
     'docs/compositing.md': {'--ch', '--over', '--add', '--tocolorspace', '--flatten',
                             '--deepmerge'},
-    'docs/rendering.md': {'--tocolorspace', '--flatten', '--deepmerge'},
+    'docs/rendering.md': {'--tocolorspace', '--flatten', '--deepmerge',
+                          '--cpu-only'},                          # benchmarks/gpu_check.sh
+    'docs/testing.md': {'--test'},                                   # scripts/setup.sh --test
     'docs/videos-and-ray.md': {'--head', '--port', '--address', '--node-ip-address', '--num-cpus',
                                '--block', '--nodes', '--ntasks-per-node', '--cpus-per-task',
-                               '--exclusive', '--run'},
+                               '--exclusive', '--run', '--test'},
 }
 
 

@@ -10,6 +10,16 @@ the input the command was working on (:func:`subject`). ``--debug`` (before or a
 command) or ``MI_NERFPP_DEBUG=1`` prints the traceback above the line. Ctrl-C ends a command
 with status 130. Usage errors (an unknown option, a value of the wrong type) are argparse's:
 usage and message, status 2.
+
+``--variant {llvm_ad_rgb,cuda_ad_rgb}`` (before or after the command) chooses the backend, over
+``MI_NERFPP_VARIANT``. Importing the package selects the variant, before these arguments are
+parsed, so the package reads ``--variant`` from the command line itself
+(:mod:`mi_nerfpp.variant`). A process keeps its variant (Mitsuba's classes, the integrator's
+among them, belong to one), so should the parsed ``--variant`` still differ from the selected
+one (an abbreviated ``--var``), it is checked here (no CUDA: the one-line error) and the command
+runs anew, ``python -m mi_nerfpp ARGS`` with ``MI_NERFPP_VARIANT`` set, in place of this process
+(``os.execve``). A caller of :func:`main` from Python (``argv`` given) chooses the variant before
+importing mi_nerfpp, and gets the error line for another one.
 """
 from __future__ import annotations
 
@@ -18,12 +28,18 @@ import os
 import sys
 import traceback
 
+import mitsuba as mi
+
+from mi_nerfpp import variant
+from mi_nerfpp._llvm import LLVMNotFoundError
 from mi_nerfpp.commands import (colmap, evaluate, export, optimize, render,
                                 sweep, synth, video)
 from mi_nerfpp.errors import error_line
 
 DEBUG_ENV = 'MI_NERFPP_DEBUG'
 COMMANDS = (render, optimize, synth, evaluate, video, sweep, colmap, export)
+VARIANT_HELP = (f'the backend: llvm_ad_rgb, the CPU (default), or cuda_ad_rgb, an NVIDIA GPU '
+                f'(also: {variant.ENV}=NAME)')
 
 
 def build_parser():
@@ -31,12 +47,16 @@ def build_parser():
                                 description='NeRF++ for Mitsuba 3: render, optimize, evaluate.')
     p.add_argument('--debug', action='store_true',
                    help=f'print the traceback of an error (also: {DEBUG_ENV}=1)')
+    p.add_argument('--variant', choices=tuple(variant.VARIANTS), default=None,
+                   help=VARIANT_HELP)
     sub = p.add_subparsers(dest='command', required=True)
     for command in COMMANDS:
         command.add_parser(sub)
     for parser in sub.choices.values():     # also after the command: optimize ... --debug
         parser.add_argument('--debug', action='store_true', default=argparse.SUPPRESS,
                             help=f'print the traceback of an error (also: {DEBUG_ENV}=1)')
+        parser.add_argument('--variant', choices=tuple(variant.VARIANTS),
+                            default=argparse.SUPPRESS, help=VARIANT_HELP)
     return p
 
 
@@ -56,7 +76,8 @@ def subject(args) -> str:
 
 def describe(error: BaseException, args) -> str:
     """The one line of an error (without ``error: <command>: ``)."""
-    if isinstance(error, (ValueError, RuntimeError, OSError)):
+    if isinstance(error, (ValueError, RuntimeError, OSError, variant.VariantError,
+                          LLVMNotFoundError)):
         return error_line(error)
     what = subject(args)
     where = f' while working on {what}' if what else ''
@@ -67,9 +88,34 @@ def describe(error: BaseException, args) -> str:
             f'--debug for the traceback and report it)')
 
 
-def main(argv=None):
+def run_in_variant(args, argv, replace: bool) -> None:
+    """For a ``--variant`` other than this process's: raise :class:`~mi_nerfpp.variant.VariantError`
+    when this machine cannot run it, or when ``replace`` is false (a caller from Python); else
+    replace this process by ``python -m mi_nerfpp ARGV`` that selects it (does not return)."""
+    wanted, current = getattr(args, 'variant', None), mi.variant()
+    if not wanted or wanted == current:
+        return
+    variant.check_available(wanted, variant.OPTION)
+    if not replace:
+        raise variant.VariantError(
+            f'--variant {wanted}: this process runs {current}, selected when mi_nerfpp was '
+            f'imported, and a process keeps its variant: set {variant.ENV}={wanted} (or call '
+            f"mi.set_variant('{wanted}')) before importing mi_nerfpp")
+    command = [sys.executable, '-m', 'mi_nerfpp', *argv]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execve(sys.executable, command, dict(os.environ, **{variant.ENV: wanted}))
+
+
+def main(argv=None, *, replace=None):
+    """Run the command of ``argv`` (default: this program's arguments) and return its exit
+    status. ``replace``: whether a ``--variant`` other than this process's may replace the
+    process by one that selects it (default: when ``argv`` is None, i.e. main is the program;
+    ``optimize.py`` passes True)."""
     args = build_parser().parse_args(argv)
     try:
+        run_in_variant(args, sys.argv[1:] if argv is None else list(argv),
+                       argv is None if replace is None else replace)
         return args.func(args) or 0
     except KeyboardInterrupt:
         print('interrupted', file=sys.stderr)

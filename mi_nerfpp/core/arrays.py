@@ -1,4 +1,4 @@
-"""Dr.Jit arrays from NumPy that own their memory.
+"""Dr.Jit arrays from NumPy that own their memory, and which backend they live on.
 
 Converting a NumPy array to a Dr.Jit array may map the NumPy buffer instead of copying it
 (when it is suitably aligned); releasing such an array later needs a host callback, which a
@@ -12,6 +12,13 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+
+
+def llvm_backend() -> bool:
+    """Whether the selected variant runs on Dr.Jit's LLVM backend (the CPU, ``llvm_ad_rgb``)
+    rather than CUDA: the settings measured on the CPU (Dr.Jit's thread count, scatter
+    expansion, packed networks) apply there only."""
+    return dr.backend_v(mi.Float) == dr.JitBackend.LLVM
 
 
 def owned(values, tp=None):

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 
 import drjit as dr
 
+from mi_nerfpp.core.arrays import llvm_backend
 from mi_nerfpp.core.fields import plane_shapes
 
 # Dr.Jit 1.x: "jit_var_counter(): tried to create an array with N entries, which exceeds the
@@ -179,7 +180,9 @@ def available_bytes() -> int:
 class Machine:
     """What a plan is made against: physical ``memory`` (bytes; what the options must fit
     in), the memory ``available`` when the run starts (what the images share) and Dr.Jit's
-    worker ``threads``."""
+    worker ``threads`` (each holds a copy of the large grids' gradients on the CPU; none on
+    CUDA, where a step's gradients are not expanded per thread). On CUDA the arrays live in
+    the GPU's memory, which is not read: the plan is made against the host's."""
     memory: int
     available: int
     threads: int
@@ -187,7 +190,7 @@ class Machine:
     @classmethod
     def here(cls) -> Machine:
         """This machine, now."""
-        return cls(memory_bytes(), available_bytes(), dr.thread_count())
+        return cls(memory_bytes(), available_bytes(), dr.thread_count() if llvm_backend() else 0)
 
 
 # ----------------------------------------------------------------------------- a run's arrays

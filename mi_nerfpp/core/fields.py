@@ -21,7 +21,7 @@ Three field kinds, chosen per volume by the ``field`` XML parameter:
   takes ``γ^10(x)`` and ``γ^10(d)`` together at its input.
 
 MLPs are ``drjit.nn`` networks: tensor mode while training, packed
-cooperative vectors while rendering (see :class:`_Net`).
+cooperative vectors while rendering on the CPU, tensor mode on CUDA (see :class:`_Net`).
 
 Every field keeps its learnable arrays in ``self.params`` (name -> ``TensorXf``);
 that dict is the single source of truth that the integrator exposes through
@@ -29,10 +29,13 @@ that dict is the single source of truth that the integrator exposes through
 """
 from __future__ import annotations
 
+import os
+
 import drjit as dr
 import drjit.nn as nn
 import mitsuba as mi
 
+from mi_nerfpp.core.arrays import llvm_backend
 from mi_nerfpp.core.geometry import ball_warp, grid_coordinates
 
 DOMAINS = {'ball': 3, 'inverted_sphere': 4}
@@ -45,6 +48,21 @@ COLOR_MODES = ('deferred', 'sample')
 # above deferred colour in four runs of five (0.1 dB below in the fifth), with 25 % fewer
 # steps (CHANGELOG.md, 2026-11-26).
 BACKGROUND_COLOR = 'sample'
+# Whether a network that is not being differentiated runs as a packed cooperative-vector network
+# fused into the kernel that renders (True) or in tensor mode (False), by backend: packed on the
+# CPU (LLVM), about 8x faster there (:class:`_Net`); tensor mode on CUDA, where ``drjit.nn``'s
+# cooperative vectors inside a Mitsuba plugin are reported to crash with an OptiX illegal memory
+# access (mitsuba3 issue 1825). ``MI_NERFPP_PACKED=1`` (or ``0``) chooses packed (or tensor
+# mode) on any backend, to try the other way.
+PACKED_ENV = 'MI_NERFPP_PACKED'
+
+
+def _packed_default() -> bool:
+    value = os.environ.get(PACKED_ENV, '').strip()
+    return value == '1' if value in ('0', '1') else llvm_backend()
+
+
+PACKED_INFERENCE = _packed_default()
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -179,7 +197,8 @@ class _Net:
     any weight is being differentiated — a training step measured 91 ms against
     229 ms with packed cooperative vectors — and as a packed cooperative-vector
     network fused into the rendering kernel otherwise (about 8x faster than
-    tensor mode for inference on this CPU).
+    tensor mode for inference on this CPU), unless :data:`PACKED_INFERENCE` is off
+    (on CUDA): then in tensor mode too, detached.
     """
 
     def __init__(self, field, prefix, module, n_in, rng):
@@ -204,7 +223,7 @@ class _Net:
 
     def __call__(self, inputs):
         """List of input Floats -> list of output Floats."""
-        if self._bind():
+        if self._bind() or not PACKED_INFERENCE:
             return unrows(self.module(rows(inputs)))
         packed = nn.pack(self.module, layout='inference')
         return list(packed(nn.CoopVec(*inputs)))

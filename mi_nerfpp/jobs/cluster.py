@@ -28,6 +28,7 @@ import threading
 
 import drjit as dr
 
+from mi_nerfpp.core.arrays import llvm_backend
 from mi_nerfpp.files.checkpoint import load_checkpoint
 from mi_nerfpp.output.video import render_frames
 from mi_nerfpp.output.views import ViewRenderer
@@ -163,8 +164,10 @@ def cluster_cpus(ray) -> int:
 
 
 def set_threads(cpus):
-    """Dr.Jit's CPU threads for this process (a worker uses the CPUs Ray gave it)."""
-    dr.set_thread_count(max(1, int(cpus)))
+    """Dr.Jit's CPU threads for this process (a worker uses the CPUs Ray gave it), on the CPU
+    backend; on CUDA the GPU runs the kernels and the thread pool is left as it is."""
+    if llvm_backend():
+        dr.set_thread_count(max(1, int(cpus)))
 
 
 class FrameWorker:

@@ -1,4 +1,4 @@
-"""Fitting the foreground and background volumes to posed images (Dr.Jit AD on the CPU).
+"""Fitting the foreground and background volumes to posed images (Dr.Jit AD, CPU or GPU).
 
 One training step: draw a batch of random rays across all training images, render
 them with :func:`mi_nerfpp.core.render.render_rays` (the same code the integrator uses),
@@ -38,7 +38,7 @@ import numpy as np
 
 from mi_nerfpp.core import appearance as app
 from mi_nerfpp.core import poses
-from mi_nerfpp.core.arrays import owned
+from mi_nerfpp.core.arrays import llvm_backend, owned
 from mi_nerfpp.core.frame import reframe_cameras
 from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.core.profiling import stage
@@ -56,7 +56,8 @@ from mi_nerfpp.training.config import TrainConfig, default_minutes, per_volume
 # costs a fixed memset and reduction per step, atomics a cost per sample. Measured on the default
 # capture (median step, `benchmarks/train.py --batch-rays B`): 1,024 rays of 48 samples 31.5 ms
 # with atomics against 42.5 ms expanded, 2,048 rays 43.5 against 50.1 ms, 4,096 rays 71.9
-# against 65.8 ms.
+# against 65.8 ms. Expansion is Dr.Jit's LLVM backend's (on 2 cores, measured); on CUDA a step
+# keeps Dr.Jit's defaults (:meth:`Trainer._step`).
 GRADIENT_EXPAND_THRESHOLD = 1 << 25
 EXPAND_MIN_SAMPLES = 1 << 17
 # Whether a step's atomic gradient sums first add up, within a SIMD packet, the operands that
@@ -64,7 +65,8 @@ EXPAND_MIN_SAMPLES = 1 << 17
 # the default capture: the grids' gradient kernels 8.8 against 13.6 ms per step (kernel
 # history, two runs one after the other), and steps 1.01-1.06x as fast side by side in five
 # runs (`python benchmarks/versus.py train --base HEAD --rounds 16`): the pre-reduction costs
-# more than the atomic collisions it saves.
+# more than the atomic collisions it saves. Measured on the CPU (LLVM), and set there only: CUDA
+# keeps its default (a warp's pre-reduction, what the flag was made for).
 GRADIENT_LOCAL_REDUCTION = False
 
 
@@ -331,6 +333,8 @@ class Trainer:
         # tracing the step in Python took ~18 of ~76 ms (README, "Measured performance").
         self._compute = (dr.freeze(self._forward_backward) if config.schedule.freeze
                          else self._forward_backward)
+        # The scatter-reduction settings measured on the CPU (see GRADIENT_*) apply on LLVM.
+        self._llvm = llvm_backend()
 
     # ------------------------------------------------------------------ optimizer state
     def _optimizer_state(self):
@@ -400,16 +404,19 @@ class Trainer:
         # array that maps NumPy memory cannot be recorded (:mod:`.arrays`).
         collecting = gc.isenabled()
         gc.disable()
-        threshold = dr.expand_threshold()
-        local = dr.flag(dr.JitFlag.ScatterReduceLocal)
-        dr.set_flag(dr.JitFlag.ScatterReduceLocal, GRADIENT_LOCAL_REDUCTION)
-        if self.cfg.schedule.batch_rays * self.cfg.samples_per_ray >= EXPAND_MIN_SAMPLES:
-            dr.set_expand_threshold(GRADIENT_EXPAND_THRESHOLD)
+        llvm = self._llvm
+        if llvm:
+            threshold = dr.expand_threshold()
+            local = dr.flag(dr.JitFlag.ScatterReduceLocal)
+            dr.set_flag(dr.JitFlag.ScatterReduceLocal, GRADIENT_LOCAL_REDUCTION)
+            if self.cfg.schedule.batch_rays * self.cfg.samples_per_ray >= EXPAND_MIN_SAMPLES:
+                dr.set_expand_threshold(GRADIENT_EXPAND_THRESHOLD)
         try:
             loss, fine = self._compute(inputs)
         finally:
-            dr.set_expand_threshold(threshold)
-            dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
+            if llvm:
+                dr.set_expand_threshold(threshold)
+                dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
             if collecting:
                 gc.enable()
         self._non_finite = inputs['non_finite']   # the step's guard (see parameters_finite)

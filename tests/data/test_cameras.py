@@ -1,13 +1,12 @@
 """Camera conventions and projection (mi_nerfpp.data.cameras)."""
 
+import mi_nerfpp  # noqa: F401  (the variant: MI_NERFPP_VARIANT's, or llvm_ad_rgb)
 import mitsuba as mi
 import numpy as np
 import pytest
 
 from mi_nerfpp.data import cameras
 from mi_nerfpp.data.cameras import Camera
-
-mi.set_variant('llvm_ad_rgb')
 
 def random_rotation(rng):
     q, r = np.linalg.qr(rng.normal(size=(3, 3)))

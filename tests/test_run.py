@@ -87,9 +87,8 @@ def test_prepare_refuses_a_run_folder_that_holds_a_run(capture, tmp_path):
 
 
 def test_default_job_takes_the_default_budget_unless_one_is_given(monkeypatch):
-    import mi_nerfpp.data.synth
     from mi_nerfpp.training.config import DEFAULT_JOB_EVAL_AT, DEFAULT_JOB_MINUTES
-    monkeypatch.setattr(mi_nerfpp.data.synth, 'default_capture', lambda progress: 'the capture')
+    monkeypatch.setattr(run, 'default_capture', lambda progress: 'the capture')
     data, options = run.default_job({'iterations': None, 'minutes': None, 'eval_at': None})
     assert data == 'the capture'
     assert options == {'iterations': None, 'minutes': DEFAULT_JOB_MINUTES,

@@ -20,11 +20,12 @@ from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.jobs.cluster import (FramePool, FrameWorker, check_address,
                                     cluster_cpus, session, timeout_line)
 from mi_nerfpp.jobs.run import open_run
-from mi_nerfpp.output.camera_path import (DEFAULT_FPS, cameras_path,
-                                          path_cameras, read_path, write_path)
-from mi_nerfpp.output.video import (check_video_path, orbit_cameras,
+from mi_nerfpp.output.camera_path import (DEFAULT_FPS, path_cameras,
+                                          read_path, write_path)
+from mi_nerfpp.output.video import (BUILT_IN_PATHS, built_in_cameras,
+                                    built_in_path, check_video_path,
                                     pending_frames, prepare_frames_dir,
-                                    read_frames, resized, write_video)
+                                    read_frames, write_video)
 
 
 def add_parser(sub):
@@ -68,36 +69,6 @@ def add_ray_options(p, what):
     p.add_argument('--ray', nargs='?', const='auto', metavar='auto|ADDRESS',
                    help=f'{what}: auto joins the running cluster (ray start) or starts a local '
                         f'one; ADDRESS joins that cluster. Needs pip install -e \'.[cluster]\'')
-
-
-BUILT_IN_PATHS = ('orbit', 'test')
-# Keyframes of the orbit when it is written as a path file (--write-path): enough for the
-# editor's spline to stay close to the circle.
-ORBIT_KEYFRAMES = 8
-
-
-def built_in_cameras(name, dataset, frames=60, res=None):
-    """The model-frame cameras of a built-in path: ``orbit`` (``frames`` cameras around the
-    scene) or ``test`` (the dataset's test cameras), at the training images' size or ``res``."""
-    template = dataset.train.cameras[0]
-    if res:
-        template = resized(template, *res)
-    if name == 'orbit':
-        return orbit_cameras(dataset.train.cameras, frames, template)
-    cameras = [resized(c, template.width, template.height) for c in dataset.test.cameras]
-    if not cameras:
-        raise ValueError(f'{dataset.root} has no test cameras: use --path orbit')
-    return cameras
-
-
-def built_in_path(name, dataset, normalization, frames=60, res=None, fps=DEFAULT_FPS):
-    """A built-in path (``orbit``, ``test``) as a camera path (world frame) that the viewer's
-    editor loads: its frames are the video's cameras; its keyframes a few of the orbit's
-    (closed loop), or every test camera."""
-    cameras = built_in_cameras(name, dataset, frames, res)
-    if name == 'orbit':
-        return cameras_path(cameras, normalization, fps, loop=True, keyframes=ORBIT_KEYFRAMES)
-    return cameras_path(cameras, normalization, fps)
 
 
 def cameras_of(args):

@@ -180,19 +180,15 @@ def camera_pose(camera: Camera, normalization=None) -> Pose:
 
 
 def cameras_path(cameras, normalization=None, fps=DEFAULT_FPS, loop=False,
-                 keyframes: int | None = None) -> CameraPath:
+                 keyframes=None) -> CameraPath:
     """A path whose frames are ``cameras`` (a built-in path of ``video``: the orbit, the test
-    cameras), at their resolution, and whose keyframes are ``keyframes`` of them evenly spaced
-    (all of them by default), so that it loads into the viewer's editor."""
+    cameras), at their resolution, and whose keyframes are the cameras ``keyframes`` (default:
+    ``cameras`` themselves), so that it loads into the viewer's editor."""
     cameras = list(cameras)
     if not cameras:
         raise ValueError('a camera path needs at least one camera')
     frames = [camera_pose(c, normalization) for c in cameras]
-    if keyframes is None or keyframes >= len(frames):
-        keys = list(frames)
-    else:
-        keys = [frames[i] for i in np.linspace(0, len(frames), keyframes, endpoint=not loop,
-                                               dtype=int) if i < len(frames)]
+    keys = frames if keyframes is None else [camera_pose(c, normalization) for c in keyframes]
     return CameraPath([Pose(k.c2w, k.fov_y) for k in keys], frames,
                       (cameras[0].width, cameras[0].height), float(fps), bool(loop),
                       len(frames) / float(fps))

@@ -19,11 +19,11 @@ import sys
 import traceback
 
 from mi_nerfpp.commands import (colmap, evaluate, export, optimize, render,
-                                sweep, synth, video)
+                                sweep, synth, video, view)
 from mi_nerfpp.errors import error_line
 
 DEBUG_ENV = 'MI_NERFPP_DEBUG'
-COMMANDS = (render, optimize, synth, evaluate, video, sweep, colmap, export)
+COMMANDS = (render, optimize, synth, evaluate, video, sweep, colmap, export, view)
 
 
 def build_parser():

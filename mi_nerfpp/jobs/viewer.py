@@ -37,6 +37,7 @@ import os
 import socket
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import imageio.v3 as iio
@@ -217,6 +218,8 @@ class Viewer:
     def __init__(self, model, splits, run_dir=None, host='127.0.0.1', port=8080,
                  training=False, max_width=DEFAULT_MAX_WIDTH, color_space='srgb'):
         viser = require_viser()
+        # A page that closes while its view renders: the image is dropped, which viser says.
+        warnings.filterwarnings('ignore', message='Queued a .* on a closed connection')
         self.model, self.splits, self.run_dir = model, splits, run_dir
         self.training, self.max_width = training, int(max_width)
         self.color_space = color_space
@@ -241,6 +244,7 @@ class Viewer:
         self.port = self.server.get_port()
         self.host = host
         self._build_scene(splits, color_space)
+        self._warm_up(splits.train.cameras[0])
         self._build_gui()
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
@@ -296,9 +300,17 @@ class Viewer:
             ring = np.cos(t)[:, None] * a + np.sin(t)[:, None] * b
             segments.append(np.stack([ring[:-1], ring[1:]], axis=1))
         self.sphere = scene.add_line_segments('/unit_sphere', np.concatenate(segments),
-                                              colors=(90, 160, 90), line_width=1.5)
+                                              colors=(90, 160, 90), thickness=1.5,
+                                              thickness_units='screen')
         self.path_line = None
         self.key_handles = []
+
+    def _warm_up(self, camera):
+        """Render the first camera once at :data:`MOVING_WIDTH` (the integrator's kernels
+        loaded before the first page asks for a view)."""
+        width = MOVING_WIDTH
+        height = max(1, int(round(width * camera.height / camera.width)))
+        self.renderer.render(pose_camera(camera_pose(camera), width, height))
 
     def _go_to(self, cam):
         def go(event):
@@ -547,7 +559,7 @@ class Viewer:
         if len(points) > 1:
             self.path_line = scene.add_line_segments(
                 '/path/line', np.stack([points[:-1], points[1:]], axis=1),
-                colors=KEYFRAME_COLOR, line_width=2.0)
+                colors=KEYFRAME_COLOR, thickness=2.0, thickness_units='screen')
         frames = len(self.path.frames)
         self.frame.max = max(frames - 1, 1)
         self.path_status.content = (f'{len(self.path.keyframes)} keyframes, {frames} frames of '

@@ -38,6 +38,7 @@ import socket
 import threading
 import time
 import warnings
+from collections import deque
 from dataclasses import dataclass, field
 
 import imageio.v3 as iio
@@ -235,6 +236,10 @@ class Viewer:
         self.path = CameraPath()
         self.preview_cameras: list = []     # cameras the last path preview rendered (model frame)
         self.last_render_seconds = 0.0
+        # What was sent to the pages, newest last: (time.monotonic() when sent, width, height,
+        # seconds it took, stage); and the last image sent (the benchmark reads them).
+        self.sent = deque(maxlen=4096)
+        self.last_image = None
         self._stats_shown = 0.0
         self._model_mtime = self._mtime()
         self._checked = time.monotonic()
@@ -487,6 +492,8 @@ class Viewer:
         except (AssertionError, ZeroDivisionError):      # the page went away meanwhile
             return time.perf_counter() - t0
         seconds = time.perf_counter() - t0
+        self.sent.append((time.monotonic(), camera.width, camera.height, seconds, stage))
+        self.last_image = image
         view.stage, view.model_version = stage, version
         view.rendered_at, view.last_camera = time.monotonic(), camera
         self.last_render_seconds = seconds

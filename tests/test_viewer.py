@@ -245,6 +245,24 @@ def served(tiny_run):
     viewer.close()
 
 
+def test_the_editor_loads_the_built_in_paths_as_video_makes_them(served, tmp_path):
+    from mi_nerfpp.output.video import built_in_path
+    viewer = served
+    viewer.width.value, viewer.height.value = 48, 27
+    for name in ('orbit', 'test'):
+        viewer.builtin.value = name
+        viewer._load_builtin()
+        expected = built_in_path(name, viewer.splits, viewer.normalization, res=(48, 27))
+        assert len(viewer.path.frames) == len(expected.frames)
+        assert all(np.allclose(a.c2w, b.c2w) for a, b in zip(viewer.path.frames,
+                                                              expected.frames))
+        viewer.save_path(str(tmp_path / f'{name}.json'))
+        saved = read_path(tmp_path / f'{name}.json')
+        assert len(saved.keyframes) == len(expected.keyframes) and saved.loop == (name == 'orbit')
+    viewer._edit_keys(lambda keys: [])
+    assert viewer.path.frames == []
+
+
 def settled(viewer):
     """The one view of the page, once its camera stood still for a second (the orbit controls
     glide on after a drag) and its last refinement was rendered and shown."""

@@ -49,7 +49,8 @@ import mi_nerfpp  # noqa: E402,F401
 from mi_nerfpp.commands.cli import main as cli  # noqa: E402
 from mi_nerfpp.files.checkpoint import read_meta  # noqa: E402
 from mi_nerfpp.jobs import bench, run  # noqa: E402
-from mi_nerfpp.jobs.viewer import ViewerObserver, open_viewer  # noqa: E402
+from mi_nerfpp.jobs.viewer import (ViewerObserver, open_viewer,  # noqa: E402
+                                   render_widths)
 from mi_nerfpp.output.camera_path import path_cameras, read_path  # noqa: E402
 from mi_nerfpp.training.config import TrainConfig  # noqa: E402
 from tests.test_viewer import Page, free_port, wait_for  # noqa: E402
@@ -79,6 +80,14 @@ SHOWN_LEVELS = 30
 def region(image):
     h, w = image.shape[:2]
     return image[int(0.35 * h):int(0.85 * h), int(0.12 * w):int(0.6 * w)].astype(np.float64)
+
+
+def refined(viewer):
+    """Whether the one page's view was rendered at its last refinement."""
+    views = list(viewer.views.values())
+    if len(views) != 1 or views[0].key is None:
+        return False
+    return views[0].stage == len(render_widths(views[0].key[4], viewer.max_width)) - 1
 
 
 def first_frame(run_dir, driver):
@@ -143,7 +152,7 @@ def moving(run_dir, driver, seconds):
     page = Page(driver)
     driver.get(viewer.url)
     wait_for(lambda: 'Add keyframe' in page.text(), 60, 'the page')
-    wait_for(lambda: viewer.sent and viewer.sent[-1][4] >= 2, 120, 'the refined view')
+    wait_for(lambda: refined(viewer), 120, 'the refined view')
     time.sleep(1)
     updates = []
     for view in list(viewer.views.values()):
@@ -175,7 +184,7 @@ def moving_camera(run_dir, driver, seconds):
     page = Page(driver)
     driver.get(viewer.url)
     wait_for(lambda: 'Add keyframe' in page.text(), 60, 'the page')
-    wait_for(lambda: viewer.sent and viewer.sent[-1][4] >= 2, 120, 'the refined view')
+    wait_for(lambda: refined(viewer), 120, 'the refined view')
     time.sleep(1)
     (view,) = list(viewer.views.values())
     camera = view.client.camera
@@ -323,7 +332,7 @@ def screenshot(run_dir, driver, path):
     page = Page(driver)
     driver.get(viewer.url)
     wait_for(lambda: 'Add keyframe' in page.text(), 60, 'the page')
-    wait_for(lambda: viewer.sent and viewer.sent[-1][4] >= 2, 60, 'a refined frame')
+    wait_for(lambda: refined(viewer), 60, 'a refined frame')
     from selenium.webdriver.common.by import By
     for button in driver.find_elements(By.CSS_SELECTOR, '.mantine-Notification-closeButton'):
         button.click()                  # the notice that the browser has no GPU

@@ -729,6 +729,8 @@ class Viewer:
         if batch and s.elapsed > 0:
             s.rays_per_second = s.iteration * batch / s.elapsed
         s.state = 'model.npz'
+        if metrics and 'test' in metrics and metrics.get('iterations') == s.iteration:
+            s.state = 'finished run'
         if metrics:
             for p in metrics.get('progress', []):
                 s.held_out.append((int(p['iteration']), float(p['psnr']), 'all'))

@@ -244,7 +244,7 @@ class Viewer:
         # seconds it took, stage); and the last image sent (the benchmark reads them).
         self.sent = deque(maxlen=4096)
         self.last_image = None
-        self._stats_shown = 0.0
+        self._stats_shown = self._status_shown = 0.0
         self._model_mtime = self._mtime()
         self._checked = time.monotonic()
         check_port(host, port)
@@ -513,8 +513,11 @@ class Viewer:
         view.stage, view.model_version = stage, version
         view.rendered_at, view.last_camera = time.monotonic(), camera
         self.last_render_seconds = seconds
-        self.status.content = (f'{view.layer}, {camera.width}x{camera.height}: '
-                               f'{seconds * 1000:.0f} ms')
+        if stage > 0 or time.monotonic() - self._status_shown > STATS_SECONDS:
+            # Not at every moving view: each update redraws the page's panel too.
+            self._status_shown = time.monotonic()
+            self.status.content = (f'{view.layer}, {camera.width}x{camera.height}: '
+                                   f'{seconds * 1000:.0f} ms')
         return seconds
 
     def _advance_playback(self):

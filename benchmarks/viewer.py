@@ -12,8 +12,8 @@ dataset the training rounds train on (default: RUN's own dataset). Measured:
    page opens) so that the screenshot shows the model alone
    (the page connected, the first view rendered and sent);
 2. **frames/s while the camera moves**: the canvas 960x540 (so that a moving view is 320x180),
-   the camera turned about the scene 60 times a second from the server for ``--drag`` seconds
-   (as a browser with a GPU sends it), then the mouse dragging in the page (trusted mouse events
+   the camera turned about the scene 20 times a second from the server for ``--drag`` seconds
+   (faster than the viewer renders), then the mouse dragging in the page (trusted mouse events
    through Chrome's DevTools protocol; the page sends its camera at its own frame rate, here
    software WebGL): the views sent per second, and the render time of each;
 3. **training with the viewer open**: ``--rounds`` rounds, each training ``--steps`` steps on
@@ -173,10 +173,12 @@ def moving(run_dir, driver, seconds):
             if frames else None}
 
 
-def moving_camera(run_dir, driver, seconds):
-    """Views sent per second while the camera of the open page turns about the scene 60 times a
-    second, set from the server (as fast as a browser with a GPU sends its camera): the rate
-    the viewer renders moving views at, whatever the browser's own frame rate."""
+def moving_camera(run_dir, driver, seconds, rate=20):
+    """Views sent per second while the camera of the open page turns about the scene, set from
+    the server ``rate`` times a second (faster than the viewer renders: every view it renders
+    is of a new camera; a browser with a GPU sends its camera at its frame rate): the rate the
+    viewer renders moving views at, whatever the browser's own frame rate. Each camera set
+    also makes the page redraw, which here is software WebGL on the same cores."""
     viewer = open_viewer(run_dir, port=free_port())
     stop = threading.Event()
     thread = threading.Thread(target=viewer.serve, args=(stop,), daemon=True)
@@ -194,12 +196,12 @@ def moving_camera(run_dir, driver, seconds):
     start = len(viewer.sent)
     angle = 0.0
     while time.monotonic() - t0 < seconds:
-        angle += 0.01
+        angle += 0.6 / rate
         rotation = Rotation.from_rotvec(angle * up / np.linalg.norm(up))
         with view.client.atomic():
             camera.position = rotation.apply(center)
             camera.look_at = (0.0, 0.0, 0.0)
-        time.sleep(1 / 60)
+        time.sleep(1 / rate)
     t1 = time.monotonic()
     frames = [f for f in list(viewer.sent)[start:] if t0 <= f[0] <= t1 and f[4] == 0]
     stop.set()
@@ -348,7 +350,7 @@ def main():
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('run')
     ap.add_argument('--data', help="dataset of the training rounds (default: the run's)")
-    ap.add_argument('--rounds', type=int, default=2)
+    ap.add_argument('--rounds', type=int, default=5)
     ap.add_argument('--steps', type=int, default=600)
     ap.add_argument('--drag', type=float, default=6.0, help='seconds of dragging')
     ap.add_argument('--screenshot', help='also save a screenshot of the page here')
@@ -369,7 +371,7 @@ def main():
               f"{move['render_ms']:.0f} ms; the page sent "
               f"{move['camera_updates_per_second']:.1f} camera updates/s)", flush=True)
         server_move = moving_camera(a.run, driver, a.drag)
-        print(f"moving (camera set 60 times/s): {server_move['fps']:.1f} frames/s "
+        print(f"moving (camera set 20 times/s): {server_move['fps']:.1f} frames/s "
               f"({server_move['frames']} frames in {server_move['seconds']:.1f} s, sizes "
               f"{server_move['sizes']}, median render {server_move['render_ms']:.0f} ms)",
               flush=True)
@@ -401,7 +403,7 @@ def main():
         bench.table('Targets', ['target', 'wanted', 'measured', 'met'], [
             ['first frame on screen after opening the page (s)', '<= 3', first['visible'],
              'yes' if first['visible'] is not None and first['visible'] <= 3 else 'no'],
-            ['frames/s at 320x180 while the camera moves (set 60 times/s)', '>= 5',
+            ['frames/s at 320x180 while the camera moves (set 20 times/s)', '>= 5',
              server_move['fps'], 'yes' if server_move['fps'] >= 5 else 'no'],
             ['frames/s at 320x180 while the mouse drags in the page', '>= 5', move['fps'],
              'yes' if move['fps'] >= 5 else 'no'],
@@ -427,7 +429,7 @@ def main():
                      'c2w (EXR header, float32)', 'fovY (EXR header, float32)'],
                     [[drawn['previewed'], drawn['c2w'], drawn['fov'], drawn['header_c2w'],
                       drawn['header_fov']]])],
-        notes=f'Run {a.run}. Moving views with the camera set from the server 60 times a '
+        notes=f'Run {a.run}. Moving views with the camera set from the server 20 times a '
               f'second: {server_move["frames"]} in {server_move["seconds"]:.1f} s, median '
               f'render {server_move["render_ms"]:.0f} ms; with the mouse dragging in the page: '
               f'{move["frames"]} in {move["seconds"]:.1f} s, median render '

@@ -349,7 +349,7 @@ class Viewer:
                                                      self.show_sphere.value))
         with gui.add_folder('Training'):
             self.stats_text = gui.add_markdown('')
-            self.psnr_plot = None
+            self.psnr_plots, self._plot_folder = {}, None
             if self.training:
                 self.pause = gui.add_button('Pause training')
                 self.pause.on_click(lambda _: self._toggle_pause())
@@ -672,27 +672,26 @@ class Viewer:
         self._plot_held_out()
 
     def _plot_held_out(self):
-        points = self.stats.held_out
-        if not points:
-            return
-        steps = sorted({p[0] for p in points})
-        where = {step: i for i, step in enumerate(steps)}
-        series = {kind: np.full(len(steps), np.nan) for kind in ('all', 'preview')}
-        for step, psnr, kind in points:
-            series[kind][where[step]] = psnr
-        data = (np.array(steps, dtype=np.float64), series['all'], series['preview'])
-        if self.psnr_plot is None:
-            with self._plot_gui.add_folder('Held-out PSNR (dB)'):
-                self.psnr_plot = self._plot_gui.add_uplot(
-                    data=data, series=(
-                        {'label': 'step'},
-                        {'label': 'all held-out views', 'stroke': 'orange', 'width': 2,
-                         'spanGaps': True, 'points': {'show': True}},
-                        {'label': 'preview view', 'stroke': 'steelblue', 'width': 1.5,
-                         'spanGaps': True, 'points': {'show': True}}),
-                    aspect=1.6)
-        else:
-            self.psnr_plot.data = data
+        """One plot per kind of held-out point, PSNR against step (uPlot draws nothing of a
+        series with gaps as viser sends them, so the kinds are not put on one x axis)."""
+        for kind, label, colour in (('all', 'all held-out views', 'orange'),
+                                    ('preview', 'the preview view', 'steelblue')):
+            points = [p for p in self.stats.held_out if p[2] == kind]
+            if not points:
+                continue
+            data = (np.array([p[0] for p in points], dtype=np.float64),
+                    np.array([p[1] for p in points], dtype=np.float64))
+            if kind in self.psnr_plots:
+                self.psnr_plots[kind].data = data
+                continue
+            if self._plot_folder is None:
+                self._plot_folder = self._plot_gui.add_folder('Held-out PSNR (dB)')
+            with self._plot_folder:
+                self.psnr_plots[kind] = self._plot_gui.add_uplot(
+                    data=data, series=({'label': 'step'},
+                                       {'label': label, 'stroke': colour, 'width': 2,
+                                        'points': {'show': True}}),
+                    scales={'x': {'time': False}}, aspect=2.0)
 
     def add_held_out(self, iteration, psnr, kind='all'):
         """A point of the held-out curve: ``kind`` 'all' (every held-out view) or 'preview'."""

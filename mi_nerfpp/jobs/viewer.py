@@ -396,7 +396,7 @@ class Viewer:
         self.paused = not self.paused
         self.pause.label = 'Resume training' if self.paused else 'Pause training'
         self.stats.state = 'paused' if self.paused else 'training'
-        self._stats_shown = 0.0
+        self.show_stats(force=True)
         self.wake.set()
 
     # ------------------------------------------------------------------ clients

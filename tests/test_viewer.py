@@ -263,6 +263,25 @@ def test_the_editor_loads_the_built_in_paths_as_video_makes_them(served, tmp_pat
     assert viewer.path.frames == []
 
 
+def test_a_viewer_reloads_the_model_that_a_training_elsewhere_writes(tiny_run, tmp_path):
+    run_dir = str(tmp_path / 'run')
+    shutil.copytree(tiny_run, run_dir)
+    viewer = open_viewer(run_dir, port=free_port(), max_width=320)
+    try:
+        assert viewer.stats.iteration == 5 and viewer.stats.state == 'finished run'
+        assert not viewer.check_model_file()            # nothing new
+        before, version = viewer.renderer, viewer.model_version
+        model = os.path.join(run_dir, 'model.npz')
+        stat = os.stat(model)
+        os.utime(model, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10 ** 9))   # a new checkpoint
+        viewer._checked = float('-inf')                  # past RELOAD_SECONDS
+        assert viewer.check_model_file()
+        assert viewer.renderer is not before and viewer.model_version == version + 1
+        assert viewer.stats.state == 'model.npz'
+    finally:
+        viewer.close()
+
+
 def settled(viewer):
     """The one view of the page, once its camera stood still for a second (the orbit controls
     glide on after a drag) and its last refinement was rendered and shown."""

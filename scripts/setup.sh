@@ -3,20 +3,21 @@
 # environment in .venv, and this package installed in it (editable). `scripts/setup.sh --test`
 # adds what the tests use: oiiotool (the compositing tests composite the EXR layers with it),
 # Blender (the export test builds its camera from the USD headless), Blender 4.2 as a Python
-# module in .venv-bpy (its USD importer, which Debian's Blender lacks, reads the export) and the
-# package's test, cluster and export extras (the Ray and usd-core tests run).
+# module in .venv-bpy (its USD importer, which Debian's Blender lacks, reads the export), Chromium
+# and its driver (the viewer tests open the page headless) and the package's test, cluster,
+# export and viewer extras (the Ray, usd-core and viser tests run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 tests=0
 [ "${1:-}" = "--test" ] && tests=1
 
-# apt_install PACKAGE WHY: install a Debian package quietly (sudo when not root); 1 without apt-get.
+# apt_install "PACKAGE..." WHY: install Debian packages quietly (sudo when not root); 1 without apt-get.
 apt_install() {
     command -v apt-get >/dev/null 2>&1 || return 1
     local sudo=""; [ "$(id -u)" -ne 0 ] && sudo="sudo"
     echo "setup: installing $1 ($2)"
     $sudo apt-get update -qq || exit 1
-    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "$1" >/dev/null || exit 1
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq $1 >/dev/null || exit 1  # word-split: several packages
 }
 
 have_llvm() {
@@ -45,13 +46,20 @@ if [ "$tests" = 1 ]; then
                  "MI_NERFPP_NO_BLENDER=1 to skip the Blender camera check" >&2
         fi
     fi
+    # Chromium and chromedriver (Debian's, same version): the viewer tests drive the page with them.
+    if ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; then
+        if ! apt_install "chromium chromium-driver" "headless browser of the viewer tests"; then
+            echo "setup: chromium not found and no apt-get: install Chromium and chromedriver, or" \
+                 "set MI_NERFPP_NO_BROWSER=1 to skip the viewer's browser tests" >&2
+        fi
+    fi
 fi
 
 if [ ! -x .venv/bin/python ]; then
     python3 -m venv .venv
 fi
 extras=""
-[ "$tests" = 1 ] && extras="[test,cluster,export]"
+[ "$tests" = 1 ] && extras="[test,cluster,export,viewer]"
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".${extras}"
 
 # Blender 4.2 as a Python module (pip bpy, Python 3.11 only) in its own environment: its USD

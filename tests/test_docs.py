@@ -168,8 +168,8 @@ def test_the_reference_documents_exactly_the_integrators_parameters(reference_pa
         assert f'| `{name}` |' in reference_page
 
 
-# Options of other programs that the guides show (oiiotool, ray start, SLURM) and of benchmark
-# scripts; every other --option named in README.md and the guide pages must be one that a
+# Options of other programs that the guides show (oiiotool, ray start, SLURM, scripts/setup.sh)
+# and of benchmark scripts; every other --option named in README.md and the guide pages must be one that a
 # command of the package accepts.
 FOREIGN_OPTIONS = {
     'docs/compositing.md': {'--ch', '--over', '--add', '--tocolorspace', '--flatten',

@@ -33,11 +33,11 @@ import mitsuba as mi
 from mi_nerfpp import variant
 from mi_nerfpp._llvm import LLVMNotFoundError
 from mi_nerfpp.commands import (colmap, evaluate, export, optimize, render,
-                                sweep, synth, video)
+                                sweep, synth, video, view)
 from mi_nerfpp.errors import error_line
 
 DEBUG_ENV = 'MI_NERFPP_DEBUG'
-COMMANDS = (render, optimize, synth, evaluate, video, sweep, colmap, export)
+COMMANDS = (render, optimize, synth, evaluate, video, sweep, colmap, export, view)
 VARIANT_HELP = (f'the backend: llvm_ad_rgb, the CPU (default), or cuda_ad_rgb, an NVIDIA GPU '
                 f'(also: {variant.ENV}=NAME)')
 

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import sys
 
+from mi_nerfpp.commands.view import add_port_options
 from mi_nerfpp.core import budget
 from mi_nerfpp.jobs import run as runs
 from mi_nerfpp.jobs.console import ConsoleObserver
+from mi_nerfpp.jobs.viewer import ViewerObserver, check_port, require_viser
 from mi_nerfpp.training.config import DEFAULT_JOB_MINUTES, TrainConfig
 from mi_nerfpp.training.options import add_options, values
 
@@ -30,6 +32,12 @@ def add_parser(sub):
     p.add_argument('--overwrite', action='store_true',
                    help='replace the trained run in OUT (model.npz, metrics.json, test/, ...); '
                         'without it, training into a folder that holds a run is refused')
+    p.add_argument('--view', action='store_true',
+                   help='serve the web viewer while training (python -m mi_nerfpp view: the '
+                        'model as it trains, its cameras, the step, rays/s and the held-out '
+                        'PSNR, pause/resume); it renders between steps in a bounded share of '
+                        "the time. Needs pip install 'mi-nerfpp[viewer]'")
+    add_port_options(p, prefix='view-')
     add_options(p, TrainConfig)
     p.set_defaults(func=run)
     return p
@@ -42,6 +50,19 @@ def subject(args):
 def run(args):
 
     observer = ConsoleObserver()
+    if args.view:               # before any work: viser missing, the port taken
+        require_viser()
+        check_port(args.view_host, args.view_port)
+        observer = ViewerObserver(observer, args.view_host, args.view_port,
+                                  args.view_max_width)
+    try:
+        return train(args, observer)
+    finally:
+        if args.view:
+            observer.close()
+
+
+def train(args, observer):
     options, data = values(args, TrainConfig), args.data
     config = TrainConfig.from_options(**options)    # checks every option (ValueError: the flag)
     plan = budget.plan(config)                      # what they size (memory, Dr.Jit), once

@@ -1,9 +1,12 @@
-"""``python -m mi_nerfpp video RUN``: a novel-view video (orbit or test path) of a training run.
+"""``python -m mi_nerfpp video RUN``: a novel-view video (orbit, test path or a camera path file)
+of a training run.
 
 Frames are written to a frames folder first (PNG, and the multi-layer EXR with ``--exr``), each
 atomically; frames already there are skipped, so a re-run resumes an interrupted job. With
 ``--ray`` the frames are rendered by workers on a Ray cluster (:mod:`mi_nerfpp.jobs.cluster`), with
-the same function as in one process. The video is assembled from the PNGs.
+the same function as in one process. The video is assembled from the PNGs. ``--path FILE`` renders
+a camera path file (:mod:`mi_nerfpp.output.camera_path`, drawn in the viewer's path editor);
+``--write-path FILE`` writes the orbit or test path in that format instead of rendering it.
 """
 from __future__ import annotations
 
@@ -17,21 +20,31 @@ from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.jobs.cluster import (FramePool, FrameWorker, check_address,
                                     cluster_cpus, session, timeout_line)
 from mi_nerfpp.jobs.run import open_run
-from mi_nerfpp.output.video import (check_video_path, orbit_cameras,
+from mi_nerfpp.output.camera_path import (DEFAULT_FPS, path_cameras,
+                                          read_path, write_path)
+from mi_nerfpp.output.video import (BUILT_IN_PATHS, built_in_cameras,
+                                    built_in_path, check_video_path,
                                     pending_frames, prepare_frames_dir,
-                                    read_frames, resized, write_video)
+                                    read_frames, write_video)
 
 
 def add_parser(sub):
     p = sub.add_parser('video', help='render a novel-view video of a training run')
     p.add_argument('run', help='run folder written by optimize (holds model.npz)')
     p.add_argument('-o', '--output', help='.mp4 or .gif (default: RUN/video.mp4)')
-    p.add_argument('--path', choices=['orbit', 'test'], default='orbit',
-                   help="an orbit around the scene, or the dataset's test cameras")
+    p.add_argument('--path', default='orbit', metavar='orbit|test|FILE',
+                   help="an orbit around the scene, the dataset's test cameras, or a camera path "
+                        "file (JSON, as the viewer's path editor or --write-path saves it; its "
+                        'resolution, fps and cameras in the world frame) (default: orbit)')
     p.add_argument('--frames', type=positive_int, default=60, help='orbit frames (default 60)')
-    p.add_argument('--fps', type=positive_int, default=24)
+    p.add_argument('--fps', type=positive_int,
+                   help='frames per second (default: the path file\'s, else 24)')
     p.add_argument('--res', type=resolution, metavar='WxH',
-                   help='WxH (default: the training images)')
+                   help="WxH (default: a path file's resolution, else the training images'; a "
+                        "path file's cameras keep their vertical field of view)")
+    p.add_argument('--write-path', metavar='FILE',
+                   help='write the cameras of the video (orbit or test) as a camera path file '
+                        'that the viewer loads into its path editor, and render nothing')
     p.add_argument('--exr', action='store_true',
                    help='also write every frame as a multi-layer EXR (all layers) next to its PNG')
     p.add_argument('--skip-empty', action=argparse.BooleanOptionalAction, default=True,
@@ -61,19 +74,19 @@ def add_ray_options(p, what):
 def cameras_of(args):
     """The run's checkpoint path, the video's cameras and the description of the job."""
 
-    _, meta, _, dataset = open_run(args.run)
-    template = dataset.train.cameras[0]
-    if args.res:
-        template = resized(template, *args.res)
-    if args.path == 'orbit':
-        cameras = orbit_cameras(dataset.train.cameras, args.frames, template)
-    else:
-        cameras = [resized(c, template.width, template.height) for c in dataset.test.cameras]
-        if not cameras:
-            raise ValueError(f'{dataset.root} has no test cameras: use --path orbit')
+    model, meta, _, dataset = open_run(args.run)
     checkpoint = os.path.join(args.run, 'model.npz')
-    job = {'checkpoint': os.path.abspath(checkpoint), 'iteration': meta.get('iteration'),
-           'path': args.path, 'frames': len(cameras), 'size': [template.width, template.height]}
+    job = {'checkpoint': os.path.abspath(checkpoint), 'iteration': meta.get('iteration')}
+    if args.path in BUILT_IN_PATHS:
+        cameras = built_in_cameras(args.path, dataset, args.frames, args.res)
+        job['path'] = args.path
+    else:
+        path = read_path(args.path)
+        cameras = path_cameras(path, model.normalization, args.res)
+        if not cameras:
+            raise ValueError(f'{args.path}: the camera path has no frames')
+        job.update(path=os.path.abspath(args.path), path_digest=path.digest())
+    job.update(frames=len(cameras), size=[cameras[0].width, cameras[0].height])
     if not args.skip_empty:              # frames of whole rays are another video's
         job['skip_empty'] = False
     return checkpoint, cameras, job
@@ -83,9 +96,37 @@ def subject(args):
     return f'run folder {args.run}'
 
 
+def check_path_argument(args):
+    """``--path``: a built-in path or an existing file; ``--write-path`` only of a built-in
+    path."""
+    if args.path not in BUILT_IN_PATHS and not os.path.isfile(args.path):
+        raise ValueError(f"--path {args.path}: neither 'orbit', 'test' nor a camera path file")
+    if args.write_path and args.path not in BUILT_IN_PATHS:
+        raise ValueError('--write-path writes the orbit or test path: --path FILE is a path '
+                         'file already')
+
+
+def video_fps(args):
+    """The frames per second: ``--fps``, else a path file's, else 24."""
+    if args.fps:
+        return args.fps
+    if args.path not in BUILT_IN_PATHS:
+        return read_path(args.path).fps
+    return DEFAULT_FPS
+
+
 def run(args):
 
-
+    check_path_argument(args)
+    if args.write_path:
+        model, _, _, dataset = open_run(args.run)
+        path = built_in_path(args.path, dataset, model.normalization, args.frames, args.res,
+                             args.fps or DEFAULT_FPS)
+        write_path(args.write_path, path)
+        print(f'wrote {args.write_path} ({args.path}: {len(path.frames)} frames, '
+              f'{len(path.keyframes)} keyframes); render it with: python -m mi_nerfpp video '
+              f'{args.run} --path {args.write_path}')
+        return 0
     out = args.output or os.path.join(args.run, 'video.mp4')
     check_video_path(out)           # a format it cannot write: before any frame is rendered
     if args.ray:
@@ -102,7 +143,7 @@ def run(args):
             render_here(checkpoint, cameras, pending, frames_dir, args.exr, bar,
                         args.skip_empty)
     remove_stale_temporaries(frames_dir)
-    write_video(out, read_frames(frames_dir, len(cameras)), fps=args.fps)
+    write_video(out, read_frames(frames_dir, len(cameras)), fps=video_fps(args))
     print(f'wrote {out} ({len(cameras)} frames; frames in {frames_dir})')
 
 

@@ -17,6 +17,7 @@ import imageio.v3 as iio
 import numpy as np
 
 from mi_nerfpp.data import Camera
+from mi_nerfpp.output.camera_path import DEFAULT_FPS, cameras_path
 from mi_nerfpp.files.atomic import (check_writable_folder,
                                     remove_stale_temporaries, write_json)
 from mi_nerfpp.files.exr import write_exr
@@ -67,6 +68,37 @@ def resized(camera: Camera, width, height):
     K[1, 1] *= width / camera.width
     K[1, 2] *= height / camera.height
     return Camera(K, camera.c2w, width, height, camera.name)
+
+
+BUILT_IN_PATHS = ('orbit', 'test')
+# Keyframes of the orbit when it is written as a path file (--write-path): enough for the
+# editor's spline to stay close to the circle.
+ORBIT_KEYFRAMES = 8
+
+
+def built_in_cameras(name, dataset, frames=60, res=None):
+    """The model-frame cameras of a built-in path: ``orbit`` (``frames`` cameras around the
+    scene) or ``test`` (the dataset's test cameras), at the training images' size or ``res``."""
+    template = dataset.train.cameras[0]
+    if res:
+        template = resized(template, *res)
+    if name == 'orbit':
+        return orbit_cameras(dataset.train.cameras, frames, template)
+    cameras = [resized(c, template.width, template.height) for c in dataset.test.cameras]
+    if not cameras:
+        raise ValueError(f'{dataset.root} has no test cameras: use --path orbit')
+    return cameras
+
+
+def built_in_path(name, dataset, normalization, frames=60, res=None, fps=DEFAULT_FPS):
+    """A built-in path (``orbit``, ``test``) as a camera path (world frame) that the viewer's
+    editor loads: its frames are the video's cameras; its keyframes a few of the orbit's
+    (closed loop), or every test camera."""
+    cameras = built_in_cameras(name, dataset, frames, res)
+    if name == 'orbit':
+        keys = built_in_cameras(name, dataset, ORBIT_KEYFRAMES, res)
+        return cameras_path(cameras, normalization, fps, loop=True, keyframes=keys)
+    return cameras_path(cameras, normalization, fps)
 
 
 VIDEO_FORMATS = ('.mp4', '.gif')

@@ -120,12 +120,15 @@ class ViewRenderer:
     The model is rendered with its own settings
     (:attr:`~mi_nerfpp.core.model.NeRFPPModel.render_settings`: the sample counts it was trained
     with, its background); ``sampling`` and ``background`` override them. ``skip_empty=False``
-    samples whole rays (the integrator's ``skip_empty``)."""
+    samples whole rays (the integrator's ``skip_empty``); ``chunk_rays``: the integrator's
+    (its default when None)."""
 
     def __init__(self, model, sampling: Sampling | None = None, background: bool | None = None,
-                 skip_empty: bool = True):
+                 skip_empty: bool = True, chunk_rays: int | None = None):
         self.model = model
         integrator = {'type': 'nerfpp', 'skip_empty': bool(skip_empty)}
+        if chunk_rays is not None:
+            integrator['chunk_rays'] = int(chunk_rays)
         if sampling is not None:
             integrator.update(fg_samples=sampling.fg_samples, bg_samples=sampling.bg_samples,
                               fine_samples=sampling.fine_samples, near=sampling.near)

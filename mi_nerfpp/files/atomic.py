@@ -70,8 +70,8 @@ def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
     except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
-        if isinstance(e, OSError) and not e.filename:
-            e.filename = path
+        if isinstance(e, OSError) and e.errno is not None and not e.filename:
+            e.filename = path           # (an error of the system's, not one raised by hand)
         raise
 
 

@@ -90,14 +90,29 @@ def refined(viewer):
     return views[0].stage == len(render_widths(views[0].key[4], viewer.max_width)) - 1
 
 
-def first_frame(run_dir, driver):
-    """Seconds from opening the page to the first image on screen, and the steps between."""
-    viewer = open_viewer(run_dir, port=free_port())
-    viewer.show_cameras.value = False       # the model alone on screen: nothing drawn over it
-    viewer.show_sphere.value = False
+def serve(run_dir, overlays=True, **options):
+    """A viewer of ``run_dir`` on a free port, serving in a thread: ``(viewer, stop, thread)``
+    for :func:`finish`; ``overlays=False``: no cameras or unit sphere over the model."""
+    viewer = open_viewer(run_dir, port=free_port(), **options)
+    if not overlays:
+        viewer.show_cameras.value = False
+        viewer.show_sphere.value = False
     stop = threading.Event()
     thread = threading.Thread(target=viewer.serve, args=(stop,), daemon=True)
     thread.start()
+    return viewer, stop, thread
+
+
+def finish(viewer, stop, thread):
+    """Stop a viewer of :func:`serve`."""
+    stop.set()
+    thread.join(10)
+    viewer.close()
+
+
+def first_frame(run_dir, driver):
+    """Seconds from opening the page to the first image on screen, and the steps between."""
+    viewer, stop, thread = serve(run_dir, overlays=False)     # the model alone on screen
     page = Page(driver)
     t0 = time.monotonic()
     driver.get(viewer.url)
@@ -114,9 +129,7 @@ def first_frame(run_dir, driver):
             shown = t
             break
     render = viewer.sent[0][3]
-    stop.set()
-    thread.join(10)
-    viewer.close()
+    finish(viewer, stop, thread)
     return {'visible': None if shown is None else shown - t0, 'connected': connected - t0,
             'sent': sent - t0, 'render': render, 'size': list(viewer.sent[0][1:3])}
 
@@ -145,10 +158,7 @@ def drag(driver, seconds):
 
 def moving(run_dir, driver, seconds):
     """Views sent per second while the mouse drags the camera (:func:`drag`)."""
-    viewer = open_viewer(run_dir, port=free_port())
-    stop = threading.Event()
-    thread = threading.Thread(target=viewer.serve, args=(stop,), daemon=True)
-    thread.start()
+    viewer, stop, thread = serve(run_dir)
     page = Page(driver)
     driver.get(viewer.url)
     wait_for(lambda: 'Add keyframe' in page.text(), 60, 'the page')
@@ -163,9 +173,7 @@ def moving(run_dir, driver, seconds):
     t1 = time.monotonic()
     frames = [f for f in list(viewer.sent)[start:] if t0 <= f[0] <= t1 and f[4] == 0]
     moves = [u for u in updates if t0 <= u <= t1]
-    stop.set()
-    thread.join(10)
-    viewer.close()
+    finish(viewer, stop, thread)
     sizes = sorted({(f[1], f[2]) for f in frames})
     return {'frames': len(frames), 'seconds': t1 - t0, 'fps': len(frames) / (t1 - t0),
             'camera_updates_per_second': len(moves) / (t1 - t0),
@@ -179,10 +187,7 @@ def moving_camera(run_dir, driver, seconds, rate=20):
     is of a new camera; a browser with a GPU sends its camera at its frame rate): the rate the
     viewer renders moving views at, whatever the browser's own frame rate. Each camera set
     also makes the page redraw, which here is software WebGL on the same cores."""
-    viewer = open_viewer(run_dir, port=free_port())
-    stop = threading.Event()
-    thread = threading.Thread(target=viewer.serve, args=(stop,), daemon=True)
-    thread.start()
+    viewer, stop, thread = serve(run_dir)
     page = Page(driver)
     driver.get(viewer.url)
     wait_for(lambda: 'Add keyframe' in page.text(), 60, 'the page')
@@ -204,9 +209,7 @@ def moving_camera(run_dir, driver, seconds, rate=20):
         time.sleep(1 / rate)
     t1 = time.monotonic()
     frames = [f for f in list(viewer.sent)[start:] if t0 <= f[0] <= t1 and f[4] == 0]
-    stop.set()
-    thread.join(10)
-    viewer.close()
+    finish(viewer, stop, thread)
     return {'frames': len(frames), 'seconds': t1 - t0, 'fps': len(frames) / (t1 - t0),
             'sizes': sorted({(f[1], f[2]) for f in frames}),
             'render_ms': 1000 * float(np.median([f[3] for f in frames])) if frames else None}
@@ -270,10 +273,7 @@ def train_round(data, steps, driver, view):
 
 def drawn_path(run_dir, driver, folder):
     """Cameras of a path drawn in the page: the preview's against video's."""
-    viewer = open_viewer(run_dir, port=free_port(), max_width=640)
-    stop = threading.Event()
-    thread = threading.Thread(target=viewer.serve, args=(stop,), daemon=True)
-    thread.start()
+    viewer, stop, thread = serve(run_dir, max_width=640)
     page = Page(driver)
     driver.get(viewer.url)
     wait_for(lambda: 'Add keyframe' in page.text(), 60, 'the page')
@@ -296,9 +296,7 @@ def drawn_path(run_dir, driver, folder):
     count = len(viewer.path.frames)
     wait_for(lambda: viewer._playing is None and len(viewer.preview_cameras) >= 1, 120,
              'the preview')
-    stop.set()
-    thread.join(10)
-    viewer.close()
+    finish(viewer, stop, thread)
     path = read_path(target)
     norm = viewer.normalization
     video_cams = path_cameras(path, norm)
@@ -327,10 +325,7 @@ def drawn_path(run_dir, driver, folder):
 
 
 def screenshot(run_dir, driver, path):
-    viewer = open_viewer(run_dir, port=free_port())
-    stop = threading.Event()
-    thread = threading.Thread(target=viewer.serve, args=(stop,), daemon=True)
-    thread.start()
+    viewer, stop, thread = serve(run_dir)
     page = Page(driver)
     driver.get(viewer.url)
     wait_for(lambda: 'Add keyframe' in page.text(), 60, 'the page')
@@ -340,9 +335,7 @@ def screenshot(run_dir, driver, path):
         button.click()                  # the notice that the browser has no GPU
     time.sleep(3)
     driver.save_screenshot(path)
-    stop.set()
-    thread.join(10)
-    viewer.close()
+    finish(viewer, stop, thread)
 
 
 def main():

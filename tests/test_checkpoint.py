@@ -112,7 +112,7 @@ def test_parameters_are_float32_arrays_without_pickle(tmp_path):
     p = tmp_path / 'm.npz'
     save_checkpoint(p, tiny_model())
     with np.load(p, allow_pickle=False) as z:
-        assert str(z['format']) == 'mi-nerfpp-checkpoint' and int(z['version']) == VERSION == 3
+        assert str(z['format']) == 'mi-nerfpp-checkpoint' and int(z['version']) == VERSION == 4
         params = [k for k in z.files if k.startswith('param/')]
         assert params and all(z[k].dtype == np.float32 for k in params)
     assert TINY_GRID['kind'] == 'grid' and dr.width(tiny_model().fg.params['grid0'].array) > 0

@@ -40,6 +40,7 @@ import drjit as dr
 
 from mi_nerfpp.core.arrays import llvm_backend
 from mi_nerfpp.core.fields import plane_shapes
+from mi_nerfpp.core.occupancy import grid_shape
 
 # Dr.Jit 1.x: "jit_var_counter(): tried to create an array with N entries, which exceeds the
 # limit of 2^32 == 4294967296 entries".
@@ -241,6 +242,21 @@ def grid_plane_entries(config, domain, planes=None, channels=None,
     return [combine(h * w for _, (h, w) in plane_shapes(domain, r)) * channels for r in planes]
 
 
+def sparse_level_entries(config, domain, limit=None, channels=None) -> list[int]:
+    """Entries of each sparse level of one volume's grid field at most
+    (:class:`~.bricks.BrickGrid`): its bricks up to ``--sparse-entries`` (``limit``), or all of
+    them when fewer; empty without a grid field or sparse levels."""
+    m = config.model
+    if not _has_grid(config, domain):
+        return []
+    limit = config.schedule.sparse_entries if limit is None else limit
+    channels = channels or m.grid_channels
+    if domain == 'ball':
+        return [min(limit, r ** 3 * channels) for r in m.sparse(domain)]
+    along_s = grid_shape(domain, config.sampling.occupancy_res)[0]
+    return [min(limit, along_s * r * 2 * r * channels) for r in m.sparse(domain)]
+
+
 def occupancy_cells(config, resolution=None) -> list[int]:
     """Cells of each volume's occupancy grid (:class:`~.occupancy.OccupancyGrid`)."""
     if not config.sampling.occupancy:
@@ -262,6 +278,7 @@ class Sizes:
     occupancy_res: int
     grid_planes: tuple = ()
     bg_grid_planes: tuple = ()
+    sparse_entries: int = 0
 
     @classmethod
     def of(cls, config, **values) -> Sizes:
@@ -276,7 +293,8 @@ class Sizes:
                    values.get('samples_per_ray') or config.samples_per_ray,
                    tuple(fg), tuple(bg), values.get('grid_channels') or m.grid_channels,
                    values.get('occupancy_res') or config.sampling.occupancy_res,
-                   tuple(fg_planes), tuple(bg_planes))
+                   tuple(fg_planes), tuple(bg_planes),
+                   values.get('sparse_entries') or config.schedule.sparse_entries)
 
 
 def _grid_parts(config, sizes: Sizes) -> dict:
@@ -288,7 +306,10 @@ def _grid_parts(config, sizes: Sizes) -> dict:
             config, 'inverted_sphere', sizes.bg_grid_levels, channels))),
         ('grid_planes', sum(grid_plane_entries(config, 'ball', sizes.grid_planes, channels))),
         (_planes_option(config, 'inverted_sphere'), sum(grid_plane_entries(
-            config, 'inverted_sphere', sizes.bg_grid_planes, channels)))])
+            config, 'inverted_sphere', sizes.bg_grid_planes, channels))),
+        ('sparse_entries', sum(sum(sparse_level_entries(config, d, sizes.sparse_entries,
+                                                        channels))
+                               for d in ('ball', 'inverted_sphere')))])
 
 
 def _sum_into(parts: dict, items) -> dict:
@@ -356,6 +377,10 @@ def _exceeded(config, machine: Machine, **values):
                         f'a {"background " if domain != "ball" else ""}plane level of '
                         f'resolution {r} has a plane of {n:,} entries (--grid-channels '
                         f'{s.grid_channels}), {array}')
+    for domain in ('ball', 'inverted_sphere'):
+        for n in sparse_level_entries(config, domain, s.sparse_entries, s.grid_channels):
+            if n > MAX_ARRAY_ENTRIES:
+                return 'sparse_entries', f'a sparse level of {n:,} entries is {array}'
     for cells in occupancy_cells(config, s.occupancy_res):
         if cells > MAX_ARRAY_ENTRIES:
             return 'occupancy_res', f'a grid of {cells:,} cells is {array}'
@@ -398,7 +423,8 @@ def largest_that_fits(config, option: str, machine: Machine) -> int:
         values = lambda v: {key: v}  # noqa: E731
         high = {'batch_rays': config.schedule.batch_rays, 'samples': config.samples_per_ray,
                 'grid_channels': m.grid_channels,
-                'occupancy_res': config.sampling.occupancy_res}[option]
+                'occupancy_res': config.sampling.occupancy_res,
+                'sparse_entries': config.schedule.sparse_entries}[option]
     low = {'grid_levels': 2, 'bg_grid_levels': 2, 'grid_planes': 2, 'bg_grid_planes': 2,
            'grid_channels': 2, 'occupancy_res': 4}.get(option, 1)
 
@@ -495,7 +521,8 @@ def check(config, run_plan: Plan):
                          f'many: {what}; at most {best:,} samples per ray (coarse and fine, '
                          f'every volume) fit with --batch-rays {config.schedule.batch_rays}')
     shown = getattr(config.sampling if option == 'occupancy_res' else
-                    config.schedule if option == 'batch_rays' else config.model, option)
+                    config.schedule if option in ('batch_rays', 'sparse_entries')
+                    else config.model, option)
     shown = ' '.join(map(str, shown)) if isinstance(shown, tuple) else shown
     largest_text = (f'the finest level fits at resolution {best:,} at most'
                     if option.endswith(('grid_levels', 'grid_planes'))

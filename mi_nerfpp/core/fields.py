@@ -34,8 +34,10 @@ import os
 import drjit as dr
 import drjit.nn as nn
 import mitsuba as mi
+import numpy as np
 
 from mi_nerfpp.core.arrays import llvm_backend
+from mi_nerfpp.core.bricks import BrickGrid
 from mi_nerfpp.core.geometry import ball_warp, grid_coordinates
 
 DOMAINS = {'ball': 3, 'inverted_sphere': 4}
@@ -323,6 +325,13 @@ class GridField(Field):
     entries (the Adam update and the gradient buffers), not with the resolution. They start
     at zero, so what no sample reaches adds nothing.
 
+    ``sparse``: sparse levels (resolutions ``R``, :class:`~mi_nerfpp.core.bricks.BrickGrid`):
+    fine texels (``R³`` in the ball; ``2R x R`` in angle and ``sparse_s`` along ``s`` in the
+    background) stored only in allocated bricks, one brick per cell of a ``sparse_blocks``
+    grid (the occupancy grid's cells). They index the domain unwarped, start with no brick
+    (adding nothing) and take bricks from :meth:`set_bricks`, which training calls where the
+    occupancy grid finds surfaces; their lookups are summed like the dense levels'.
+
     ``init``: the standard deviation of the normal noise the dense levels start with (the
     colour MLP starts the same whatever it is); 0 starts them neutral, so that a cell no sample
     reaches holds no colour of its own (after 10 minutes 0.1-0.2 dB lower than with noise on two
@@ -344,7 +353,7 @@ class GridField(Field):
     def __init__(self, domain, resolutions=(32, 128), channels=4, hidden=32, dir_octaves=2,
                  density_bias=-3.0, density_activation='exp', color_layers=1, s_ratio=0.5,
                  warp_radius=0.0, color='deferred', antialias=False, planes=(), init=0.1,
-                 seed=0):
+                 sparse=(), sparse_blocks=None, sparse_s=None, seed=0):
         super().__init__(domain)
         self.init = float(init)
         if not self.init >= 0:
@@ -401,7 +410,23 @@ class GridField(Field):
                                                         * self.channels), shape + (self.channels,))
                 self.plane_textures[key] = mi.Texture2f(self.params[key], use_accel=False,
                                                         wrap_mode=wrap)
-        n_feat = (len(self.resolutions) + len(self.planes)) * (self.channels - 1)
+        self.sparse = [int(r) for r in sparse]
+        self.sparse_blocks = None if sparse_blocks is None else [int(b) for b in sparse_blocks]
+        self.sparse_s = None if sparse_s is None else int(sparse_s)
+        # Sparse levels start with no brick allocated: they add nothing until the run allocates
+        # bricks where the occupancy says the surfaces are (:meth:`set_bricks`).
+        self.bricks = []
+        if self.sparse:
+            if self.sparse_blocks is None or len(self.sparse_blocks) != 3:
+                raise ValueError('GridField sparse levels need sparse_blocks, the bricks per '
+                                 'axis (Z, Y, X)')
+            for i, r in enumerate(self.sparse):
+                grid = BrickGrid(self._sparse_shape(r), self.sparse_blocks, self.channels,
+                                 periodic=domain == 'inverted_sphere')
+                self.bricks.append(grid)
+                self.params[f'sparse{i}'] = mi.TensorXf(np.zeros(grid.pool_shape(), np.float32))
+        n_feat = (len(self.resolutions) + len(self.planes) + len(self.sparse)) \
+            * (self.channels - 1)
         n_dir = 3 * (1 + 2 * self.dir_octaves)
         self.color_net = _LateNet(self, 'color', n_feat, n_dir, [self.hidden] * self.color_layers,
                                   3, rng)
@@ -413,14 +438,43 @@ class GridField(Field):
             return (r, r, r)
         return (max(int(r * self.s_ratios[level]), 4), r, 2 * r)
 
+    def _sparse_shape(self, r):
+        """Texel shape (Z, Y, X) of a sparse level at resolution ``r``: ``r³`` in the ball; in
+        the inverted sphere ``2r`` along longitude, ``r`` along colatitude and ``sparse_s`` (by
+        default one texel per brick) along ``s``: fine angles, depth from the occupied bricks."""
+        if self.domain == 'ball':
+            return (r, r, r)
+        return (self.sparse_s or self.sparse_blocks[0], r, 2 * r)
+
     @property
     def config(self):
-        return dict(kind=self.kind, domain=self.domain, resolutions=self.resolutions,
-                    channels=self.channels, hidden=self.hidden, dir_octaves=self.dir_octaves,
-                    color_layers=self.color_layers, density_bias=self.density_bias,
-                    density_activation=self.density_activation, s_ratio=self.s_ratio,
-                    warp_radius=self.warp_radius, color=self.color_mode,
-                    antialias=self.antialias, planes=self.planes, init=self.init)
+        cfg = dict(kind=self.kind, domain=self.domain, resolutions=self.resolutions,
+                   channels=self.channels, hidden=self.hidden, dir_octaves=self.dir_octaves,
+                   color_layers=self.color_layers, density_bias=self.density_bias,
+                   density_activation=self.density_activation, s_ratio=self.s_ratio,
+                   warp_radius=self.warp_radius, color=self.color_mode,
+                   antialias=self.antialias, planes=self.planes, init=self.init)
+        if self.sparse:            # (so that files without sparse levels stay as they were)
+            cfg.update(sparse=self.sparse, sparse_blocks=self.sparse_blocks,
+                       sparse_s=self.sparse_s)
+        return cfg
+
+    def allocated_bricks(self):
+        """The allocated bricks of each sparse level: ``{'sparse<i>': flat brick indices}``."""
+        return {f'sparse{i}': g.allocated for i, g in enumerate(self.bricks)}
+
+    def set_bricks(self, values):
+        """Allocate the bricks of sparse levels (``{'sparse<i>': flat brick indices}``): the
+        texels of bricks kept stay, new bricks start at zero, the others are let go. The
+        parameter changes shape (an optimiser must take it anew)."""
+        for key, bricks in values.items():
+            i = int(key[len('sparse'):]) if key.startswith('sparse') else -1
+            if not 0 <= i < len(self.bricks):
+                raise KeyError(f"field '{self.kind}' has no sparse level '{key}'")
+            grid = self.bricks[i]
+            pool = grid.moved(self.params[key].numpy(), bricks)
+            grid.allocate(bricks)
+            self.params[key] = mi.TensorXf(pool)
 
     @property
     def deferred(self):
@@ -457,6 +511,10 @@ class GridField(Field):
         """The width of a cell of plane level ``level``, as :meth:`cell_size`."""
         return self._cell_width(self.planes[level])
 
+    def sparse_cell_size(self, level):
+        """The width of a texel of sparse level ``level``, as :meth:`cell_size`."""
+        return self._cell_width(self.sparse[level])
+
     def _cell_width(self, r):
         return 2.0 / r if self.domain == 'ball' else dr.pi / r
 
@@ -465,6 +523,7 @@ class GridField(Field):
         weighted by :func:`level_weight` of the footprint ``width`` (``antialias`` only)."""
         if not self.antialias:
             width = None
+        plain, plain_width = x, width      # sparse levels index the domain unwarped
         if self.domain == 'ball':
             if width is not None and self.warp_radius > 0:
                 # The warp scales lengths about the centre by |warp(p)|/|p| (tangentially).
@@ -508,6 +567,20 @@ class GridField(Field):
                 g = v if g is None else [p + q for p, q in zip(g, v)]
             if width is not None:
                 w = level_weight(width, self.plane_cell_size(i))
+                g = [w * v for v in g]
+            density += g[0]
+            features += g[1:]
+        if self.bricks:
+            coords = grid_coordinates(self.domain, plain)
+        for i, grid in enumerate(self.bricks):
+            c = coords
+            if self.domain == 'inverted_sphere':
+                Z, Y, _ = grid.shape
+                c = [coords[0], dr.clip(coords[1], 0.5 / Y, 1.0 - 0.5 / Y),
+                     dr.clip(coords[2], 0.5 / Z, 1.0 - 0.5 / Z)]
+            g = grid.lookup(self.params[f'sparse{i}'].array, c)
+            if plain_width is not None:
+                w = level_weight(plain_width, self.sparse_cell_size(i))
                 g = [w * v for v in g]
             density += g[0]
             features += g[1:]

@@ -192,6 +192,25 @@ class NeRFPPModel:
             out['poses'] = self.poses
         return out
 
+    def allocated_bricks(self):
+        """The allocated bricks of the grid fields' sparse levels, named ``fg.sparse0``, ...
+        (:meth:`~mi_nerfpp.core.fields.GridField.allocated_bricks`)."""
+        out = {}
+        for volume, field in (('fg', self.fg), ('bg', self.bg)):
+            for k, v in (getattr(field, 'allocated_bricks', dict)()).items():
+                out[f'{volume}.{k}'] = v
+        return out
+
+    def set_bricks(self, values):
+        """Allocate sparse levels' bricks by their ``fg.``/``bg.`` names
+        (:meth:`~mi_nerfpp.core.fields.GridField.set_bricks`)."""
+        for volume, field in (('fg', self.fg), ('bg', self.bg)):
+            sub = {k[len(volume) + 1:]: v for k, v in values.items() if k.startswith(volume + '.')}
+            if sub:
+                if field is None or not hasattr(field, 'set_bricks'):
+                    raise KeyError(f'model has no sparse {volume} levels for {sorted(sub)}')
+                field.set_bricks(sub)
+
     def n_parameters(self):
         """Number of learnable scalars."""
         return sum(dr.width(v.array) for v in self.parameters().values())

@@ -45,6 +45,13 @@ DEFAULT_BINS = {'ball': 128, 'inverted_sphere': 64}
 INITIAL_DENSITY = 1e4
 
 
+def grid_shape(domain, resolution):
+    """Cells (Z, Y, X) of an occupancy grid of ``resolution`` over ``domain``'s field inputs: the
+    last axis varies fastest in the flat index."""
+    r = int(resolution)
+    return (r, r, r) if domain == 'ball' else (max(r // 4, 4), max(r // 2, 4), r)
+
+
 class OccupancyGrid:
     """Occupied cells of one volume's domain (see module docs)."""
 
@@ -55,9 +62,7 @@ class OccupancyGrid:
         if resolution < 4:
             raise ValueError(f'occupancy resolution must be >= 4, got {resolution}')
         self.domain, self.resolution, self.threshold = domain, int(resolution), float(threshold)
-        r = self.resolution
-        # (Z, Y, X): the last axis varies fastest in the flat index.
-        self.shape = (r, r, r) if domain == 'ball' else (max(r // 4, 4), max(r // 2, 4), r)
+        self.shape = grid_shape(domain, self.resolution)
         n = int(np.prod(self.shape))
         # A new grid takes the field's density at its first update (no running maximum).
         self.fresh = density is None

@@ -2,7 +2,7 @@
 
 Keys:
 
-* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 3; grid fields
+* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 4; grid fields
   of version 1 and 2 files have per-sample colour and are read as ``color: "sample"``);
 * ``config`` — JSON: ``{"fg": <field config>, "bg": <field config or null>,
   "normalization": {"center": [x, y, z], "scale": s}, "color_space": "srgb"|"linear",
@@ -22,6 +22,9 @@ Keys:
   :meth:`~mi_nerfpp.training.config.TrainConfig.to_dict` - flat in older files -, …);
 * ``param/<name>`` — float32 arrays of the learnable parameters, named as in
   ``NeRFPPModel.parameters()`` (``fg.grid0``, ``bg.color.layers.0.weights``, …);
+* ``bricks/<name>`` — the allocated bricks of a sparse grid level (``fg.sparse0``, ...: flat
+  brick indices in slot order, :class:`~mi_nerfpp.core.bricks.BrickGrid`; version 4), which
+  give its ``param/`` pool its shape;
 * ``occupancy/<volume>`` — the occupancy grid of a volume (``fg``/``bg``) when the model
   skips empty space; its configuration is in ``config["occupancy"]``;
 * ``state/<name>`` — optional arrays of training state (optimizer moments, RNG)
@@ -46,9 +49,10 @@ from mi_nerfpp.core.render import SKIPPING, Sampling
 from mi_nerfpp.files.atomic import atomic_write_path
 
 FORMAT = 'mi-nerfpp-checkpoint'
-VERSION = 3
-# 1: normalization as top-level center / scale; 1-2: grid fields coloured every sample.
-READABLE_VERSIONS = (1, 2, 3)
+VERSION = 4
+# 1: normalization as top-level center / scale; 1-2: grid fields coloured every sample;
+# 4: sparse grid levels (``bricks/``).
+READABLE_VERSIONS = (1, 2, 3, 4)
 
 
 class CheckpointError(ValueError):
@@ -80,6 +84,8 @@ def save_checkpoint(path, model, meta=None, state=None):
         arrays[f'param/{k}'] = np.asarray(v.numpy(), dtype=np.float32)
     for k, grid in model.occupancy.items():
         arrays[f'occupancy/{k}'] = grid.numpy()
+    for k, v in model.allocated_bricks().items():
+        arrays[f'bricks/{k}'] = np.asarray(v, dtype=np.int64)
     for k, v in (state or {}).items():
         arrays[f'state/{k}'] = np.asarray(v)
     bad = _non_finite(arrays)
@@ -153,6 +159,8 @@ def load_checkpoint(path, seed=0):
                             appearance_images=int(config.get('appearance_images', 0)),
                             pose_images=int(config.get('pose_images', 0)),
                             sampling=_sampling(config))
+        model.set_bricks({k[len('bricks/'):]: v for k, v in z.items()
+                          if k.startswith('bricks/')})
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None
 

@@ -100,6 +100,10 @@ def _finite(v):
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
+# The fewest texels along each axis of a foreground sparse level's brick (--grid-sparse).
+MIN_BRICK = 4
+
+
 def per_volume(values):
     """An option of one value for both volumes or one per volume, as (foreground, background)."""
     return tuple(values) * (2 // len(values))
@@ -174,6 +178,19 @@ class ModelOptions(_Options):
                                           'RES, longitude and colatitude x s with RES/2 along s)',
                                           type=int, nargs='*', metavar='RES',
                                           default_help='(default: as --grid-planes)',
+                                          shapes_model=True)
+    grid_sparse: tuple = option(tuple(_grid_default('sparse')), 'grid field: resolution of each '
+                                'sparse level of the foreground grid: RES³ texels stored only in '
+                                'the bricks (one per occupancy cell) that the occupancy grid '
+                                'finds occupied at each --sparse-at (RES: a multiple of '
+                                '--occupancy-res)', type=int, nargs='*', metavar='RES',
+                                shapes_model=True)
+    bg_grid_sparse: tuple | None = option(None, 'grid field: resolution of each sparse level of '
+                                          'the background grid (longitude x colatitude 2RES x '
+                                          'RES, one texel per occupancy cell along s; RES: a '
+                                          'multiple of half --occupancy-res)', type=int,
+                                          nargs='*', metavar='RES',
+                                          default_help='(default: as --grid-sparse)',
                                           shapes_model=True)
     grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
                                 shapes_model=True)
@@ -273,6 +290,16 @@ class ModelOptions(_Options):
         if domain == 'inverted_sphere' and self.bg_grid_planes is not None:
             return self.bg_grid_planes
         return self.grid_planes
+
+    def field_of(self, domain):
+        """The field kind of one volume."""
+        return self.bg_field if domain == 'inverted_sphere' else self.field
+
+    def sparse(self, domain):
+        """The sparse levels' resolutions of one volume's grid field."""
+        if domain == 'inverted_sphere' and self.bg_grid_sparse is not None:
+            return self.bg_grid_sparse
+        return self.grid_sparse
 
 
 @dataclass
@@ -406,6 +433,12 @@ class ScheduleOptions(_Options):
     coarse_to_fine: tuple = option((), 'grid field: fractions of the run at which the grids '
                                    'double in resolution (they start at RES / 2^n)', type=float,
                                    nargs='*', metavar='F', shapes_model=True)
+    sparse_at: tuple = option((0.1, 0.3), 'grid field: fractions of the run at which sparse '
+                              'levels allocate their bricks where the occupancy grid is occupied '
+                              '(again at each: bricks kept keep their texels)', type=float,
+                              nargs='+', metavar='F')
+    sparse_entries: int = option(4_000_000, 'grid field: most entries of one sparse level (the '
+                                 'densest occupied bricks are kept)')
     pyramid: tuple = option((0.1, 0.3), 'image pyramid: fractions of the run at which training '
                             'moves to the next finer level of box-filtered images (it starts at '
                             '1/2^n of their size, the last fraction reaches full size; none: '
@@ -419,7 +452,8 @@ class ScheduleOptions(_Options):
         self._check(('batch_rays',), lambda v: v >= 1, 'at least 1')
         self._check(('seed',), lambda v: 0 <= v <= MAX_SEED,
                     f'a whole number from 0 to {MAX_SEED} (2^64 - 2)')
-        for name in ('coarse_to_fine', 'pyramid'):
+        self._check(('sparse_entries',), lambda v: v >= 1, 'at least 1')
+        for name in ('coarse_to_fine', 'pyramid', 'sparse_at'):
             if not all(_finite(f) and 0 < f < 1 for f in getattr(self, name)):
                 self._bad(name, 'fractions between 0 and 1')
 
@@ -464,6 +498,29 @@ class TrainConfig:
                                       'how long, in what batches, from which seed')
     output: OutputOptions = group(OutputOptions, 'output',
                                   'what the run writes along the way')
+
+    def __post_init__(self):
+        """Checks across groups: a sparse level's bricks are the occupancy grid's cells."""
+        m, s = self.model, self.sampling
+        for domain, name in (('ball', 'grid_sparse'), ('inverted_sphere', 'bg_grid_sparse')):
+            levels = m.sparse(domain)
+            if not levels or m.field_of(domain) != 'grid':
+                continue
+            option = name if getattr(m, name) is not None else 'grid_sparse'
+            shown = ' '.join(map(str, levels))
+            if not s.occupancy:
+                raise ValueError(f'{self.flag(option)} {shown} needs empty-space skipping (its '
+                                 f'bricks are the occupancy cells): drop --no-occupancy')
+            _, cells_y, cells_x = occ.grid_shape(domain, s.occupancy_res)
+            # Foreground bricks of at least 4³ texels: with 2³, a frozen training step crashed
+            # in Dr.Jit 1.5's replay (bricks of 3³ and up, and the background's, trained
+            # exactly as without freezing).
+            least = MIN_BRICK * cells_y if domain == 'ball' else cells_y
+            if any(r % cells_y or (r if domain == 'ball' else 2 * r) % cells_x or r < least
+                   for r in levels):
+                raise ValueError(f'{self.flag(option)} must be multiples of {cells_y} (the '
+                                 f'occupancy cells, --occupancy-res {s.occupancy_res}) of at '
+                                 f'least {least}, got {shown}')
 
     # ------------------------------------------------------------------ flat options
     @classmethod
@@ -521,6 +578,9 @@ class TrainConfig:
         ratio = m.bg_s_ratio[0] if len(m.bg_s_ratio) == 1 else list(m.bg_s_ratio)
         extra = ({'s_ratio': ratio} if domain == 'inverted_sphere' else
                  {'warp_radius': m.fg_warp})
+        if m.sparse(domain):
+            extra.update(sparse=list(m.sparse(domain)), sparse_blocks=list(
+                occ.grid_shape(domain, self.sampling.occupancy_res)))
         return dict(kind='grid', domain=domain, resolutions=start,
                     channels=m.grid_channels, dir_octaves=m.dir_octaves,
                     color_layers=m.color_layers, hidden=m.color_width,

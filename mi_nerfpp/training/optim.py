@@ -24,10 +24,10 @@ COLOR_LOSS_WEIGHT = 3.0
 
 
 def is_grid(name: str) -> bool:
-    """Whether a parameter is a feature grid (a dense level ``grid0``, ``fg.grid1``, ... or a
-    plane of a plane level, ``fg.plane0xy``, ...), not an MLP array: it learns at the grids'
-    rate."""
-    return name.rsplit('.', 1)[-1].startswith(('grid', 'plane'))
+    """Whether a parameter is a feature grid (a dense level ``grid0``, ``fg.grid1``, ..., a
+    plane of a plane level, ``fg.plane0xy``, ..., or the bricks of a sparse level,
+    ``fg.sparse0``), not an MLP array: it learns at the grids' rate."""
+    return name.rsplit('.', 1)[-1].startswith(('grid', 'plane', 'sparse'))
 
 
 def is_grid_level(name: str) -> bool:

@@ -37,7 +37,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_nerfpp.core import appearance as app
-from mi_nerfpp.core import poses
+from mi_nerfpp.core import bricks, poses
 from mi_nerfpp.core.arrays import llvm_backend, owned
 from mi_nerfpp.core.frame import reframe_cameras
 from mi_nerfpp.core.model import NeRFPPModel
@@ -321,6 +321,10 @@ class Trainer:
             if s.occupancy:
                 self.model.enable_occupancy(s.occupancy_res, s.occupancy_threshold)
         self.saved_iteration = self.iteration if resume else None
+        # Sparse levels allocate at each ``sparse_at`` passed; a resumed run has those behind it.
+        self.allocations = []
+        self._brick_stage = sum(self.progress() >= f for f in config.schedule.sparse_at) \
+            if any(len(g) for g in self.model.allocated_bricks().values()) else 0
         self.rng = np.random.default_rng(config.schedule.seed)
         if 'rng' in meta:
             self.rng.bit_generator.state = meta['rng']
@@ -399,6 +403,7 @@ class Trainer:
             with stage('occupancy refresh'):
                 self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
                 self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
+        self._allocate_bricks()
         inputs = self._step_inputs()
         # No cyclic garbage collection while a step is recorded: releasing a collected
         # array that maps NumPy memory cannot be recorded (:mod:`.arrays`).
@@ -454,6 +459,7 @@ class Trainer:
                      shapes=tuple(tuple(self.opt[k].shape) for k in self.opt.keys()))
         return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': rays.arrays(),
                 'occupancy': {k: g.density for k, g in self.model.occupancy.items()},
+                'slots': [field.bricks[i].slots for _, field, i in self._sparse_levels()],
                 'non_finite': dr.opaque(mi.UInt32, 0, 1)}     # set by the step's guard
 
     def _level(self):
@@ -484,6 +490,8 @@ class Trainer:
             occupancy[k] = copy.copy(grid)
             occupancy[k].density = inputs['occupancy'][k]
         model.set_parameters({k: opt[k] for k in opt.keys()})
+        for (_, field, i), slots in zip(self._sparse_levels(), inputs['slots']):
+            field.bricks[i].slots = slots        # (an input of the frozen step, as the grids)
         refine = phase['refine']
         if model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
             params = opt['poses'] if refine else dr.detach(opt['poses'])
@@ -540,6 +548,37 @@ class Trainer:
                     field.set_parameters({f'grid{level}': dr.detach(self.opt[key])})
                     field.upsample(level, target)
                     self.opt[key] = field.params[f'grid{level}']   # new shape: fresh Adam moments
+
+    def _sparse_levels(self):
+        """``(volume, field, level)`` of every sparse grid level of the model."""
+        return [(volume, field, i) for volume, field in (('fg', self.model.fg), ('bg', self.model.bg))
+                if field is not None for i in range(len(getattr(field, 'bricks', ())))]
+
+    def _allocate_bricks(self):
+        """At each ``sparse_at`` fraction of the run passed, allocate the sparse levels'
+        bricks where the occupancy grid is occupied (grown by :data:`~mi_nerfpp.core.bricks.
+        DILATION`), at most ``sparse_entries`` entries a level, the densest first."""
+        due = sum(self.progress() >= f for f in self.cfg.schedule.sparse_at)
+        if due <= self._brick_stage:
+            return
+        self._brick_stage = due
+        for volume, field, i in self._sparse_levels():
+            grid, brick = self.model.occupancy[volume], field.bricks[i]
+            density = grid.numpy()
+            occupied = bricks.block_mask(density > grid.threshold, brick.blocks)
+            mask = bricks.dilate(occupied, bricks.DILATION[field.domain],
+                                 periodic_x=field.domain == 'inverted_sphere')
+            score = bricks.block_max(density, brick.blocks)
+            limit = self.cfg.schedule.sparse_entries // (brick.texels_per_brick * brick.channels)
+            chosen = bricks.choose(mask, score, max(limit, 1))
+            key = f'{volume}.sparse{i}'
+            field.set_parameters({f'sparse{i}': dr.detach(self.opt[key])})
+            field.set_bricks({f'sparse{i}': chosen})
+            self.opt[key] = field.params[f'sparse{i}']     # new shape: fresh Adam moments
+            self.allocations.append({'iteration': self.iteration, 'level': key,
+                                     'bricks': int(chosen.size), 'of': brick.n_blocks,
+                                     'occupied': int(mask.sum()),
+                                     'entries': int(np.prod(brick.pool_shape()))})
 
     def _unseen_fill(self):
         """One step of :func:`~mi_nerfpp.training.priors.unseen_fill` on every grid level: its entries

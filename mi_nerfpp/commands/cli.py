@@ -24,6 +24,7 @@ importing mi_nerfpp, and gets the error line for another one.
 from __future__ import annotations
 
 import argparse
+import io
 import os
 import sys
 import traceback
@@ -88,6 +89,24 @@ def describe(error: BaseException, args) -> str:
             f'--debug for the traceback and report it)')
 
 
+def print_any_path() -> None:
+    """Let standard output and error print any path. A Linux name may be any bytes but ``/``
+    and NUL; Python gives one that is not UTF-8 as a ``str`` with surrogate escapes, which a
+    stream that encodes strictly (a UTF-8 locale other than C.UTF-8, ``PYTHONIOENCODING``)
+    refuses with UnicodeEncodeError, and which standard error (``backslashreplace``) prints as
+    ``\\udcXX``. The process's own streams print such a path as its bytes
+    (``surrogateescape``), so that it can be copied back; a stream put in their place (a
+    caller's capture) that encodes strictly prints it escaped (``backslashreplace``)."""
+    for name in ('stdout', 'stderr'):
+        stream = getattr(sys, name)
+        if not isinstance(stream, io.TextIOWrapper):
+            continue
+        if stream is getattr(sys, f'__{name}__'):
+            stream.reconfigure(errors='surrogateescape')
+        elif stream.errors == 'strict':
+            stream.reconfigure(errors='backslashreplace')
+
+
 def run_in_variant(args, argv, replace: bool) -> None:
     """For a ``--variant`` other than this process's: raise :class:`~mi_nerfpp.variant.VariantError`
     when this machine cannot run it, or when ``replace`` is false (a caller from Python); else
@@ -112,6 +131,7 @@ def main(argv=None, *, replace=None):
     status. ``replace``: whether a ``--variant`` other than this process's may replace the
     process by one that selects it (default: when ``argv`` is None, i.e. main is the program;
     ``optimize.py`` passes True)."""
+    print_any_path()
     args = build_parser().parse_args(argv)
     try:
         run_in_variant(args, sys.argv[1:] if argv is None else list(argv),

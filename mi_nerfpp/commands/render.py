@@ -6,7 +6,7 @@ import time
 
 import mitsuba as mi
 
-from mi_nerfpp.files.atomic import check_writable_folder
+from mi_nerfpp.files.atomic import check_writable_folder, readable_path
 from mi_nerfpp.files.preview import write_linear_png
 from mi_nerfpp.output.deep import render_deep_to_file
 from mi_nerfpp.output.views import render_to_files
@@ -53,7 +53,8 @@ def run(args):
     for path in filter(None, (args.output, args.preview)):
         check_writable_folder(os.path.dirname(os.path.abspath(path)), 'output folder')
     t0 = time.perf_counter()
-    scene = mi.load_file(args.scene, **_defines(args.define))
+    with readable_path(args.scene) as readable:      # Mitsuba takes UTF-8 names only
+        scene = mi.load_file(readable, **_defines(args.define))
     check_sensor(scene, args.scene)
     if args.deep:
         _, _, beauty = render_deep_to_file(scene, args.output, spp=args.spp, seed=args.seed)

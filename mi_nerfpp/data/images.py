@@ -26,6 +26,7 @@ from PIL import Image
 
 from mi_nerfpp.core.color import quantize8
 from mi_nerfpp.data.errors import DatasetError
+from mi_nerfpp.files.atomic import readable_path
 
 _PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
 _EXIF_ORIENTATION = 0x0112
@@ -143,7 +144,8 @@ def _png_bit_depth(path: str) -> int | None:
 def _read_ldr(path: str) -> np.ndarray:
     """Raw integer (or bool) pixels of a PNG/JPEG/..., 16-bit PNGs at full precision."""
     if _png_bit_depth(path) == 16:
-        return np.array(mi.Bitmap(path))
+        with readable_path(path) as readable:       # Mitsuba takes UTF-8 names only
+            return np.array(mi.Bitmap(readable))
     return iio.imread(path, plugin='pillow', rotate=True)     # rotate: EXIF orientation
 
 
@@ -200,7 +202,7 @@ def _split_alpha(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
 def _read_exr(path: str) -> tuple[np.ndarray, np.ndarray | None]:
     """Colour (H, W, 3) and optional alpha (H, W, 1) of an EXR's default (unnamed) layer."""
 
-    with OpenEXR.File(path, separate_channels=True) as f:
+    with readable_path(path) as readable, OpenEXR.File(readable, separate_channels=True) as f:
         channels = {name: np.asarray(ch.pixels, dtype=np.float32)
                     for name, ch in f.channels().items()}
     if all(c in channels for c in 'RGB'):

@@ -44,6 +44,7 @@ from tqdm import tqdm
 
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.images import _read_exr, _read_ldr
+from mi_nerfpp.files.atomic import atomic_write_path
 
 # The index of a transforms.json undistortion cache (written last: its time stamps the cache).
 CACHE_INDEX = 'cameras.json'
@@ -394,17 +395,23 @@ def _read_pixels(path: str) -> np.ndarray:
 
 
 def _write_pixels(path: str, pixels: np.ndarray) -> None:
-    """Write what :func:`_read_pixels` read: PNG (8 or 16 bit) or EXR (float32)."""
+    """Write what :func:`_read_pixels` read: PNG (8 or 16 bit) or EXR (float32), through a
+    temporary UTF-8 path (OpenEXR and Mitsuba refuse other bytes in a name)."""
+    with atomic_write_path(path) as tmp:
+        _write_pixels_to(path, tmp, pixels)
+
+
+def _write_pixels_to(path: str, tmp: str, pixels: np.ndarray) -> None:
     if path.lower().endswith('.exr'):
         names = ('R', 'G', 'B', 'A')[:pixels.shape[2]]
         channels = {name: np.ascontiguousarray(pixels[..., i]) for i, name in enumerate(names)}
         with OpenEXR.File({'compression': OpenEXR.ZIP_COMPRESSION,
                            'type': OpenEXR.scanlineimage}, channels) as f:
-            f.write(path)
+            f.write(tmp)
     elif pixels.dtype == np.uint16:
-        mi.Bitmap(pixels if pixels.shape[2] > 1 else pixels[..., 0]).write(path)
+        mi.Bitmap(pixels if pixels.shape[2] > 1 else pixels[..., 0]).write(tmp)
     else:
-        iio.imwrite(path, pixels if pixels.shape[2] > 1 else pixels[..., 0], extension='.png')
+        iio.imwrite(tmp, pixels if pixels.shape[2] > 1 else pixels[..., 0], extension='.png')
 
 
 def _progress(total: int, enabled: bool):

@@ -30,17 +30,79 @@ def check_writable_folder(folder: str | os.PathLike, what: str = 'folder') -> No
                       f'writable place', folder) from None
 
 
+def is_utf8(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is valid UTF-8 text: what libraries that take a path as ``str`` and
+    hand it to C++ (OpenEXR, Mitsuba, USD) accept. A Linux name may be any bytes but ``/``
+    and NUL; Python gives one that is not UTF-8 as a ``str`` with surrogate escapes
+    (``os.fsdecode``), which those libraries refuse."""
+    try:
+        os.fsencode(path).decode('utf-8')
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
+def _ascii_name(name: str) -> str:
+    """``name`` with every byte outside printable ASCII (and a space) as ``_``: the part of a
+    temporary file's name taken from the file it stands for."""
+    return ''.join(chr(b) if 0x20 < b < 0x7f else '_' for b in os.fsencode(name))
+
+
+def _temporary_name(base: str, ext: str, unique: str) -> str:
+    return f'.{_ascii_name(base)}.{unique}.tmp{_ascii_name(ext)}'
+
+
+@contextlib.contextmanager
+def folder_path(folder: str | os.PathLike) -> Iterator[str]:
+    """Yield a UTF-8 path of ``folder`` for the time of the ``with``: ``folder`` itself when it
+    is UTF-8, else ``/proc/self/fd/N`` of a descriptor of the folder (Linux), which names the
+    same folder in ASCII. Names in it made of UTF-8 may be joined to it."""
+    folder = os.fsdecode(folder)
+    if is_utf8(folder) or not os.path.isdir('/proc/self/fd'):
+        yield folder
+        return
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        yield f'/proc/self/fd/{fd}'
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def readable_path(path: str | os.PathLike) -> Iterator[str]:
+    """Yield a UTF-8 path that reads the file ``path`` for the time of the ``with``, for the
+    libraries that refuse a name of other bytes (see :func:`is_utf8`): ``path`` itself when
+    it is UTF-8, else its name in :func:`folder_path` of its folder, else (a name that is not
+    UTF-8 itself) ``/proc/self/fd/N`` of a descriptor of the file. A missing file is left to
+    the reader to report."""
+    path = os.fsdecode(path)
+    if is_utf8(path) or not os.path.isdir('/proc/self/fd'):
+        yield path
+        return
+    folder, name = os.path.split(os.path.abspath(path))
+    if is_utf8(name):
+        with folder_path(folder) as safe:
+            yield os.path.join(safe, name)
+        return
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        yield f'/proc/self/fd/{fd}'
+    finally:
+        os.close(fd)
+
+
 def remove_stale_temporaries(folder: str | os.PathLike, name: str | None = None) -> list[str]:
     """Delete the temporary files that :func:`atomic_write_path` left for ``name`` (for every
     name when None) in ``folder`` when a process was killed mid-write. Returns the paths
     removed."""
     base, ext = os.path.splitext(name) if name is not None else ('', '')
+    prefix, suffix = f'.{_ascii_name(base)}.', f'.tmp{_ascii_name(ext)}'
     removed = []
     for entry in os.listdir(folder):
         if name is None:
             stale = entry.startswith('.') and '.tmp' in entry
         else:
-            stale = entry.startswith(f'.{base}.') and entry.endswith(f'.tmp{ext}')
+            stale = entry.startswith(prefix) and entry.endswith(suffix)
         if stale:
             path = os.path.join(folder, entry)
             with contextlib.suppress(FileNotFoundError):
@@ -55,17 +117,22 @@ def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
 
     The parent directory is created if needed. Readers never see a partially
     written file, and on error the temporary file is removed; an operating-system error that
-    names no file (a full disk while writing) is given ``path``.
+    names no file (a full disk while writing) is given ``path``. The temporary path is UTF-8
+    whatever ``path`` is (its name ASCII, its folder :func:`folder_path`), so that the
+    libraries that refuse other bytes (OpenEXR, Mitsuba, USD) write it; the move onto
+    ``path`` takes any name.
     """
-    path = os.fspath(path)
+    path = os.fsdecode(path)
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
     base, ext = os.path.splitext(os.path.basename(path))
     # A fresh unique name rather than mkstemp, so the writer creates the file
     # with the usual umask permissions instead of mkstemp's 0600.
-    tmp = os.path.join(directory, f'.{base}.{uuid.uuid4().hex}.tmp{ext}')
+    name = _temporary_name(base, ext, uuid.uuid4().hex)
+    tmp = os.path.join(directory, name)
     try:
-        yield tmp
+        with folder_path(directory) as safe:
+            yield os.path.join(safe, name)
         os.replace(tmp, path)
     except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
@@ -176,7 +243,9 @@ def lock_folder(folder, what: str = 'folder') -> FolderLock:
                                        f'process ({_read_text(fd)}); wait for it to end or '
                                        f'stop it, or choose another one') from None
         os.ftruncate(fd, 0)
-        os.pwrite(fd, (_holder_text() + '\n').encode(), 0)
+        # The command's arguments as the system gave them: a path of non-UTF-8 bytes is a str
+        # with surrogate escapes, written back as its bytes.
+        os.pwrite(fd, (_holder_text() + '\n').encode(errors='surrogateescape'), 0)
     except BaseException:
         os.close(fd)
         raise
@@ -186,7 +255,7 @@ def lock_folder(folder, what: str = 'folder') -> FolderLock:
 
 def _read_text(fd):
     try:
-        return os.pread(fd, 1000, 0).decode(errors='replace').strip()
+        return os.pread(fd, 1000, 0).decode(errors='surrogateescape').strip()
     except OSError:
         return ''
 

@@ -30,7 +30,7 @@ from mi_nerfpp.version import __version__
 from mi_nerfpp.core.color import (COLOR_SPACE, COLOR_SPACE_DESCRIPTION,
                                   REC709_CHROMATICITIES)
 from mi_nerfpp.core.layers import FULL_PRECISION_CHANNELS, rst_table
-from mi_nerfpp.files.atomic import atomic_write_path
+from mi_nerfpp.files.atomic import atomic_write_path, readable_path
 
 if __doc__:        # (None under python -OO)
     __doc__ = __doc__.replace('{layer_table}', rst_table())
@@ -138,7 +138,8 @@ def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray],
 
 def read_header(path: str | os.PathLike) -> dict:
     """The header attributes of a single-part EXR."""
-    with OpenEXR.File(os.fspath(path), header_only=True) as exr_file:
+    with readable_path(path) as readable, \
+            OpenEXR.File(readable, header_only=True) as exr_file:
         return dict(exr_file.header())
 
 
@@ -151,10 +152,16 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise ValueError(f'{path}: no such file')
-    if not OpenEXR.isOpenExrFile(path):
+    with readable_path(path) as readable:
+        return _read_exr_file(path, readable)
+
+
+def _read_exr_file(path, readable):
+    """:func:`read_exr` of ``path`` through its UTF-8 path ``readable``."""
+    if not OpenEXR.isOpenExrFile(readable):
         raise ValueError(f'{path}: not an OpenEXR file')
     try:
-        with OpenEXR.File(path, separate_channels=True) as exr_file:
+        with OpenEXR.File(readable, separate_channels=True) as exr_file:
             if len(exr_file.parts) != 1:
                 raise ValueError(
                     f'{path}: expected a single-part EXR, found {len(exr_file.parts)} parts')

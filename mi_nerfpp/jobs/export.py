@@ -133,9 +133,15 @@ def _define_camera(stage, path, cameras, times=None):
 
 def write_usd(folder, cameras, video=None, proxy='proxy.usda'):
     """``folder/scene.usda`` (module docs); ``cameras``: ``{split: [Camera]}`` (world)."""
-    from pxr import Usd, UsdGeom  # deferred: usd-core is the optional extra [export]
+    from pxr import Usd  # deferred: usd-core is the optional extra [export]
     path = os.path.join(folder, 'scene.usda')
-    stage = Usd.Stage.CreateNew(path + '.tmp.usda')
+    with atomic_write_path(path) as tmp:      # a UTF-8 name: USD takes no other bytes
+        _write_scene_usd(Usd.Stage.CreateNew(tmp), cameras, video, proxy)
+    return path
+
+
+def _write_scene_usd(stage, cameras, video, proxy):
+    from pxr import UsdGeom  # deferred: usd-core is the optional extra [export]
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     root = UsdGeom.Xform.Define(stage, '/World')
     stage.SetDefaultPrim(root.GetPrim())
@@ -159,8 +165,6 @@ def write_usd(folder, cameras, video=None, proxy='proxy.usda'):
     if proxy:
         stage.DefinePrim('/World/proxy').GetReferences().AddReference(proxy)
     stage.GetRootLayer().Save()
-    os.replace(path + '.tmp.usda', path)
-    return path
 
 
 # The coarsest marching-cubes grid: at 2 or 3 points a side no grid point lies inside the unit
@@ -254,8 +258,13 @@ def write_ply(path, vertices, faces=None, colours=None):
 
 def write_proxy_usd(path, vertices, faces, colours):
     """The proxy mesh as ``path`` (a USD layer with a default prim /proxy)."""
-    from pxr import Usd, UsdGeom, Vt  # deferred: usd-core is the optional extra [export]
-    stage = Usd.Stage.CreateNew(path + '.tmp.usda')
+    from pxr import Usd  # deferred: usd-core is the optional extra [export]
+    with atomic_write_path(path) as tmp:      # a UTF-8 name: USD takes no other bytes
+        _write_proxy_usd(Usd.Stage.CreateNew(tmp), vertices, faces, colours)
+
+
+def _write_proxy_usd(stage, vertices, faces, colours):
+    from pxr import UsdGeom, Vt  # deferred: usd-core is the optional extra [export]
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     mesh = UsdGeom.Mesh.Define(stage, '/proxy')
     stage.SetDefaultPrim(mesh.GetPrim())
@@ -270,7 +279,6 @@ def write_proxy_usd(path, vertices, faces, colours):
     # displayColor is linear by USD's convention.
     colour.Set(Vt.Vec3fArray.FromNumpy(np.asarray(colours, np.float32)))
     stage.GetRootLayer().Save()
-    os.replace(path + '.tmp.usda', path)
 
 
 def nuke_rotation(c2w_gl):

@@ -32,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import shlex
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -543,7 +544,8 @@ def summary(result: RunResult) -> tuple[list[str], list[str]]:
     lines.append(f'written to {out}/: ' + ', '.join(written))
     if 'test' in metrics:
         lines.append(f'render a view: python -m mi_nerfpp render '
-                     f'{os.path.join(out, "render.xml")} -o view.exr --preview view.png')
+                     f'{shlex.quote(os.path.join(out, "render.xml"))} -o view.exr '
+                     f'--preview view.png')     # quoted: a path with spaces pastes whole
     return lines, warnings
 
 

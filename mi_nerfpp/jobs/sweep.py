@@ -102,7 +102,8 @@ def _train(job):
     """The job's run, its progress and outcome (or error) written to ``optimize.log``."""
     # Resume a run a killed worker left (Ray retries the task), not one finished.
     resume = os.path.exists(os.path.join(job.out, 'model.npz')) and not job.overwrite
-    with open(os.path.join(job.out, 'optimize.log'), 'a') as log:
+    # surrogateescape: a path of non-UTF-8 bytes in a line is written as its bytes.
+    with open(os.path.join(job.out, 'optimize.log'), 'a', errors='surrogateescape') as log:
         try:
             result = run.optimize(job.data, job.config, job.out, resume=resume,
                                   overwrite=job.overwrite, observer=run.LogObserver(log))

@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from mi_nerfpp.core.geometry import pixel_footprint
 from mi_nerfpp.core.render import flat_index
-from mi_nerfpp.files.atomic import atomic_write_path
+from mi_nerfpp.files.atomic import atomic_write_path, readable_path
 from mi_nerfpp.files.exr import COMPRESSIONS
 from mi_nerfpp.integrator import NeRFPPIntegrator
 from mi_nerfpp.integrator.parameters import check_film
@@ -239,7 +239,7 @@ def write_deep_exr(path, counts, samples, attributes=None, compression='zips'):
 
 def read_deep_exr(path):
     """``(counts, samples)`` of a deep scanline EXR written by :func:`write_deep_exr`."""
-    with OpenEXR.File(os.fspath(path)) as f:
+    with readable_path(path) as readable, OpenEXR.File(readable) as f:
         channels = f.channels()
         if 'RGBA' in channels:
             rgba = channels['RGBA'].pixels

@@ -81,7 +81,7 @@ from mi_nerfpp.data.nerfpp import write_nerfpp
 from mi_nerfpp.data.synth.trajectories import (DEFAULT_FOV, DEFAULT_RADIUS,
                                                DEFAULT_SEED, TRAJECTORIES,
                                                make_cameras, parse_res)
-from mi_nerfpp.files.atomic import atomic_write_path
+from mi_nerfpp.files.atomic import atomic_write_path, readable_path
 from mi_nerfpp.files.exr import write_exr
 
 CAPTURE_FILE = 'capture.json'
@@ -310,7 +310,8 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
 
     _prepare_output(out)
     try:
-        scene = mi.load_file(scene_xml)
+        with readable_path(scene_xml) as readable:      # Mitsuba takes UTF-8 names only
+            scene = mi.load_file(readable)
     except RuntimeError as e:
         raise RuntimeError(f'{scene_xml}: Mitsuba cannot load the scene: {e}') from e
 

@@ -105,3 +105,21 @@ def test_adam_matches_drjit_adam_and_fuses_the_updates(lazy):
         for k in start:
             np.testing.assert_allclose(np.array(ours[k]), np.array(theirs[k]), rtol=1e-5,
                                        atol=1e-6)
+
+
+def test_the_lazy_optimizer_matches_dense_adam_when_every_entry_is_touched():
+    """``lazy`` only leaves alone the entries whose gradient is zero: where every entry has a
+    gradient every step (a sparse level's bricks that every batch reaches), it is dense Adam."""
+    rng = np.random.default_rng(1)
+    start = rng.normal(size=(8, 2, 2, 2, 4)).astype(np.float32)     # a sparse level's pool
+    runs = {}
+    for lazy in (False, True):
+        opt = optim.adam({'fg.sparse0': mi.TensorXf(start)}, lazy=lazy)
+        for it in range(6):
+            optim.set_learning_rates(opt, it / 6)
+            x = opt['fg.sparse0'].array
+            dr.backward(dr.sum(dr.square(x - 0.2) + 0.1 * dr.exp(x)))    # nowhere zero
+            opt.step()
+        runs[lazy] = np.array(opt['fg.sparse0'])
+    assert not np.allclose(runs[False], start)
+    np.testing.assert_array_equal(runs[True], runs[False])

@@ -72,7 +72,9 @@ CHUNK_RAYS = 1 << 16
 # the fine pass a 320x180 view of the default capture renders in 0.63 of the time and differs
 # from the full render by 38 dB PSNR, well under the model's error (27 dB); 2026-11-27.
 MOVING_FINE_SAMPLES = 0
-# Seconds a camera must stand still before its view is refined: a refinement is not interrupted,
+# Seconds a camera must stand still before its view is refined, counted from its change and
+# from when its moving view was sent (during a render camera updates wait for the interpreter,
+# so a camera that seemed still through a render may not be): a refinement is not interrupted,
 # so a pause in a drag shorter than this keeps the moving views coming.
 SETTLE_SECONDS = 0.3
 # While training: the largest share of wall time the viewer renders in while the user moves the
@@ -202,6 +204,7 @@ class View:
     stage: int = -1                   # the last progressive stage rendered of this camera
     model_version: int = -1           # the model version that render showed
     rendered_at: float = 0.0
+    moving_sent: float = 0.0          # time.monotonic() when its first stage was sent
     layer: str = 'beauty'
     last_camera: Camera | None = None  # the camera of the last render (model frame)
 
@@ -467,7 +470,8 @@ class Viewer:
             widths = render_widths(key[4], self.max_width)
             if view.stage < 0:
                 return view, widths[0], 0
-            if view.stage < len(widths) - 1 and now - view.changed >= SETTLE_SECONDS:
+            if view.stage < len(widths) - 1 and \
+                    now - max(view.changed, view.moving_sent) >= SETTLE_SECONDS:
                 return view, widths[view.stage + 1], view.stage + 1
             if (view.model_version < self.model_version
                     and now - view.rendered_at >= REFRESH_SECONDS and refresh is None):
@@ -531,6 +535,8 @@ class Viewer:
         self.last_image = image
         view.stage, view.model_version = stage, version
         view.rendered_at, view.last_camera = time.monotonic(), camera
+        if stage == 0:
+            view.moving_sent = view.rendered_at
         self.last_render_seconds = seconds
         if stage > 0 or time.monotonic() - self._status_shown > STATS_SECONDS:
             # Not at every moving view: each update redraws the page's panel too.

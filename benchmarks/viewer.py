@@ -1,6 +1,7 @@
 """The web viewer's targets (issue 50), measured with headless Chromium on this machine.
 
     python benchmarks/viewer.py RUN [--data DATA] [--rounds 2] [--steps 200]
+    python benchmarks/viewer.py RUN --rounds 0 --name viewer_DATE    # no training rounds
 
 RUN: a finished run of the default capture (``python optimize.py --out RUN``). DATA: the
 dataset the training rounds train on (default: RUN's own dataset). Measured:
@@ -16,9 +17,9 @@ dataset the training rounds train on (default: RUN's own dataset). Measured:
    (faster than the viewer renders), then the mouse dragging in the page (trusted mouse events
    through Chrome's DevTools protocol; the page sends its camera at its own frame rate, here
    software WebGL): the views sent per second, and the render time of each;
-3. **training with the viewer open**: ``--rounds`` rounds, each training ``--steps`` steps on
-   DATA without the viewer, then with it open in the browser, the camera still (the order
-   swapped every round): training rays per second of wall time (the batch rays times the steps
+3. **training with the viewer open** (``--rounds 0``: not measured): ``--rounds`` rounds, each
+   training ``--steps`` steps on DATA without the viewer, then with it open in the browser, the
+   camera still (the order swapped every round): training rays per second of wall time (the batch rays times the steps
    of the last half, over their wall time; the page opened and settled before them), and their
    ratio;
 4. **a drawn path**: three keyframes added in the page (the camera orbited between them), saved,
@@ -26,8 +27,9 @@ dataset the training rounds train on (default: RUN's own dataset). Measured:
    difference between the cameras the preview rendered and those ``video`` rendered (both
    float64; and against the EXR headers, which are float32).
 
-Writes ``benchmarks/results/viewer.json`` and, with ``--screenshot FILE``, a screenshot of the
-page (the README's).
+Writes ``benchmarks/results/NAME.json`` (``--name``, default ``viewer``; with ``--rounds 0`` the
+variant "no training rounds", which the benchmarks page shows beside the last file with them)
+and, with ``--screenshot FILE``, a screenshot of the page (the README's).
 """
 from __future__ import annotations
 
@@ -375,7 +377,8 @@ def main():
               f"deg; to the EXR headers (float32): c2w {drawn['header_c2w']:.2e}, fov "
               f"{drawn['header_fov']:.2e} deg", flush=True)
         rounds = []
-        train_round(data, 30, driver, False)        # kernels compiled, dataset cached
+        if a.rounds:
+            train_round(data, 30, driver, False)    # kernels compiled, dataset cached
         for r in range(a.rounds):
             order = (False, True) if r % 2 == 0 else (True, False)
             result = {}
@@ -389,10 +392,11 @@ def main():
                   f"s of {result[True]['wall_seconds']:.1f} s)", flush=True)
     finally:
         driver.quit()
-    ratio = float(np.median([r[2] for r in rounds]))
-    print(f'training with the viewer open: {100 * ratio:.1f} % of the rays/s without it '
-          f'(median of {len(rounds)} rounds)')
-    bench.write_results(a.name, 'The web viewer', [
+    ratio = float(np.median([r[2] for r in rounds])) if rounds else None
+    if rounds:
+        print(f'training with the viewer open: {100 * ratio:.1f} % of the rays/s without it '
+              f'(median of {len(rounds)} rounds)')
+    tables = [
         bench.table('Targets', ['target', 'wanted', 'measured', 'met'], [
             ['first frame on screen after opening the page (s)', '<= 3', first['visible'],
              'yes' if first['visible'] is not None and first['visible'] <= 3 else 'no'],
@@ -401,7 +405,8 @@ def main():
             ['frames/s at 320x180 while the mouse drags in the page', '>= 5', move['fps'],
              'yes' if move['fps'] >= 5 else 'no'],
             ['training rays/s with the viewer open, camera still (% of without)', '>= 85',
-             100 * ratio, 'yes' if ratio >= 0.85 else 'no'],
+             None if ratio is None else 100 * ratio,
+             'not measured' if ratio is None else 'yes' if ratio >= 0.85 else 'no'],
             ['drawn path: preview vs video cameras, largest c2w / fov difference', '<= 1e-6',
              max(drawn['c2w'], drawn['fov']),
              'yes' if max(drawn['c2w'], drawn['fov']) <= 1e-6 else 'no']],
@@ -421,7 +426,12 @@ def main():
                     ['preview frames', 'c2w (float64)', 'fov (deg, float64)',
                      'c2w (EXR header, float32)', 'fovY (EXR header, float32)'],
                     [[drawn['previewed'], drawn['c2w'], drawn['fov'], drawn['header_c2w'],
-                      drawn['header_fov']]])],
+                      drawn['header_fov']]])]
+    if not rounds:
+        # A variant of its own: the benchmarks page keeps showing the last file with rounds.
+        tables = [t for t in tables if not t['title'].startswith('Training side by side')]
+    bench.write_results(
+        a.name, 'The web viewer' + ('' if rounds else ' (no training rounds)'), tables,
         notes=f'Run {a.run}. Moving views with the camera set from the server 20 times a '
               f'second: {server_move["frames"]} in {server_move["seconds"]:.1f} s, median '
               f'render {server_move["render_ms"]:.0f} ms; with the mouse dragging in the page: '
@@ -431,7 +441,8 @@ def main():
               f'rate: software WebGL on the same two cores). The machine may have been doing '
               f'other work: the load average is in raw.',
         raw={'first': first, 'moving_camera': server_move, 'moving_drag': move, 'drawn': drawn,
-             'load': os.getloadavg(), 'rounds': rounds})
+             'load': os.getloadavg(), 'rounds': rounds},
+        variant=None if rounds else 'no training rounds')
 
 
 if __name__ == '__main__':

@@ -17,6 +17,7 @@ import subprocess
 import sys
 import threading
 import time
+from types import SimpleNamespace
 
 import imageio.v3 as iio
 import numpy as np
@@ -25,9 +26,9 @@ from PIL import Image
 
 from mi_nerfpp.commands.cli import main
 from mi_nerfpp.files.atomic import lock_folder
-from mi_nerfpp.jobs.viewer import (MOVING_WIDTH, display, letterbox,
-                                   open_viewer, render_widths, viewer_camera,
-                                   wxyz_of)
+from mi_nerfpp.jobs.viewer import (MOVING_WIDTH, SETTLE_SECONDS, View,
+                                   display, letterbox, open_viewer,
+                                   render_widths, viewer_camera, wxyz_of)
 from mi_nerfpp.output.camera_path import (CameraPath, CameraPathError, Pose,
                                           path_cameras, read_path,
                                           sample_frames, write_path)
@@ -136,6 +137,39 @@ def test_viewer_pieces():
     for layer in ('beauty', 'foreground', 'background', 'depth', 'alpha'):
         image = display(layers, layer)
         assert image.shape == (2, 3, 3) and image.dtype == np.uint8
+
+
+def test_a_moving_view_renders_coarse_and_is_refined_once_it_settled(tiny_run):
+    """A moving view is rendered without fine samples, its refinement with the run's, and
+    only SETTLE_SECONDS after the moving view was sent; a view with no refinement to come is
+    rendered with the run's samples at once (no browser: a stand-in for the page's client)."""
+    viewer = open_viewer(tiny_run, port=free_port(), max_width=640)
+    try:
+        assert viewer.moving_renderer.scene.integrator().sampling_overrides['fine_samples'] == 0
+        assert viewer.renderer.scene.integrator().sampling_overrides['fine_samples'] is None
+        used = []
+        for name in ('renderer', 'moving_renderer'):
+            renderer = getattr(viewer, name)
+            renderer.render = (lambda render, name: lambda camera: (used.append(name),
+                                                                     render(camera))[1])(
+                renderer.render, name)
+        camera = SimpleNamespace(position=(0.1, 0.2, 0.9), wxyz=wxyz_of(_pose(0.4).c2w),
+                                 fov=np.radians(50), aspect=16 / 9, image_width=640)
+        client = SimpleNamespace(client_id=1, camera=camera, flush=lambda: None,
+                                 scene=SimpleNamespace(set_background_image=lambda *a, **k: 0))
+        view = viewer.views[1] = View(client)
+        assert viewer.work() and used == ['moving_renderer'] and view.stage == 0
+        sent = view.moving_sent
+        assert sent >= view.changed
+        assert viewer.pending(sent + 0.5 * SETTLE_SECONDS) is None
+        assert viewer.pending(sent + SETTLE_SECONDS + 1e-3)[1:] == (640, 1)
+        while time.monotonic() < sent + SETTLE_SECONDS + 1e-3:
+            time.sleep(0.05)
+        assert viewer.work() and used[-1] == 'renderer' and view.stage == 1
+        camera.image_width = 200            # one stage (320 pixels): the run's samples at once
+        assert viewer.work() and used[-1] == 'renderer' and view.stage == 0
+    finally:
+        viewer.close()
 
 
 # ------------------------------------------------------------------------------- the browser

@@ -51,12 +51,14 @@ def table(title: str, columns: list, rows: list, note: str | None = None) -> dic
 
 
 def write_results(name: str, title: str, tables: list, figures=(), notes: str | None = None,
-                  raw=None, command: str | None = None, folder: str | None = None) -> str:
+                  raw=None, command: str | None = None, folder: str | None = None,
+                  variant: str | None = None) -> str:
     """Write ``<folder>/<name>.json`` (default folder: ``results/`` next to the running
     benchmark script) and return its path. ``figures``: PNG files to show with the tables,
     copied into the folder as ``<name>_<file name>``; ``command``: what reproduces the
     results (default: this process's command line, from the repository root); the date, the
-    machine and the git revision are filled in."""
+    machine and the git revision are filled in. ``variant``: what this file measures when one
+    benchmark measures different things (the benchmarks page shows the latest file of each)."""
     script = os.path.abspath(sys.argv[0])
     folder = folder or os.path.join(os.path.dirname(script), 'results')
     os.makedirs(folder, exist_ok=True)
@@ -68,6 +70,7 @@ def write_results(name: str, title: str, tables: list, figures=(), notes: str | 
         shown.append(target)
     results = {
         'benchmark': os.path.splitext(os.path.basename(script))[0],
+        **({'variant': variant} if variant else {}),
         'title': title,
         'command': command or this_command(),
         'date': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),

@@ -46,7 +46,7 @@ from mi_nerfpp.core.render import distortion, ray_distortion, render_rays
 from mi_nerfpp.data.storage import MAX_STORED_BYTES
 from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
-                                        save_checkpoint)
+                                        migration_notes, read_version, save_checkpoint)
 from mi_nerfpp.training import optim, priors
 from mi_nerfpp.training.config import TrainConfig, default_minutes, per_volume
 
@@ -290,17 +290,15 @@ class Trainer:
         if resume and os.path.exists(self.checkpoint_path):
             self.model, meta, state = load_checkpoint(self.checkpoint_path)
             stored = meta.get('config', {})
-            conflicts = (config.resume_conflicts(stored)
-                         + data_conflicts(meta.get('data', {}), self.data_summary()))
-            if (self.model.composite != config.model.composite
-                    and self.model.color_space == 'srgb'
-                    and 'composite' not in TrainConfig.stored_options(stored)):  # pre-issue-11
-                conflicts.append(f'--composite: the checkpoint composites in '
-                                 f'{self.model.composite!r}, this run asks for '
-                                 f'{config.model.composite!r}')
-            if conflicts:
+            model_conflicts = config.resume_conflicts(stored, self.model.config)
+            conflicts = model_conflicts + data_conflicts(meta.get('data', {}),
+                                                         self.data_summary())
+            if conflicts:       # why an older file's weights differ from today's defaults
+                version = read_version(self.checkpoint_path)
+                why = ''.join(f'; {note} (a version {version} checkpoint)'
+                              for note in migration_notes(version) if model_conflicts)
                 raise TrainingError(f'{self.checkpoint_path} cannot be resumed with other model '
-                                    f'options or data: ' + '; '.join(conflicts))
+                                    f'options or data: ' + '; '.join(conflicts) + why)
             self.iteration = int(meta['iteration'])
             self.elapsed = float(meta['elapsed'])
             self.history = meta.get('history', [])

@@ -32,6 +32,10 @@ import numpy as np
 
 PARAMS = 6                  # axis-angle rotation and translation
 LR_POSES = 1e-3             # Adam learning rate of the corrections (radians, model units)
+# The largest learning rate of the corrections: an Adam step moves each by about the learning
+# rate, and one radian or the unit sphere's radius per step already throws a camera out of its
+# scene in a few steps (--lr-poses 1e10 moved the cameras so far that the process crashed).
+MAX_LR_POSES = 1.0
 START = 0.25                # fraction of the run before the corrections are learned
 
 

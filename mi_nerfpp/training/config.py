@@ -323,6 +323,9 @@ class OptimizerOptions(_Options):
         if not (_finite(self.adam_beta2) and 0 < self.adam_beta2 < 1):
             self._bad('adam_beta2', 'a number in (0, 1)')
         self._check(('poses_start',), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+        self._check(('lr_poses',), lambda v: v <= poses.MAX_LR_POSES,
+                    f'at most {poses.MAX_LR_POSES:g} (an Adam step moves each camera correction '
+                    f'by about the learning rate: radians, and the unit sphere\'s radius)')
 
 
 @dataclass
@@ -640,7 +643,8 @@ class TrainConfig:
                            f'{_as_flag(name, value)})')
         now = json.loads(json.dumps(self.options()))
         stored = self.stored_options(stored)
-        stored.setdefault('bg_field', stored.get('field'))
+        if 'field' in stored:
+            stored.setdefault('bg_field', stored['field'])
         if 'color' in stored:
             stored.setdefault('bg_color', stored['color'])
         if isinstance(stored.get('bg_s_ratio'), (int, float)):    # before per-level ratios

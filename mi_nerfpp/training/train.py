@@ -331,6 +331,7 @@ class Trainer:
         # tracing the step in Python took ~18 of ~76 ms (README, "Measured performance").
         self._compute = (dr.freeze(self._forward_backward) if config.schedule.freeze
                          else self._forward_backward)
+        self._recorded = None       # the Python values the frozen step was recorded for
         # The scatter-reduction settings measured on the CPU (see GRADIENT_*) apply on LLVM.
         self._llvm = llvm_backend()
 
@@ -398,6 +399,7 @@ class Trainer:
                 self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
                 self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
         inputs = self._step_inputs()
+        self._fresh_recording(inputs)
         # No cyclic garbage collection while a step is recorded: releasing a collected
         # array that maps NumPy memory cannot be recorded (:mod:`.arrays`).
         collecting = gc.isenabled()
@@ -423,6 +425,20 @@ class Trainer:
         self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
         self.iteration += 1
         return float(loss.array[0]), float(fine.array[0])
+
+    def _fresh_recording(self, inputs):
+        """A new frozen step whenever the Python values of the step's inputs change (the
+        phase, the grids' shapes, the image pyramid's level): Dr.Jit's frozen function crashed
+        (SIGSEGV) recording a second key after several replays of the first (--pyramid 0.5 0.6
+        0.7 0.8 on 32x24 images, at the move to the next level). These values only move
+        forward during a run, so a discarded recording is not needed again."""
+        if not self.cfg.schedule.freeze:
+            return
+        rays = inputs['rays']
+        key = (repr(inputs['phase']), rays.get('layout'), rays.get('factor'))
+        if self._recorded is not None and key != self._recorded:
+            self._compute = dr.freeze(self._forward_backward)
+        self._recorded = key
 
     def _step_inputs(self):
         """Everything a step reads, as :func:`drjit.freeze` traverses it: the optimizer (its

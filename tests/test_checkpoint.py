@@ -248,7 +248,7 @@ def test_a_checkpoint_with_a_flat_training_config_loads_evaluates_and_resumes(
     longer = ['7' if before == '--iterations' else a for before, a in zip([''] + TINY_RUN, TINY_RUN)]
     assert main(['optimize', capture, '--out', str(run), '--resume', '--field', 'nerf']
                 + longer) == 1
-    assert "--field: the checkpoint has 'grid'" in capsys.readouterr().err
+    assert "--field: the checkpoint's weights have 'grid'" in capsys.readouterr().err
     assert main(['optimize', capture, '--out', str(run), '--resume'] + longer) == 0
     model, meta, _ = load_checkpoint(run / 'model.npz')
     assert meta['iteration'] == 7 and meta['config']['schedule']['iterations'] == 7
@@ -310,3 +310,143 @@ def test_the_background_may_colour_every_sample_while_the_foreground_defers(tmp_
     assert TrainConfig.from_options(bg_color='deferred').resume_conflicts(stored) == []
     assert config.resume_conflicts(stored) == [
         "--bg-color: the checkpoint has 'deferred', this run asks for 'sample'"]
+
+
+def test_every_older_readable_version_has_one_migration_step():
+    """The migration chain has one step per version before today's, so that an older file's
+    config is brought to today's layout step by step (a new version appends its step)."""
+    from mi_nerfpp.files.checkpoint import MIGRATIONS, READABLE_VERSIONS, migrate_config
+    assert sorted(MIGRATIONS) == list(range(1, VERSION))
+    assert READABLE_VERSIONS == tuple(range(1, VERSION + 1))
+    today = tiny_model().config
+    assert migrate_config(today, VERSION) == json.loads(json.dumps(today))   # nothing to do
+
+
+def _as_version(model, version, flat_training=None):
+    """The arrays of ``model``'s checkpoint rewritten as a file of an older ``version``: no
+    colour mode or antialiasing in its grid fields before 3, top-level center and scale in 1,
+    and (``flat_training``) a flat training config in ``meta``."""
+    path_config = dict(model.config, meta={'config': flat_training} if flat_training else {})
+    config = json.loads(json.dumps(path_config))
+    del config['sampling']
+    if version < 3:
+        for key in ('fg', 'bg'):
+            for entry in ('color', 'antialias'):
+                config[key].pop(entry)
+    if version < 2:
+        config.update(config.pop('normalization'))
+    return config
+
+
+@pytest.mark.parametrize('version', [1, 2])
+def test_migrated_configs_describe_the_weights_of_older_files(version):
+    from mi_nerfpp.files.checkpoint import migrate_config
+    model = tiny_model()
+    config = migrate_config(_as_version(model, version), version)
+    assert config['normalization'] == model.normalization.to_config()
+    for key in ('fg', 'bg'):        # before version 3: colour every sample, no antialiasing
+        assert config[key]['color'] == 'sample' and config[key]['antialias'] is False
+
+
+def _rewrite_run_as(run, version, flat=True):
+    """Turn the checkpoint of a run folder into one of an older ``version`` whose training
+    config is flat (written before the option groups) and knows neither --color, --bg-color
+    nor --antialias."""
+    path = run / 'model.npz'
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    stored = json.loads(str(arrays['config']))
+    training = {}
+    for values in stored['meta']['config'].values():
+        training.update(values)
+    for name in ('color', 'bg_color', 'antialias', 'grid_planes', 'bg_grid_planes'):
+        training.pop(name)
+    for key in ('fg', 'bg'):
+        for entry in ('color', 'antialias', 'planes'):
+            stored[key].pop(entry)
+    if version < 2:
+        stored.update(stored.pop('normalization'))
+    stored['meta']['config'] = training if flat else stored['meta']['config']
+    arrays['config'], arrays['version'] = np.array(json.dumps(stored)), np.array(version)
+    np.savez(path, **arrays)
+
+
+@pytest.mark.parametrize('version', [1, 2])
+def test_resuming_an_older_run_records_the_config_of_its_weights(tiny_run, capture, tmp_path,
+                                                                   capsys, version):
+    """A run of an older version, resumed with today's defaults, is refused naming each option
+    its weights differ in, the value to resume with and why (the file's version); resumed with
+    those, its recorded config describes the weights, and the next resume is told the same."""
+    import shutil
+
+    from mi_nerfpp.commands.cli import main
+    from mi_nerfpp.jobs.run import open_run
+    from tests.helpers import TINY_RUN
+    run = tmp_path / 'old'
+    shutil.copytree(tiny_run, run)
+    _rewrite_run_as(run, version)
+    model, _, cfg, _ = open_run(str(run))          # read: the config of its weights
+    assert (cfg.model.color, cfg.model.bg_color, cfg.model.antialias) == ('sample', 'sample',
+                                                                          False)
+    longer = ['7' if before == '--iterations' else a for before, a in zip([''] + TINY_RUN, TINY_RUN)]
+    assert main(['optimize', capture, '--out', str(run), '--resume'] + longer) == 1
+    err = capsys.readouterr().err
+    assert "--color: the checkpoint's weights have 'sample', this run asks for 'deferred' " \
+           "(resume with --color sample)" in err
+    assert "--antialias: the checkpoint's weights have False, this run asks for True " \
+           "(resume with --no-antialias)" in err
+    assert f'(a version {version} checkpoint)' in err and 'colour MLP at every sample' in err
+    assert '--bg-color' not in err          # the background coloured every sample, as asked
+    assert main(['optimize', capture, '--out', str(run), '--resume', '--color', 'sample',
+                 '--no-antialias'] + longer) == 0
+    model, meta, _ = load_checkpoint(run / 'model.npz')
+    recorded = meta['config']['model']
+    assert (recorded['color'], recorded['bg_color'], recorded['antialias']) == (
+        model.fg.color_mode, model.bg.color_mode, model.fg.antialias) == ('sample', 'sample',
+                                                                          False)
+    capsys.readouterr()
+    assert main(['optimize', capture, '--out', str(run), '--resume', '--iterations', '8']
+                + longer[2:]) == 1
+    err = capsys.readouterr().err          # today's file: no version note
+    assert "--color: the checkpoint's weights have 'sample'" in err and 'version' not in err
+
+
+def test_an_option_stored_in_another_group_keeps_its_value_and_unknown_ones_are_said(
+        tiny_run, capture, tmp_path, capsys):
+    """A grouped training config whose option sits in another group than today's is read by
+    the option's name; an entry no option of this version names is announced on resume, not
+    dropped silently; the weights decide what shapes the model whatever the config says."""
+    import shutil
+
+    from mi_nerfpp.commands.cli import main
+    from mi_nerfpp.training.config import TrainConfig
+    from tests.helpers import TINY_RUN
+    stored = TrainConfig.from_options(color='sample', batch_rays=77).to_dict()
+    stored['data']['color'] = stored['model'].pop('color')        # moved between groups
+    stored['schedule']['batch_rays'] = stored['schedule'].pop('batch_rays')
+    stored['losses']['future_prior'] = 0.5
+    assert TrainConfig.stored_options(stored)['color'] == 'sample'
+    assert TrainConfig.from_stored(stored).model.color == 'sample'
+    assert TrainConfig.unknown_stored(stored) == ['losses.future_prior']
+    run = tmp_path / 'moved'
+    shutil.copytree(tiny_run, run)
+    path = run / 'model.npz'
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    config = json.loads(str(arrays['config']))
+    training = config['meta']['config']
+    training['sampling']['grid_levels'] = training['model'].pop('grid_levels')
+    training['model']['color'] = 'sample'        # contradicts the weights: they decide
+    training['losses']['future_prior'] = 0.5
+    arrays['config'] = np.array(json.dumps(config))
+    np.savez(path, **arrays)
+    longer = ['7' if before == '--iterations' else a for before, a in zip([''] + TINY_RUN, TINY_RUN)]
+    levels = TrainConfig().model.grid_levels
+    assert main(['optimize', capture, '--out', str(run), '--resume', '--grid-levels',
+                 *[str(2 * r) for r in levels]] + longer) == 1
+    err = capsys.readouterr().err
+    assert f'--grid-levels: the checkpoint has {list(levels)!r}' in err
+    assert main(['optimize', capture, '--out', str(run), '--resume'] + longer) == 0
+    assert ('losses.future_prior, which this version of mi-nerfpp does not know'
+            in capsys.readouterr().out)
+    assert load_checkpoint(path)[1]['config']['model']['color'] == 'deferred'

@@ -129,3 +129,43 @@ def test_the_render_command_gives_one_line_for_a_far_sensor(tmp_path):
     assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
     assert 'the sensor is at 1e+25 world units from the origin' in r.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize('name, value', [('rr_depth', 0), ('rr_depth', -3), ('max_depth', 0)])
+def test_path_depths_below_one_are_named_by_the_integrator(name, value):
+    """Issue 49, item 6: rr_depth 0 reached Mitsuba's own text ('"rr_depth" must be set to a
+    value greater than zero!', from its base class): the integrator names the parameter."""
+    message = refusal(lambda: mi.load_dict(scene_dict(**{name: value})))
+    assert message == f"nerfpp: parameter '{name}' must be >= 1, got {value}"
+
+
+def test_the_render_command_names_rr_depth_and_the_scene_file(tmp_path):
+    """End to end: one line naming the parameter and the scene file, nothing written."""
+    xml = tmp_path / 'rr.xml'
+    xml.write_text(textwrap.dedent('''\
+        <scene version="3.0.0">
+            <integrator type="nerfpp"><integer name="rr_depth" value="0"/></integrator>
+            <sensor type="perspective">
+                <film type="hdrfilm"><integer name="width" value="4"/>
+                    <integer name="height" value="4"/></film>
+            </sensor>
+        </scene>'''))
+    out = tmp_path / 'out.exr'
+    r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'render', str(xml), '-o', str(out)],
+                       capture_output=True, text=True, timeout=300)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 1 and len(lines) == 1, r.stderr[-2000:]
+    assert lines[0].startswith("error: render: nerfpp: parameter 'rr_depth' must be >= 1, got 0")
+    assert str(xml) in lines[0] and 'greater than zero' not in lines[0]
+    assert not out.exists()
+
+
+def test_a_film_beyond_max_samples_names_the_largest_spp_and_film():
+    """``render --spp 1e9`` said 'the largest at 1000000000 spp is 0 pixels' alone: the message
+    also names the most samples per pixel that fit at the film's size."""
+    from mi_nerfpp.integrator.parameters import MAX_FILM_SAMPLES, check_film
+    check_film((32, 24), MAX_FILM_SAMPLES // (32 * 24), MAX_FILM_SAMPLES)
+    with pytest.raises(ValueError) as e:
+        check_film((32, 24), 10 ** 9, MAX_FILM_SAMPLES)
+    assert (f'(spp: at most {MAX_FILM_SAMPLES // (32 * 24)} at 32x24)' in str(e.value)
+            and 'the largest at 1000000000 spp is 0 pixels' in str(e.value))

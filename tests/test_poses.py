@@ -192,3 +192,26 @@ def test_bad_pose_options_are_refused():
         TrainConfig.from_options(lr_poses=0.0)
     with pytest.raises(ValueError, match='--poses-start must be a finite number >= 0'):
         TrainConfig.from_options(poses_start=-0.5)
+
+
+def test_corrections_are_rendered_at_most_their_largest_length():
+    """A correction beyond MAX_SHIFT / MAX_TURN (a shift of 1e10 crashed the process in the
+    sample placement; issue 49, item 5) is applied at that length, on the Dr.Jit side as on
+    the NumPy side; smaller ones are untouched."""
+    params = np.zeros((3, poses.PARAMS), np.float32)
+    params[1] = [1e20, 0, 0, 1e10, 0, 0]            # image 1: far beyond both
+    params[2] = [0.01, 0, 0, 0.02, 0, 0]            # image 2: an ordinary correction
+    image = mi.UInt32([1, 2])
+    o, d = poses.correct_rays(mi.TensorXf(params), image, mi.Point3f(0, 0, 0),
+                              mi.Vector3f(0, 1, 0))
+    o = np.array([np.array(o.x), np.array(o.y), np.array(o.z)]).T      # (ray, xyz)
+    d = np.array([np.array(d.x), np.array(d.y), np.array(d.z)]).T
+    assert np.all(np.isfinite(o)) and np.all(np.isfinite(d))
+    np.testing.assert_allclose(o[:, 0], [poses.MAX_SHIFT, 0.02], rtol=1e-6)
+    turned = poses.rotation_matrix([poses.MAX_TURN, 0, 0]) @ [0, 1, 0]
+    np.testing.assert_allclose(d[0], turned, atol=1e-5)
+    c2w = poses.corrected_c2w(np.eye(4), params[1])
+    np.testing.assert_allclose(c2w[:3, 3], [poses.MAX_SHIFT, 0, 0])
+    np.testing.assert_allclose(c2w[:3, :3] @ [0, 1, 0], turned, atol=1e-12)
+    np.testing.assert_allclose(poses.corrected_c2w(np.eye(4), params[2])[:3, 3], [0.02, 0, 0],
+                               rtol=1e-6)

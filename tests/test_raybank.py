@@ -252,3 +252,35 @@ def test_training_follows_the_image_pyramid(capture, tmp_path):
     assert trainer._level().size == trainer.rays.size
     h, w = trainer.train.images.stored[0].shape[:2]
     assert trainer.rays.level(4).size == len(trainer.train) * (h // 4) * (w // 4)
+
+
+def test_each_new_phase_or_level_gets_a_fresh_frozen_step(capture, tmp_path):
+    """The frozen step is made anew when the Python values it is recorded for change (here
+    the pyramid's level), and kept while they stay (issue 49, item 5)."""
+    dataset = load_dataset(capture)
+    config = TrainConfig.from_options(
+        iterations=4, batch_rays=32, fg_samples=4, bg_samples=4, fine_samples=4,
+        grid_levels=(4, 8), checkpoint_every=0, preview_every=0, pyramid=(0.5,))
+    trainer = Trainer(dataset, str(tmp_path / 'run'), config)
+    seen = []
+    while not trainer.done():
+        trainer.step()
+        seen.append((trainer._recorded[2], id(trainer._compute)))
+    assert [factor for factor, _ in seen] == [2, 2, 1, 1]
+    assert seen[0][1] == seen[1][1] != seen[2][1] == seen[3][1]
+
+
+def test_a_pyramid_that_moves_level_after_many_replays_trains(capture, tmp_path):
+    """--pyramid 0.5 0.6 0.7 0.8 on 32x24 images crashed the process (SIGSEGV) at the move to
+    the next level, in Dr.Jit's frozen step re-recorded after six replays (issue 49, item 5):
+    run in a child process, it ends with status 0."""
+    import subprocess
+    import sys
+    out = tmp_path / 'run'
+    r = subprocess.run(
+        [sys.executable, '-m', 'mi_nerfpp', 'optimize', capture, '--out', str(out),
+         '--iterations', '10', '--samples', '4', '4', '4', '--grid-levels', '4', '8',
+         '--preview-every', '0', '--checkpoint-every', '0', '--pyramid', '0.5', '0.6', '0.7',
+         '0.8'], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, (r.returncode, r.stderr[-2000:])
+    assert (out / 'model.npz').exists()

@@ -40,15 +40,37 @@ def at_least(low: int):
     return whole
 
 
+def whole_between(low: int, high: int, why: str = ''):
+    """argparse type of whole numbers from ``low`` to ``high`` (``why``: what sets the
+    largest, for the message)."""
+    def whole(value: str) -> int:
+        try:
+            number = int(value)
+        except ValueError:
+            number = low - 1
+        if not low <= number <= high:
+            because = f' ({why})' if why else ''
+            raise argparse.ArgumentTypeError(f"expects a whole number from {low} to {high}"
+                                             f"{because}, got '{value}'")
+        return number
+    return whole
+
+
+# The most threads a count may ask for: the C int that COLMAP's options take (pycolmap refused
+# 2147483648 with its own "incompatible function arguments" text).
+MAX_THREADS = 2 ** 31 - 1
+
+
 def thread_count(value: str) -> int:
-    """argparse type of thread counts: -1 (every core) or a whole number of at least 1."""
+    """argparse type of thread counts: -1 (every core) or a whole number from 1 to
+    :data:`MAX_THREADS`."""
     try:
         number = int(value)
     except ValueError:
         number = 0
-    if number != -1 and number < 1:
-        raise argparse.ArgumentTypeError(f"expects -1 (every core) or a whole number of at "
-                                         f"least 1, got '{value}'")
+    if number != -1 and not 1 <= number <= MAX_THREADS:
+        raise argparse.ArgumentTypeError(f"expects -1 (every core) or a whole number from 1 "
+                                         f"to {MAX_THREADS}, got '{value}'")
     return number
 
 

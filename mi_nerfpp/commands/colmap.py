@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import argparse
 
-from mi_nerfpp.commands.arguments import thread_count
-from mi_nerfpp.data.sfm import (CAMERA_MODES, DEFAULT_HOLD,
-                                DEFAULT_MAX_IMAGE_SIZE, DEFAULT_OVERLAP,
-                                MATCHING, run_sfm)
+from mi_nerfpp.commands.arguments import thread_count, whole_between
+from mi_nerfpp.data.sfm import (CAMERA_MODES, COLMAP_MAX_INT, COLMAP_MINIMUMS,
+                                DEFAULT_HOLD, DEFAULT_MAX_IMAGE_SIZE,
+                                DEFAULT_OVERLAP, MATCHING, run_sfm)
 from mi_nerfpp.files.atomic import check_not_a_file
 
 
@@ -17,6 +17,12 @@ def run(args) -> int:
             hold=args.hold, max_image_size=args.max_image_size, overlap=args.overlap,
             num_threads=args.threads)
     return 0
+
+
+def _count(name):
+    """argparse type of COLMAP's count option ``name``: within its minimum and COLMAP's
+    largest count."""
+    return whole_between(COLMAP_MINIMUMS[name], COLMAP_MAX_INT, "COLMAP's largest count")
 
 
 def subject(args):
@@ -39,17 +45,18 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help='exhaustive: every pair of photos (unordered photo sets); sequential: '
                         'each frame with the next --overlap frames (video frames in order) '
                         '(default %(default)s)')
-    p.add_argument('--overlap', type=int, default=DEFAULT_OVERLAP,
+    p.add_argument('--overlap', type=_count('overlap'), default=DEFAULT_OVERLAP,
                    help='sequential matching: frames each frame is matched with '
                         '(default %(default)s)')
     p.add_argument('--camera', choices=CAMERA_MODES, default='auto',
                    help='which photos share intrinsics: single (one camera took all), '
                         'per-image, or auto: single when all photos have one size and one EXIF '
                         'camera and focal length, else per-image (default %(default)s)')
-    p.add_argument('--hold', type=int, default=DEFAULT_HOLD,
+    p.add_argument('--hold', type=_count('hold'), default=DEFAULT_HOLD,
                    help='every N-th registered photo is a test view (0: none) '
                         '(default %(default)s)')
-    p.add_argument('--max-image-size', type=int, default=DEFAULT_MAX_IMAGE_SIZE,
+    p.add_argument('--max-image-size', type=_count('max_image_size'),
+                   default=DEFAULT_MAX_IMAGE_SIZE,
                    help='photos are shrunk to this many pixels (longer side) for feature '
                         'extraction (default %(default)s)')
     p.add_argument('--threads', type=thread_count, default=-1,

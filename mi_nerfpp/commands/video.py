@@ -16,6 +16,7 @@ import os
 from tqdm import tqdm
 
 from mi_nerfpp.commands.arguments import positive_int, resolution
+from mi_nerfpp.core import budget
 from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.jobs.cluster import (FramePool, FrameWorker, check_address,
                                     cluster_cpus, session, timeout_line)
@@ -78,6 +79,7 @@ def cameras_of(args):
     checkpoint = os.path.join(args.run, 'model.npz')
     job = {'checkpoint': os.path.abspath(checkpoint), 'iteration': meta.get('iteration')}
     if args.path in BUILT_IN_PATHS:
+        check_orbit_frames(args, dataset)
         cameras = built_in_cameras(args.path, dataset, args.frames, args.res)
         job['path'] = args.path
     else:
@@ -85,11 +87,43 @@ def cameras_of(args):
         cameras = path_cameras(path, model.normalization, args.res)
         if not cameras:
             raise ValueError(f'{args.path}: the camera path has no frames')
+        check_frames(len(cameras), cameras[0].width, cameras[0].height, args.path,
+                     f'--res {args.res[0]}x{args.res[1]}' if args.res else args.path)
         job.update(path=os.path.abspath(args.path), path_digest=path.digest())
     job.update(frames=len(cameras), size=[cameras[0].width, cameras[0].height])
     if not args.skip_empty:              # frames of whole rays are another video's
         job['skip_empty'] = False
     return checkpoint, cameras, job
+
+
+def check_frames(count, width, height, what, size_what=None):
+    """Refuse a video of more frames than memory holds (:func:`~mi_nerfpp.core.budget.
+    video_frames_limit`), naming ``what`` asked for them and the most frames that fit; when not
+    even one frame fits, ``size_what`` (what set the frame size, e.g. ``--res 100000x100000``)
+    and the most pixels a frame may have."""
+    most = budget.video_frames_limit(width, height)
+    if most == 0 and count > 0:
+        pixels = max((budget.images_budget() - budget.VIDEO_CAMERA_BYTES) // 3, 0)
+        raise ValueError(
+            f'{size_what or what}: one frame of {width}x{height} takes '
+            f'{budget.memory_text(width * height * 3)}, more than the '
+            f'{budget.memory_text(budget.images_budget())} available; a frame fits with at '
+            f'most {pixels:,} pixels')
+    if count > most:
+        raise ValueError(
+            f'{what}: {count:,} frames of {width}x{height} are too many: a video holds each '
+            f"frame's camera and, while it is assembled, its pixels in memory, more than the "
+            f'{budget.memory_text(budget.images_budget())} available; at most {most:,} frames '
+            f'of {width}x{height} fit')
+
+
+def check_orbit_frames(args, dataset):
+    """``--frames`` of the orbit path against memory, before its cameras are made."""
+    if args.path == 'orbit':
+        template = dataset.train.cameras[0]
+        width, height = args.res or (template.width, template.height)
+        size = f'--res {width}x{height}' if args.res else f'the training images ({width}x{height})'
+        check_frames(args.frames, width, height, f'--frames {args.frames}', size)
 
 
 def subject(args):
@@ -120,6 +154,7 @@ def run(args):
     check_path_argument(args)
     if args.write_path:
         model, _, _, dataset = open_run(args.run)
+        check_orbit_frames(args, dataset)
         path = built_in_path(args.path, dataset, model.normalization, args.frames, args.res,
                              args.fps or DEFAULT_FPS)
         write_path(args.write_path, path)

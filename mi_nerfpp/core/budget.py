@@ -17,7 +17,9 @@ Its one memory model:
   moments) plus once per Dr.Jit thread (the gradients of large grids are summed in one copy
   per thread);
 - each occupancy cell :data:`OCCUPANCY_BYTES_PER_CELL`;
-- :data:`TRAIN_BYTES_PER_SAMPLE` per field sample of a step (``batch_rays x samples per ray``).
+- :data:`TRAIN_BYTES_PER_SAMPLE` per field sample of a step (``batch_rays x samples per ray``),
+  in proportion to the colour MLP's hidden units (``--color-width x --color-layers``) beyond
+  :data:`MEASURED_COLOR_UNITS`, those of the measured runs.
 
 The options must fit in this machine's physical memory; the images get
 :data:`USABLE_FRACTION` of the memory available when the run starts, less the rest of the run.
@@ -58,6 +60,11 @@ PARAMETER_COPIES = 4
 # 350 B with the process's growth included (benchmarks/photo_set_memory.py, 1,024-16,384 rays
 # of 48 samples).
 TRAIN_BYTES_PER_SAMPLE = 350
+# The colour MLP's hidden units (width x layers) of the runs TRAIN_BYTES_PER_SAMPLE was measured
+# with (the default 32 x 1); a wider or deeper MLP holds its activations and their gradients for
+# every sample of a step (the (width, samples) tensors of tensor mode), so a sample takes
+# proportionally more.
+MEASURED_COLOR_UNITS = 32
 # One field sample of a render (the integrator's chunk of rays x samples per ray, no AD).
 # Measured ~40 B (16k rays, 2k samples per ray).
 RENDER_BYTES_PER_SAMPLE = 64
@@ -66,6 +73,9 @@ OCCUPANCY_BYTES_PER_CELL = 16
 # One pixel of a synthetic capture while it is written (the 8-bit image kept until its split
 # is written, its float copy, the render and the ground-truth layers of the view).
 CAPTURE_BYTES_PER_PIXEL = 64
+# A camera of a video's path (measured 641 B per camera with tracemalloc over 20,000 orbit
+# cameras); a video also holds every frame's 8-bit RGB pixels while it is assembled.
+VIDEO_CAMERA_BYTES = 1024
 # Of the memory available when a run starts, the share planned for.
 USABLE_FRACTION = 0.8
 # Rays per chunk of a primal render: the ``nerfpp`` integrator's default ``chunk_rays``, with
@@ -279,6 +289,8 @@ class Sizes:
     grid_planes: tuple = ()
     bg_grid_planes: tuple = ()
     sparse_entries: int = 0
+    color_width: int = MEASURED_COLOR_UNITS
+    color_layers: int = 1
 
     @classmethod
     def of(cls, config, **values) -> Sizes:
@@ -294,7 +306,28 @@ class Sizes:
                    tuple(fg), tuple(bg), values.get('grid_channels') or m.grid_channels,
                    values.get('occupancy_res') or config.sampling.occupancy_res,
                    tuple(fg_planes), tuple(bg_planes),
-                   values.get('sparse_entries') or config.schedule.sparse_entries)
+                   values.get('sparse_entries') or config.schedule.sparse_entries,
+                   values.get('color_width') or m.color_width, m.color_layers)
+
+    def color_parameters(self, config) -> int:
+        """Weights of the colour MLPs of the grid fields (:class:`~.fields.GridField`: the
+        features and the encoded direction in, ``color_layers`` hidden layers, RGB out)."""
+        m, total = config.model, 0
+        for domain, levels, planes in (('ball', self.grid_levels, self.grid_planes),
+                                       ('inverted_sphere', self.bg_grid_levels,
+                                        self.bg_grid_planes)):
+            if _has_grid(config, domain):
+                n_in = ((len(levels) + len(planes) + len(m.sparse(domain)))
+                        * (self.grid_channels - 1)
+                        + 3 * (1 + 2 * m.dir_octaves))
+                w = self.color_width
+                total += (n_in + 1) * w + (self.color_layers - 1) * (w + 1) * w + (w + 1) * 3
+        return total
+
+    def color_units(self, config) -> int:
+        """Hidden units of the colour MLPs (width x layers); none without a grid field."""
+        grid = _has_grid(config, 'ball') or _has_grid(config, 'inverted_sphere')
+        return self.color_width * self.color_layers if grid else 0
 
 
 def _grid_parts(config, sizes: Sizes) -> dict:
@@ -320,16 +353,20 @@ def _sum_into(parts: dict, items) -> dict:
 
 
 def _entries(config, sizes: Sizes) -> dict:
-    return {'grids': sum(_grid_parts(config, sizes).values()),
+    return {'grids': (sum(_grid_parts(config, sizes).values())
+                      + sizes.color_parameters(config)),
             'occupancy': sum(occupancy_cells(config, sizes.occupancy_res)),
             'samples': sizes.batch_rays * sizes.samples_per_ray}
 
 
-def _bytes(entries: dict, threads: int) -> dict:
+def _bytes(entries: dict, threads: int, color_units: int = 0) -> dict:
+    """Bytes of a run's parts from its entries; ``color_units``: the colour MLP's hidden units
+    (:meth:`Sizes.color_units`), which scale a step's bytes per sample."""
+    per_sample = TRAIN_BYTES_PER_SAMPLE * max(1.0, color_units / MEASURED_COLOR_UNITS)
     return {'process': BASE_BYTES,
             'grids': 4 * (PARAMETER_COPIES + threads) * entries['grids'],
             'occupancy': OCCUPANCY_BYTES_PER_CELL * entries['occupancy'],
-            'step': TRAIN_BYTES_PER_SAMPLE * entries['samples']}
+            'step': int(per_sample * entries['samples'])}
 
 
 def _levels_option(config, domain):
@@ -387,19 +424,31 @@ def _exceeded(config, machine: Machine, **values):
     if s.batch_rays * spr > MAX_ARRAY_ENTRIES:
         return 'batch_rays', (f'{s.batch_rays:,} rays x {spr} samples per ray are '
                               f'{s.batch_rays * spr:,} field samples per step, {array}')
-    need = _bytes(_entries(config, s), machine.threads)
+    if s.color_units(config):
+        # The colour MLP in a training step: a (width, samples) tensor per layer, and its
+        # weights (width x width between hidden layers).
+        rows = s.color_width * s.batch_rays * spr
+        weights = s.color_width * s.color_width if s.color_layers > 1 else 0
+        if max(rows, weights) > MAX_ARRAY_ENTRIES:
+            return 'color_width', (f'a colour MLP of width {s.color_width:,} holds arrays of '
+                                   f'{max(rows, weights):,} entries (its width x the '
+                                   f'{s.batch_rays * spr:,} field samples of a step), {array}')
+    need = _bytes(_entries(config, s), machine.threads, s.color_units(config))
     if sum(need.values()) <= budget:
         return None
     what = (f'a run takes about {memory_text(sum(need.values()))} (process '
-            f'{memory_text(need["process"])}, grids {memory_text(need["grids"])}, occupancy '
+            f'{memory_text(need["process"])}, grids and MLPs {memory_text(need["grids"])}, occupancy '
             f'{memory_text(need["occupancy"])}, training step {memory_text(need["step"])}), '
             f'more than this machine\'s {memory_text(budget)}')
     grown = {k: v for k, v in need.items() if k != 'process'}
     heaviest = max(grown, key=grown.get)
+    if heaviest == 'step' and s.color_units(config) > MEASURED_COLOR_UNITS * s.color_layers:
+        return 'color_width', what
     if heaviest == 'grids':
         if s.grid_channels > default_channels:
             return 'grid_channels', what
         parts = _grid_parts(config, s)
+        parts['color_width'] = s.color_parameters(config)
         return max(parts, key=parts.get), what
     if heaviest == 'occupancy':
         return 'occupancy_res', what
@@ -410,7 +459,7 @@ def _exceeded(config, machine: Machine, **values):
 def largest_that_fits(config, option: str, machine: Machine) -> int:
     """The largest value of ``option`` (``batch_rays``, ``samples`` - samples per ray -,
     ``grid_levels`` / ``bg_grid_levels`` - the finest level's resolution, the others kept -,
-    ``grid_channels``, ``occupancy_res``) with which the config fits on ``machine``; 0 when
+    ``grid_channels``, ``color_width``, ``occupancy_res``) with which the config fits on ``machine``; 0 when
     none does."""
     m = config.model
     if option in ('grid_levels', 'bg_grid_levels', 'grid_planes', 'bg_grid_planes'):
@@ -422,7 +471,7 @@ def largest_that_fits(config, option: str, machine: Machine) -> int:
         key = {'samples': 'samples_per_ray'}.get(option, option)
         values = lambda v: {key: v}  # noqa: E731
         high = {'batch_rays': config.schedule.batch_rays, 'samples': config.samples_per_ray,
-                'grid_channels': m.grid_channels,
+                'grid_channels': m.grid_channels, 'color_width': m.color_width,
                 'occupancy_res': config.sampling.occupancy_res,
                 'sparse_entries': config.schedule.sparse_entries}[option]
     low = {'grid_levels': 2, 'bg_grid_levels': 2, 'grid_planes': 2, 'bg_grid_planes': 2,
@@ -500,8 +549,8 @@ def plan(config, machine: Machine | None = None) -> Plan:
             f'{MAX_CHUNK_ENTRIES // RENDER_CHUNK_RAYS:,} samples per ray of a volume fit')
     exceeded = _exceeded(config, machine)
     best = None if exceeded is None else largest_that_fits(config, exceeded[0], machine)
-    return Plan(machine, entries, _bytes(entries, machine.threads), exceeded, best,
-                chunk_error)
+    return Plan(machine, entries, _bytes(entries, machine.threads, s.color_units(config)),
+                exceeded, best, chunk_error)
 
 
 def check(config, run_plan: Plan):
@@ -538,3 +587,12 @@ def images_budget(run_bytes: int = BASE_BYTES, available: int | None = None) -> 
     process alone); never below 0."""
     available = available_bytes() if available is None else available
     return max(int(USABLE_FRACTION * available) - run_bytes, 0)
+
+
+def video_frames_limit(width: int, height: int, available: int | None = None) -> int:
+    """The most frames of ``width`` x ``height`` pixels a video can take: its cameras
+    (:data:`VIDEO_CAMERA_BYTES`) and, while the video is assembled, every frame's 8-bit RGB
+    pixels are held in memory, within :func:`images_budget` (of ``available`` bytes, default
+    what is available now)."""
+    return largest(1, width * height * 3 + VIDEO_CAMERA_BYTES,
+                   images_budget(available=available))

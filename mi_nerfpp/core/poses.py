@@ -25,6 +25,7 @@ the checkpoint as ``param/poses``.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import drjit as dr
 import mitsuba as mi
@@ -32,6 +33,16 @@ import numpy as np
 
 PARAMS = 6                  # axis-angle rotation and translation
 LR_POSES = 1e-3             # Adam learning rate of the corrections (radians, model units)
+# The largest learning rate of the corrections: an Adam step moves each by about the learning
+# rate, and one radian or the unit sphere's radius per step already throws a camera out of its
+# scene in a few steps (--lr-poses 1e10 moved the cameras so far that the process crashed).
+MAX_LR_POSES = 1.0
+# The largest correction a ray is rendered with: a shift of the camera centre (model units; the
+# cameras lie in the unit sphere) and a turn (radians). A correction beyond them is applied at
+# that length: farther, the samples' float32 placement breaks down (shifts of 1e10 crashed the
+# process in the sample-placement loop, and turns of 1e20 gave NaN directions).
+MAX_SHIFT = 10.0
+MAX_TURN = math.pi
 START = 0.25                # fraction of the run before the corrections are learned
 
 
@@ -60,7 +71,18 @@ def correct_rays(params: mi.TensorXf, image, o: mi.Point3f, d: mi.Vector3f):
     active = image != 0
     omega = dr.gather(mi.Vector3f, params.array, 2 * image, active)        # row [ω, τ]
     tau = dr.gather(mi.Vector3f, params.array, 2 * image + 1, active)
-    return o + tau, rotate(omega, d)
+    return o + _at_most(tau, MAX_SHIFT), rotate(_at_most(omega, MAX_TURN), d)
+
+
+def _at_most(v: mi.Vector3f, length: float) -> mi.Vector3f:
+    """``v`` shortened to ``length`` where it is longer (the factor is not differentiated:
+    the gradient of a shortened correction is scaled with it); NaN stays NaN (the training
+    step's guard stops the run)."""
+    u = dr.detach(v)
+    a = dr.abs(u)
+    largest = dr.maximum(dr.maximum(a.x, a.y), a.z)
+    norm = largest * dr.norm(u / dr.maximum(largest, 1e-30))   # no float32 overflow of |v|²
+    return v * dr.select(norm > length, length / norm, 1.0)
 
 
 def gradient_scope():
@@ -83,11 +105,19 @@ def rotation_matrix(omega) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
 
 
+def _np_at_most(v, length) -> np.ndarray:
+    """``v`` shortened to ``length`` where it is longer (as :func:`correct_rays` renders it)."""
+    v = np.asarray(v, np.float64)
+    norm = np.linalg.norm(v)
+    return v * (length / norm) if norm > length else v
+
+
 def corrected_c2w(c2w, correction) -> np.ndarray:
-    """A 4x4 camera-to-world matrix with the correction ``(ω, τ)`` applied."""
+    """A 4x4 camera-to-world matrix with the correction ``(ω, τ)`` applied (each at most
+    :data:`MAX_TURN` and :data:`MAX_SHIFT` long, as training renders it)."""
     out = np.array(c2w, np.float64)
-    out[:3, :3] = rotation_matrix(correction[:3]) @ out[:3, :3]
-    out[:3, 3] += np.asarray(correction[3:6], np.float64)
+    out[:3, :3] = rotation_matrix(_np_at_most(correction[:3], MAX_TURN)) @ out[:3, :3]
+    out[:3, 3] += _np_at_most(correction[3:6], MAX_SHIFT)
     return out
 
 

@@ -139,21 +139,28 @@ def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.
         K = np.asarray(frame.intrinsics(width, height), dtype=np.float64)
         _check_intrinsics(K, frame.intrinsics_source or frame.source)
         camera = Camera(K=K, c2w=c2w, width=width, height=height, name=frame.name)
-        try:
-            image, scale = store(image, downscale)
-        except ValueError as e:
-            raise DatasetError(f'{frame.image_path}: {e}; use a smaller downscale') from e
+        _check_downscale(frame.image_path, width, height, downscale)
+        image, scale = store(image, downscale)
         if downscale != 1:
             camera = camera.downscaled(downscale)
-        if min(image.shape[:2]) < MIN_IMAGE_SIZE:
-            raise DatasetError(
-                f'{frame.image_path}: image is {image.shape[1]}x{image.shape[0]} pixels after '
-                f'downscale {downscale}; training and evaluation (SSIM) need at least '
-                f'{MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE}: use larger images or a smaller --downscale')
         cameras.append(camera)
         paths.append(frame.image_path)
         images.append((image, scale))
     return Split(cameras=cameras, image_paths=paths, images=StoredImages.unify(images))
+
+
+def _check_downscale(path, width, height, downscale):
+    """Refuse a ``downscale`` that leaves an image of ``width`` x ``height`` under
+    :data:`MIN_IMAGE_SIZE` pixels a side, naming the largest factor that fits."""
+    if min(width, height) // downscale >= MIN_IMAGE_SIZE:
+        return
+    largest = min(width, height) // MIN_IMAGE_SIZE
+    fix = (f'the largest --downscale that fits is {largest}' if largest >= 1 else
+           'the image is too small at any --downscale: use larger images')
+    after = f' after --downscale {downscale} (of {width}x{height})' if downscale != 1 else ''
+    raise DatasetError(
+        f'{path}: image is {width // downscale}x{height // downscale} pixels{after}; training '
+        f'and evaluation (SSIM) need at least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE}: {fix}')
 
 
 def stored_bytes(images, factor: int) -> int:

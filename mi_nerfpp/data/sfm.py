@@ -51,6 +51,11 @@ SFM_VERSION = 1
 DEFAULT_HOLD = 8
 DEFAULT_MAX_IMAGE_SIZE = 3200     # COLMAP's default for feature extraction
 DEFAULT_OVERLAP = 10              # sequential matching: neighbours of each frame
+# The largest count COLMAP's options take (a C int; pycolmap refused 10000000000 with its own
+# "incompatible function arguments" text).
+COLMAP_MAX_INT = 2 ** 31 - 1
+# The lowest value of each count option (the photos' longer side: 16 pixels for SIFT).
+COLMAP_MINIMUMS = {'hold': 0, 'max_image_size': 16, 'overlap': 1}
 RETRY_BELOW = 0.8                 # registration rate under which mapping is retried relaxed
 RELAXED_INIT = dict(init_min_tri_angle=4.0, init_min_num_inliers=50)
 MIN_PAIR_INLIERS = 15             # COLMAP's default minimum of a verified pair
@@ -138,8 +143,11 @@ def run_sfm(photos, out, matching: str = 'exhaustive', camera: str = 'auto',
         raise ValueError(f'matching must be one of {", ".join(MATCHING)}, got {matching!r}')
     if camera not in CAMERA_MODES:
         raise ValueError(f'camera must be one of {", ".join(CAMERA_MODES)}, got {camera!r}')
-    if hold < 0 or max_image_size < 16 or overlap < 1:
-        raise ValueError('hold must be >= 0, max_image_size >= 16 and overlap >= 1')
+    for name, value in (('hold', hold), ('max_image_size', max_image_size),
+                        ('overlap', overlap)):
+        if not COLMAP_MINIMUMS[name] <= value <= COLMAP_MAX_INT:
+            raise ValueError(f'{name} must be from {COLMAP_MINIMUMS[name]} to {COLMAP_MAX_INT} '
+                             f"(COLMAP's largest count), got {value}")
     if not os.path.isdir(photos):
         raise SfmError(f'{photos}: no such folder')
     names = list_photos(photos)

@@ -2,8 +2,8 @@
 
 Keys:
 
-* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 4; grid fields
-  of version 1 and 2 files have per-sample colour and are read as ``color: "sample"``);
+* ``format`` — the string ``mi-nerfpp-checkpoint``; ``version`` — integer (now 4; the config of
+  an older file is brought to today's layout by :func:`migrate_config`, one step per version);
 * ``config`` — JSON: ``{"fg": <field config>, "bg": <field config or null>,
   "normalization": {"center": [x, y, z], "scale": s}, "color_space": "srgb"|"linear",
   "composite": "linear"|"srgb" (where samples are composited; missing: "srgb", older files),
@@ -50,9 +50,49 @@ from mi_nerfpp.files.atomic import atomic_write_path
 
 FORMAT = 'mi-nerfpp-checkpoint'
 VERSION = 4
-# 1: normalization as top-level center / scale; 1-2: grid fields coloured every sample;
-# 4: sparse grid levels (``bricks/``).
-READABLE_VERSIONS = (1, 2, 3, 4)
+
+
+def _v1_to_v2(config: dict) -> dict:
+    """version 1 stored the scene normalization as top-level center and scale"""
+    if 'normalization' not in config and 'center' in config:
+        config['normalization'] = {'center': config.pop('center'), 'scale': config.pop('scale')}
+    return config
+
+
+def _v2_to_v3(config: dict) -> dict:
+    """before version 3, grid fields ran their colour MLP at every sample (color 'sample') and
+    had no antialiasing"""
+    for key in ('fg', 'bg'):
+        if config.get(key) and config[key].get('kind', 'grid') == 'grid':
+            config[key].setdefault('color', 'sample')
+            config[key].setdefault('antialias', False)
+    return config
+
+
+def _v3_to_v4(config: dict) -> dict:
+    """version 4 added sparse grid levels (``bricks/``), which older files do not have"""
+    return config
+
+
+# The step that brings the config of a version-n file to version n + 1, for every version
+# before VERSION (a new version appends its step: MIGRATIONS[4] = _v4_to_v5).
+MIGRATIONS = {1: _v1_to_v2, 2: _v2_to_v3, 3: _v3_to_v4}
+READABLE_VERSIONS = (*MIGRATIONS, VERSION)
+
+
+def migrate_config(config: dict, version: int) -> dict:
+    """The config of a version-``version`` file in the layout of :data:`VERSION` (a copy):
+    every step of :data:`MIGRATIONS` from ``version`` on, in order."""
+    config = json.loads(json.dumps(config))
+    for step in range(version, VERSION):
+        config = MIGRATIONS[step](config)
+    return config
+
+
+def migration_notes(version: int) -> list[str]:
+    """What changed since files of ``version`` were written (for messages about their
+    models): the first line of each migration step's docstring, oldest first."""
+    return [' '.join(MIGRATIONS[step].__doc__.split()) for step in range(version, VERSION)]
 
 
 class CheckpointError(ValueError):
@@ -143,11 +183,7 @@ def load_checkpoint(path, seed=0):
         raise CheckpointError(f'{path}: checkpoint version {version}, this mi-nerfpp reads '
                               f'{", ".join(map(str, READABLE_VERSIONS))}')
     try:
-        config = json.loads(str(z['config']))
-        if version < 3:                   # before deferred colour, grid fields had an MLP per sample
-            for key in ('fg', 'bg'):
-                if config.get(key) and config[key].get('kind', 'grid') == 'grid':
-                    config[key].setdefault('color', 'sample')
+        config = migrate_config(json.loads(str(z['config'])), version)
         fg = make_field(config['fg'], seed=seed)
         bg = make_field(config['bg'], seed=seed + 1) if config.get('bg') else None
         occupancy = {k: OccupancyGrid(density=z[f'occupancy/{k}'], **c)
@@ -182,6 +218,17 @@ def load_checkpoint(path, seed=0):
     model.set_parameters(values)
     state = {k[len('state/'):]: v for k, v in z.items() if k.startswith('state/')}
     return model, config.get('meta', {}), state
+
+
+def read_version(path) -> int:
+    """The format version a checkpoint was written with (1 when it does not say); errors as
+    :func:`read_meta`'s."""
+    path = os.fspath(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return int(z['version']) if 'version' in z.files else 1
+    except (zipfile.BadZipFile, ValueError, OSError, TypeError) as e:
+        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): {e}') from None
 
 
 def _sampling(config):

@@ -194,8 +194,12 @@ class NeRFPPIntegrator(ADIntegrator):
     """
 
     def __init__(self, props):
-        super().__init__(props)
         read = ParameterReader(props)
+        # Mitsuba's base class reads these two with messages of its own ('"rr_depth" must be set
+        # to a value greater than zero!'): checked first, so that a bad value is named here.
+        self.max_depth = read('max_depth', int, 6, minimum=1)
+        self.rr_depth = read('rr_depth', int, 5, minimum=1)
+        super().__init__(props)
         self.checkpoint = read('checkpoint', str, '')
         self.random_field = read('field', str, 'grid', choices=FIELD_KINDS)
         self.random_seed = read('seed', int, 0, minimum=0)
@@ -212,8 +216,8 @@ class NeRFPPIntegrator(ADIntegrator):
         self.chunk_rays = read('chunk_rays', int, RENDER_CHUNK_RAYS, minimum=1)
         self.appearance_image = read('appearance_image', int, -1, minimum=-1)
         self.max_samples = read('max_samples', int, MAX_FILM_SAMPLES, minimum=1)
-        self.max_depth = read('max_depth', int, 6, minimum=1)
-        self.rr_depth = read('rr_depth', int, 5, minimum=1)
+        # Ours over what the base class set (the same values, read and checked above).
+        self.max_depth, self.rr_depth = read('max_depth', int, 6), read('rr_depth', int, 5)
         self.shadow_catchers = _ids(read('shadow_catchers', str, ''))
         self.proxies = _ids(read('proxies', str, ''))
         self.catcher_samples = read('catcher_samples', int, 16, minimum=1)

@@ -76,7 +76,9 @@ def check_film(size, count, max_samples):
             f'nerfpp: a {width}x{height} film at {count} samples per pixel traces '
             f'{rays} rays, more than max_samples={max_samples} (about 100 bytes each): '
             f'render a smaller film or crop (the largest at {count} spp is '
-            f'{max_samples // count} pixels), or raise the integrator\'s max_samples')
+            f'{max_samples // count} pixels) or fewer samples per pixel (spp: at most '
+            f'{max_samples // (width * height)} at {width}x{height}), or raise the '
+            f'integrator\'s max_samples')
 
 
 def check_sensor(to_world, normalization):

@@ -220,11 +220,18 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
         data = photos_to_dataset(data, os.path.join(out, 'sfm'), observer)
         downscale = config.data.downscale
         checkpoint = os.path.join(out, 'model.npz')
-        if downscale is None and resume and os.path.exists(checkpoint):
+        stored = (read_meta(checkpoint).get('config') or {}
+                  if resume and os.path.exists(checkpoint) else {})
+        unknown = TrainConfig.unknown_stored(stored)
+        if unknown:     # written by another version: said, not dropped silently
+            observer.notice(f'{checkpoint}: its training config has '
+                            f'{", ".join(unknown)}, which this version of mi-nerfpp does not '
+                            f'know: ignored (the options that shape the model are read from '
+                            f'its weights)')
+        if downscale is None and stored:
             # A resumed run goes on at the resolution it was trained at, whatever memory is
             # free.
-            stored = TrainConfig.stored_options(read_meta(checkpoint).get('config', {}))
-            downscale = stored.get('downscale')
+            downscale = TrainConfig.stored_options(stored).get('downscale')
             if downscale is not None:
                 config = dataclasses.replace(config, data=dataclasses.replace(
                     config.data, downscale=downscale))
@@ -559,7 +566,7 @@ def open_run(run_dir):
     Raises :class:`~mi_nerfpp.training.train.TrainingError` when the dataset is not there any more.
     """
     model, meta, _ = load_checkpoint(os.path.join(run_dir, 'model.npz'))
-    cfg = TrainConfig.from_stored(meta.get('config', {}))
+    cfg = TrainConfig.from_stored(meta.get('config', {}), weights=model.config)
     root = meta.get('dataset')
     if not root or not os.path.exists(root):
         raise TrainingError(f'{run_dir}/model.npz: its dataset {root!r} is not there any more')

@@ -350,6 +350,9 @@ class OptimizerOptions(_Options):
         if not (_finite(self.adam_beta2) and 0 < self.adam_beta2 < 1):
             self._bad('adam_beta2', 'a number in (0, 1)')
         self._check(('poses_start',), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+        self._check(('lr_poses',), lambda v: v <= poses.MAX_LR_POSES,
+                    f'at most {poses.MAX_LR_POSES:g} (an Adam step moves each camera correction '
+                    f'by about the learning rate: radians, and the unit sphere\'s radius)')
 
 
 @dataclass
@@ -551,22 +554,67 @@ class TrainConfig:
         return json.loads(json.dumps(dataclasses.asdict(self)))
 
     @classmethod
+    def _stored_names(cls, stored: dict):
+        """``(options, unknown)`` of a stored config: its values by option name, and the
+        ``group.key`` (or ``key``) of the entries this version does not know. A grouped entry
+        is found by its key whatever group it is stored in (options that moved between groups
+        keep their values); a flat dict is read by option name."""
+        known = {option_name(f): (name, f.name) for name, f in options_of(cls)}
+        by_key = {key: name for name, (_, key) in known.items()}
+        by_key.update({name: name for name in known})
+        if any(isinstance(stored.get(name), dict) for name, _, _ in groups(cls)):
+            options, unknown = {}, []
+            for part, values in stored.items():
+                if not isinstance(values, dict):
+                    unknown.append(part)
+                    continue
+                for key, value in values.items():
+                    if key in by_key:
+                        options[by_key[key]] = value
+                    else:
+                        unknown.append(f'{part}.{key}')
+            return options, unknown
+        return ({k: v for k, v in stored.items() if k in known},
+                [k for k in stored if k not in known])
+
+    @classmethod
     def stored_options(cls, stored: dict) -> dict:
         """The options (by command-line name) of a stored config: :meth:`to_dict`'s nested
         groups, or the flat dict of checkpoints written before the groups; names this version
-        does not know are left out."""
-        known = {option_name(f): (name, f.name) for name, f in options_of(cls)}
-        if any(isinstance(stored.get(name), dict) for name, _, _ in groups(cls)):
-            where = {v: k for k, v in known.items()}
-            return {where[(name, key)]: value for name, _, _ in groups(cls)
-                    for key, value in (stored.get(name) or {}).items() if (name, key) in where}
-        return {k: v for k, v in stored.items() if k in known}
+        does not know are left out (:meth:`unknown_stored` lists them)."""
+        return cls._stored_names(stored)[0]
 
     @classmethod
-    def from_stored(cls, stored: dict):
+    def unknown_stored(cls, stored: dict) -> list[str]:
+        """The entries of a stored config that name no option of this version (written by
+        another version), as ``group.key``."""
+        return cls._stored_names(stored)[1]
+
+    @classmethod
+    def from_stored(cls, stored: dict, weights: dict | None = None):
         """The config a checkpoint's ``meta['config']`` stores (see :meth:`stored_options`);
-        options it does not store take today's defaults."""
-        return cls.from_options(**cls.stored_options(stored))
+        options it does not store take today's defaults. With ``weights`` (the checkpoint's
+        model config, :attr:`~mi_nerfpp.core.model.NeRFPPModel.config`), the options that
+        shape the model take the values of the weights wherever the stored config says
+        otherwise or nothing, so that the config describes the model."""
+        options = cls.stored_options(stored)
+        config = cls.from_options(**options)
+        if weights is None:
+            return config
+        wrong = {name: value for name, value in weight_options(weights).items()
+                 if config.effective(name) != value}
+        return config.replace(**wrong) if wrong else config
+
+    def effective(self, name: str):
+        """The value option ``name`` takes effect with (``--bg-field`` and
+        ``--bg-grid-planes`` unset: the foreground's), sequences as tuples."""
+        m = self.model
+        if name == 'bg_field':
+            return m.bg_field or m.field
+        if name == 'bg_grid_planes':
+            return tuple(m.planes('inverted_sphere'))
+        value = self.options()[name]
+        return tuple(value) if isinstance(value, (list, tuple)) else value
 
     # ------------------------------------------------------------------ derived
     def field_config(self, kind, domain):
@@ -640,20 +688,89 @@ class TrainConfig:
             return dataset_normalization.with_camera_radius(NERF_CAMERA_RADIUS)
         return dataset_normalization
 
-    def resume_conflicts(self, stored: dict) -> list[str]:
-        """The model-shaping options in which a stored config (:meth:`to_dict`, or a flat one
-        of an older checkpoint) differs from this one, as readable lines."""
+    def resume_conflicts(self, stored: dict, weights: dict | None = None) -> list[str]:
+        """The model-shaping options in which a checkpoint differs from this config, as
+        readable lines: those the ``weights`` fix (the checkpoint's model config, see
+        :func:`weight_options`) and the others of the stored config (:meth:`to_dict`, or a
+        flat one of an older checkpoint)."""
+        out = []
+        fixed = weight_options(weights) if weights is not None else {}
+        for name, value in fixed.items():
+            if self.effective(name) != value:
+                out.append(f"{flag(TrainConfig, name)}: the checkpoint's weights have "
+                           f'{_shown(value)}, this run asks for '
+                           f'{_shown(self.effective(name))} (resume with '
+                           f'{_as_flag(name, value)})')
         now = json.loads(json.dumps(self.options()))
         stored = self.stored_options(stored)
-        stored.setdefault('bg_field', stored.get('field'))
+        if 'field' in stored:
+            stored.setdefault('bg_field', stored['field'])
         if 'color' in stored:
             stored.setdefault('bg_color', stored['color'])
         if isinstance(stored.get('bg_s_ratio'), (int, float)):    # before per-level ratios
             stored['bg_s_ratio'] = [stored['bg_s_ratio']]
-        out = []
         for _, f in options_of(type(self)):
             name = option_name(f)
-            if f.metadata.get('shapes_model') and name in stored and stored[name] != now[name]:
+            if (f.metadata.get('shapes_model') and name not in fixed and name in stored
+                    and stored[name] != now[name]):
                 out.append(f'{flag(TrainConfig, name)}: the checkpoint has {stored[name]!r}, '
                            f'this run asks for {now[name]!r}')
         return out
+
+
+# The keys of a grid field's config (:attr:`~mi_nerfpp.core.fields.GridField.config`) that an
+# option sets: key -> (option of the foreground, option of the background; None: not set).
+GRID_FIELD_OPTIONS = {
+    'channels': ('grid_channels', 'grid_channels'), 'hidden': ('color_width', 'color_width'),
+    'dir_octaves': ('dir_octaves', 'dir_octaves'),
+    'color_layers': ('color_layers', 'color_layers'), 'color': ('color', 'bg_color'),
+    'antialias': ('antialias', 'antialias'), 'planes': ('grid_planes', 'bg_grid_planes'),
+    'warp_radius': ('fg_warp', None), 's_ratio': (None, 'bg_s_ratio'),
+    'density_bias': ('density_bias', 'density_bias')}
+
+
+def weight_options(weights: dict) -> dict:
+    """The model-shaping options that a checkpoint's model config fixes (its weights were
+    made with them), by option name, as :meth:`TrainConfig.effective` gives them: the model
+    kind, each volume's field kind and its grid options, the appearance and pose models, and
+    for sRGB models where samples are composited. (The grid resolutions are not among them:
+    --coarse-to-fine grows them during the run.)"""
+    out = {'model': 'nerf' if weights.get('bg') is None else 'nerfpp',
+           'appearance': int(weights.get('appearance_images', 0)) > 0,
+           'refine_poses': int(weights.get('pose_images', 0)) > 0}
+    if weights.get('color_space', 'srgb') == 'srgb':
+        out['composite'] = weights.get('composite', 'srgb')
+    for side, key in enumerate(('fg', 'bg')):
+        field = weights.get(key)
+        if not field:
+            continue
+        out[('field', 'bg_field')[side]] = field['kind']
+        if field['kind'] != 'grid':
+            continue
+        for entry, names in GRID_FIELD_OPTIONS.items():
+            name = names[side]
+            if name is None or entry not in field or (side and name in out):
+                continue            # options both volumes share: the foreground's value
+            value = field[entry]
+            if entry in ('s_ratio', 'planes'):
+                value = _as_tuple(value)
+            out[name] = value
+    return out
+
+
+def _shown(value):
+    """An option's value in a message: sequences as the command line takes them."""
+    if isinstance(value, tuple):
+        return ' '.join(f'{v:g}' if isinstance(v, float) else str(v) for v in value) or 'none'
+    return repr(value)
+
+
+def _as_flag(name, value):
+    """The command-line words that give option ``name`` the value ``value``."""
+    spelled = flag(TrainConfig, name)
+    if isinstance(value, bool):
+        return spelled if value else '--no-' + spelled[2:]
+    if isinstance(value, tuple):
+        return ' '.join([spelled] + [f'{v:g}' if isinstance(v, float) else str(v)
+                                     for v in value])
+    return f'{spelled} {value:g}' if isinstance(value, float) else f'{spelled} {value}'

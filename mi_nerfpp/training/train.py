@@ -46,7 +46,7 @@ from mi_nerfpp.core.render import distortion, ray_distortion, render_rays
 from mi_nerfpp.data.storage import MAX_STORED_BYTES
 from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
-                                        save_checkpoint)
+                                        migration_notes, read_version, save_checkpoint)
 from mi_nerfpp.training import optim, priors
 from mi_nerfpp.training.config import TrainConfig, default_minutes, per_volume
 
@@ -290,17 +290,15 @@ class Trainer:
         if resume and os.path.exists(self.checkpoint_path):
             self.model, meta, state = load_checkpoint(self.checkpoint_path)
             stored = meta.get('config', {})
-            conflicts = (config.resume_conflicts(stored)
-                         + data_conflicts(meta.get('data', {}), self.data_summary()))
-            if (self.model.composite != config.model.composite
-                    and self.model.color_space == 'srgb'
-                    and 'composite' not in TrainConfig.stored_options(stored)):  # pre-issue-11
-                conflicts.append(f'--composite: the checkpoint composites in '
-                                 f'{self.model.composite!r}, this run asks for '
-                                 f'{config.model.composite!r}')
-            if conflicts:
+            model_conflicts = config.resume_conflicts(stored, self.model.config)
+            conflicts = model_conflicts + data_conflicts(meta.get('data', {}),
+                                                         self.data_summary())
+            if conflicts:       # why an older file's weights differ from today's defaults
+                version = read_version(self.checkpoint_path)
+                why = ''.join(f'; {note} (a version {version} checkpoint)'
+                              for note in migration_notes(version) if model_conflicts)
                 raise TrainingError(f'{self.checkpoint_path} cannot be resumed with other model '
-                                    f'options or data: ' + '; '.join(conflicts))
+                                    f'options or data: ' + '; '.join(conflicts) + why)
             self.iteration = int(meta['iteration'])
             self.elapsed = float(meta['elapsed'])
             self.history = meta.get('history', [])
@@ -337,6 +335,7 @@ class Trainer:
         # tracing the step in Python took ~18 of ~76 ms (README, "Measured performance").
         self._compute = (dr.freeze(self._forward_backward) if config.schedule.freeze
                          else self._forward_backward)
+        self._recorded = None       # the Python values the frozen step was recorded for
         # The scatter-reduction settings measured on the CPU (see GRADIENT_*) apply on LLVM.
         self._llvm = llvm_backend()
 
@@ -405,6 +404,7 @@ class Trainer:
                 self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
         self._allocate_bricks()
         inputs = self._step_inputs()
+        self._fresh_recording(inputs)
         # No cyclic garbage collection while a step is recorded: releasing a collected
         # array that maps NumPy memory cannot be recorded (:mod:`.arrays`).
         collecting = gc.isenabled()
@@ -430,6 +430,20 @@ class Trainer:
         self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
         self.iteration += 1
         return float(loss.array[0]), float(fine.array[0])
+
+    def _fresh_recording(self, inputs):
+        """A new frozen step whenever the Python values of the step's inputs change (the
+        phase, the grids' shapes, the image pyramid's level): Dr.Jit's frozen function crashed
+        (SIGSEGV) recording a second key after several replays of the first (--pyramid 0.5 0.6
+        0.7 0.8 on 32x24 images, at the move to the next level). These values only move
+        forward during a run, so a discarded recording is not needed again."""
+        if not self.cfg.schedule.freeze:
+            return
+        rays = inputs['rays']
+        key = (repr(inputs['phase']), rays.get('layout'), rays.get('factor'))
+        if self._recorded is not None and key != self._recorded:
+            self._compute = dr.freeze(self._forward_backward)
+        self._recorded = key
 
     def _step_inputs(self):
         """Everything a step reads, as :func:`drjit.freeze` traverses it: the optimizer (its

@@ -186,5 +186,5 @@ def test_one_pixel_images_are_refused_before_training(tmp_path):
         poses[i, :15] = pose.ravel()
     _llff(data, poses, size=(1, 1))
     np.save(data / 'poses_bounds.npy', poses)
-    with pytest.raises(DatasetError, match='image is 1x1 pixels .* at least 3x3'):
+    with pytest.raises(DatasetError, match='image is 1x1 pixels.* at least 3x3'):
         load_dataset(str(data))

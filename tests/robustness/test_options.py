@@ -36,6 +36,10 @@ GIB = 1 << 30
                                    'into the training kernels), got 100000'),
     (['--dir-octaves', '64'], '--dir-octaves must be 0 or more and at most 24 (frequencies 2^k '
                               'beyond float32 precision are noise), got 64'),
+    # Crashed the process (SIGSEGV) once the corrections started (issue 49, item 5).
+    (['--refine-poses', '--lr-poses', '1e10'], '--lr-poses must be at most 1 (an Adam step '
+                                               'moves each camera correction by about the '
+                                               'learning rate'),
 ])
 def test_bad_optimize_options_are_refused(capsys, tmp_path, option, message):
     status, _, err = run_cli(capsys, 'optimize', tmp_path, '--out', tmp_path / 'run', *option)
@@ -59,6 +63,9 @@ def test_largest_seed_trains(capture, tmp_path, capsys):
     # Blamed --grid-levels 32 128 (issue 49, item 6): the planes are sized on their own.
     (['--grid-planes', '100000'], '--grid-planes 100000', {'grid_planes': (100_000,)}),
     (['--bg-grid-planes', '60000'], '--bg-grid-planes 60000', {'bg_grid_planes': (60_000,)}),
+    # Printed Dr.Jit's jit_var_counter text (issue 49, item 5).
+    (['--color-width', '1000000000'], '--color-width 1000000000',
+     {'color_width': 1_000_000_000}),
 ])
 def test_options_that_size_arrays_name_the_largest_value_that_fits(capsys, tmp_path, option,
                                                                    flag, values):
@@ -122,6 +129,9 @@ def test_limits_against_a_memory_budget_in_closed_form():
     machine = budget.Machine(memory=4 * GIB, available=3 * GIB, threads=2)
     config = TrainConfig()
     grid_entries = (32 ** 3 + 128 ** 3) * 4 + (16 * 32 * 64 + 64 * 128 * 256) * 4
+    # Each volume's colour MLP: 2 levels x 3 feature channels and the direction's 3 x (1 + 2 x 2)
+    # encoded values in, with a bias, to 32 hidden units, and 32 + 1 to RGB.
+    grid_entries += 2 * ((2 * 3 + 3 * 5 + 1) * 32 + (32 + 1) * 3)
     occupancy_cells = 64 ** 3 + 16 * 32 * 64
     per_entry = 4 * (budget.PARAMETER_COPIES + 2)
     fixed = (budget.BASE_BYTES + grid_entries * per_entry
@@ -147,7 +157,7 @@ def test_limits_against_a_memory_budget_in_closed_form():
     text = budget.memory_text
     assert str(e.value) == (
         f'--batch-rays {best + 1} is too large: a run takes about '
-        f'{text(fixed + step)} (process {text(budget.BASE_BYTES)}, grids '
+        f'{text(fixed + step)} (process {text(budget.BASE_BYTES)}, grids and MLPs '
         f'{text(grid_entries * per_entry)}, occupancy {text(occupancy_cells * 16)}, training '
         f'step {text(step)}), more than this machine\'s 4 GiB; at most {best:,} fits')
     # More samples per ray with few rays: the samples are blamed, with the largest count
@@ -157,6 +167,26 @@ def test_limits_against_a_memory_budget_in_closed_form():
     with pytest.raises(ValueError, match=r'^--samples 16 16 1000 are too many: .*at most '
                                          r'[\d,]+ samples per ray .* fit with --batch-rays 64'):
         budget.check(many, budget.plan(many, small))
+
+
+def test_a_wide_colour_mlp_is_sized_by_its_width_and_layers():
+    """A step's bytes per sample grow with the colour MLP's hidden units beyond the measured
+    32 x 1, and its weights count with the grids': on a 4 GiB machine a wide, deep MLP is
+    refused naming --color-width and the largest width that fits, which does fit."""
+    machine = budget.Machine(memory=4 * GIB, available=3 * GIB, threads=2)
+    narrow = budget.plan(TrainConfig(), machine)
+    wide = budget.plan(TrainConfig.from_options(color_width=64, color_layers=2), machine)
+    assert wide.bytes['step'] == 4 * narrow.bytes['step']
+    assert wide.entries['grids'] > narrow.entries['grids']
+    config = TrainConfig.from_options(color_width=4096, color_layers=8)
+    plan = budget.plan(config, machine)
+    assert plan.exceeded[0] == 'color_width'
+    with pytest.raises(ValueError, match=rf'^--color-width 4096 is too large: .*at most '
+                                         rf'{plan.largest:,} fits$'):
+        budget.check(config, plan)
+    assert budget.plan(config.replace(color_width=plan.largest), machine).exceeded is None
+    assert budget.plan(config.replace(color_width=plan.largest + 1),
+                       machine).exceeded is not None
 
 
 def test_stored_configs_are_not_refused_for_this_machine(capsys):
@@ -192,6 +222,44 @@ def test_out_naming_a_file_is_refused_by_name(capsys, capture, tmp_path, command
 def test_video_bad_counts(capsys, tmp_path, option, message):
     status, _, err = run_cli(capsys, 'video', tmp_path, *option)
     assert status == 2 and message in err
+
+
+def test_video_frames_beyond_memory_are_refused_naming_the_most_that_fit(capsys, tiny_run,
+                                                                        tmp_path, monkeypatch):
+    """``--frames 1e9`` ran 10 minutes to 7.7 GB making cameras (issue 49, item 5): a video
+    holds each frame's camera and, as it is assembled, its pixels; refused before any camera
+    is made, naming --frames and the most frames of that size that fit (also for
+    --write-path, which makes the same cameras)."""
+    from mi_nerfpp.core import budget
+    monkeypatch.setattr(budget, 'available_bytes', lambda: 4 * GIB)
+    most = budget.video_frames_limit(20, 10)
+    assert most == (int(0.8 * 4 * GIB) - budget.BASE_BYTES) // (20 * 10 * 3
+                                                                 + budget.VIDEO_CAMERA_BYTES)
+    for extra in ([], ['--write-path', tmp_path / 'path.json']):
+        status, _, err = run_cli(capsys, 'video', tiny_run, '-o', tmp_path / 'v.mp4',
+                                 '--res', '20x10', '--frames', most + 1, *extra)
+        assert status == 1 and one_clear_line(err) == (
+            f'error: video: --frames {most + 1}: {most + 1:,} frames of 20x10 are too many: a '
+            f"video holds each frame's camera and, while it is assembled, its pixels in "
+            f'memory, more than the {budget.memory_text(budget.images_budget())} available; '
+            f'at most {most:,} frames of 20x10 fit')
+        assert list(tmp_path.iterdir()) == []
+
+
+def test_a_downscale_that_leaves_no_image_names_the_largest_that_fits(capsys, capture,
+                                                                       tmp_path):
+    """The capture's 32x24 images keep 3x3 pixels (SSIM's window) up to --downscale 8."""
+    from mi_nerfpp.data.dataset import MIN_IMAGE_SIZE
+    largest = 24 // MIN_IMAGE_SIZE
+    for factor in (largest + 1, 1000000000):
+        status, _, err = run_cli(capsys, 'optimize', capture, '--out', tmp_path / 'run',
+                                 '--downscale', factor, *TINY)
+        line = one_clear_line(err)
+        assert status == 1 and line.endswith(
+            f'image is {32 // factor}x{24 // factor} pixels after --downscale {factor} (of '
+            f'32x24); training and evaluation (SSIM) need at least 3x3: the largest '
+            f'--downscale that fits is {largest}')
+        assert not (tmp_path / 'run').exists()
 
 
 def test_video_format_is_refused_before_rendering(capsys, tiny_run, tmp_path):
@@ -259,10 +327,12 @@ def test_a_divergence_names_the_step_size_that_was_raised(name):
     """--lr-final 1e30 or --far-smoothness 1e30 made runs diverge with "lower --lr-grid,
     --lr-mlp" (issue 49, item 6): every learning rate and loss weight is a suspect, and the one
     raised is named."""
-    value = (1e30,) if isinstance(getattr(TrainConfig().losses, name, None), tuple) else 1e30
+    from mi_nerfpp.core.poses import MAX_LR_POSES
+    big = MAX_LR_POSES if name == 'lr_poses' else 1e30       # --lr-poses is bounded
+    value = (big,) if isinstance(getattr(TrainConfig().losses, name, None), tuple) else big
     hint = TrainConfig().replace(**{name: value}).divergence_hint()
     flag = TrainConfig().flag(name)
-    assert hint == f'Most likely {flag} 1e+30 (above the default): lower it'
+    assert hint == f'Most likely {flag} {big:g} (above the default): lower it'
 
 
 def test_the_step_sizes_are_every_learning_rate_and_loss_weight():
@@ -272,13 +342,24 @@ def test_the_step_sizes_are_every_learning_rate_and_loss_weight():
 
 @pytest.mark.parametrize('argv, message', [
     (['colmap', 'photos', '--out', 'data', '--threads', '-5'],
-     "--threads: expects -1 (every core) or a whole number of at least 1, got '-5'"),
+     "--threads: expects -1 (every core) or a whole number from 1 to 2147483647, got '-5'"),
+    (['colmap', 'photos', '--out', 'data', '--threads', '2147483648'],
+     "--threads: expects -1 (every core) or a whole number from 1 to 2147483647, got "
+     "'2147483648'"),
     (['export', 'run', '--out', 'x', '--density', '-1'],
      "--density: expects a finite number above 0, got '-1'"),
     (['export', 'run', '--out', 'x', '--density', 'nan'],
      "--density: expects a finite number above 0, got 'nan'"),
     (['export', 'run', '--out', 'x', '--resolution', '2'],
      "--resolution: expects a whole number of at least 8, got '2'"),
+    # pycolmap's "incompatible function arguments" (issue 49, item 5): a C int.
+    (['colmap', 'photos', '--out', 'data', '--overlap', '10000000000'],
+     "--overlap: expects a whole number from 1 to 2147483647 (COLMAP's largest count), got "
+     "'10000000000'"),
+    (['colmap', 'photos', '--out', 'data', '--max-image-size', '10000000000'],
+     "--max-image-size: expects a whole number from 16 to 2147483647"),
+    (['colmap', 'photos', '--out', 'data', '--hold', '-1'],
+     "--hold: expects a whole number from 0 to 2147483647"),
 ])
 def test_command_options_out_of_range_are_refused_by_argparse_naming_them(capsys, argv,
                                                                          message):
@@ -301,3 +382,18 @@ def test_an_export_grid_beyond_the_memory_names_the_largest_resolution(capsys, t
         f"is {best}")
     assert best ** 3 * BYTES_PER_POINT <= budget.memory_bytes() < \
         (best + 1) ** 3 * BYTES_PER_POINT
+
+
+def test_a_video_frame_beyond_memory_names_res(capsys, tiny_run, tmp_path, monkeypatch):
+    """Not even one frame of --res fits: the frame size is named, not --frames."""
+    from mi_nerfpp.core import budget
+    monkeypatch.setattr(budget, 'available_bytes', lambda: 4 * GIB)
+    pixels = (budget.images_budget() - budget.VIDEO_CAMERA_BYTES) // 3
+    status, _, err = run_cli(capsys, 'video', tiny_run, '-o', tmp_path / 'v.mp4', '--res',
+                             '100000x100000', '--frames', '1')
+    assert status == 1 and one_clear_line(err) == (
+        f'error: video: --res 100000x100000: one frame of 100000x100000 takes '
+        f'{budget.memory_text(3 * 10 ** 10)}, more than the '
+        f'{budget.memory_text(budget.images_budget())} available; a frame fits with at most '
+        f'{pixels:,} pixels')
+    assert list(tmp_path.iterdir()) == []

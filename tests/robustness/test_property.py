@@ -251,3 +251,146 @@ def test_random_numbers_to_the_options_are_refused_in_one_line(capsys, tmp_path,
             assert not out.exists()
             refused += 1
     assert refused > 40
+
+
+def test_random_sizes_are_refused_before_work_naming_the_largest_that_fits(monkeypatch):
+    """Issue 49, item 5: random values of the options whose bound depends on the command's
+    inputs - --color-width (the colour MLP's arrays and memory), --lr-poses, video --frames
+    (frames of a random size held in memory) and --downscale (of a random image size) - are
+    either accepted, or refused naming the option and the largest value that fits, which is
+    itself accepted. Memory is fixed, so every machine draws the same cases."""
+    from mi_nerfpp.commands.video import check_frames
+    from mi_nerfpp.core import budget, poses
+    from mi_nerfpp.data.dataset import MIN_IMAGE_SIZE, _check_downscale
+    from mi_nerfpp.data.errors import DatasetError
+    monkeypatch.setattr(budget, 'memory_bytes', lambda: 16 * budget.GIB)
+    monkeypatch.setattr(budget, 'available_bytes', lambda: 12 * budget.GIB)
+    machine = budget.Machine(16 * budget.GIB, 12 * budget.GIB, 2)
+    rng = random.Random('issue-49 sizes')
+    widths = set()
+    for _ in range(CASES):
+        width = int(2 ** rng.uniform(0, 34))
+        config = TrainConfig.from_options(color_width=width, batch_rays=rng.choice([32, 1024]),
+                                          color_layers=rng.choice([1, 2, 8]))
+        plan = budget.plan(config, machine)
+        if plan.exceeded is None:
+            continue
+        assert plan.exceeded[0] == 'color_width', (width, plan.exceeded)
+        with pytest.raises(ValueError, match=rf'^--color-width {width} is too large: .*'
+                                             rf'at most {plan.largest:,} fits$'):
+            budget.check(config, plan)
+        assert budget.plan(config.replace(color_width=plan.largest), machine).exceeded is None
+        widths.add(width)
+    assert len(widths) > CASES // 4
+
+    for _ in range(CASES):
+        lr = 10 ** rng.uniform(-6, 20)
+        if lr <= poses.MAX_LR_POSES:
+            assert TrainConfig.from_options(lr_poses=lr).optimizer.lr_poses == lr
+            continue
+        with pytest.raises(ValueError, match=rf'^--lr-poses must be at most '
+                                             rf'{poses.MAX_LR_POSES:g} '):
+            TrainConfig.from_options(lr_poses=lr)
+
+    for _ in range(CASES):
+        w, h = rng.randint(1, 4000), rng.randint(1, 4000)
+        frames = int(10 ** rng.uniform(0, 12))
+        most = budget.video_frames_limit(w, h)
+        if frames <= most:
+            check_frames(frames, w, h, f'--frames {frames}')
+            continue
+        with pytest.raises(ValueError, match=rf'^--frames {frames}: .* at most {most:,} '
+                                             rf'frames of {w}x{h} fit$'):
+            check_frames(frames, w, h, f'--frames {frames}')
+        check_frames(most, w, h, f'--frames {most}')
+
+    for _ in range(CASES):
+        w, h = rng.randint(1, 5000), rng.randint(1, 5000)
+        factor = int(2 ** rng.uniform(0, 14))
+        largest = min(w, h) // MIN_IMAGE_SIZE
+        if factor <= largest:
+            _check_downscale('x.png', w, h, factor)
+            continue
+        fix = (f'the largest --downscale that fits is {largest}' if largest else
+               'the image is too small at any --downscale')
+        after = rf' after --downscale {factor} \(of {w}x{h}\)' if factor > 1 else ''
+        with pytest.raises(DatasetError, match=rf'^x\.png: image is {w // factor}x{h // factor} '
+                                               rf'pixels{after}; .*{fix}'):
+            _check_downscale('x.png', w, h, factor)
+        if largest:
+            _check_downscale('x.png', w, h, largest)
+
+
+def test_random_model_options_are_what_a_checkpoint_of_them_says(tmp_path):
+    """Issue 49, item 2: for random model-shaping options, the options read back from the
+    weights of a model built with them (:func:`weight_options`) are the options' effective
+    values, a config read from a checkpoint that stores none of them describes the weights,
+    and a resume asking for other random options is refused naming exactly those that
+    differ."""
+    from mi_nerfpp.training.config import weight_options
+    rng = random.Random('issue-49 resume')
+
+    def draw():
+        return dict(model=rng.choice(['nerfpp', 'nerf']), field=rng.choice(['grid', 'nerf']),
+                    bg_field=rng.choice([None, 'grid', 'vanilla']),
+                    color=rng.choice(['deferred', 'sample']),
+                    bg_color=rng.choice(['deferred', 'sample']),
+                    antialias=rng.random() < 0.5, grid_channels=rng.randint(2, 6),
+                    color_width=rng.choice([8, 16, 32]), color_layers=rng.randint(1, 3),
+                    dir_octaves=rng.randint(0, 4),
+                    grid_planes=tuple(rng.sample([8, 16, 32], rng.randint(0, 2))),
+                    bg_grid_planes=rng.choice([None, (), (16,)]),
+                    fg_warp=rng.choice([0.0, 0.5]), density_bias=rng.choice([0.0, -1.0]),
+                    appearance=rng.random() < 0.5, refine_poses=rng.random() < 0.5,
+                    composite=rng.choice(['linear', 'srgb']))
+
+    def weights(config):
+        m = config.model
+        return {'fg': config.field_config(m.field, 'ball'),
+                'bg': (config.field_config(m.bg_field, 'inverted_sphere')
+                       if m.kind == 'nerfpp' else None),
+                'color_space': 'srgb', 'composite': m.composite,
+                'appearance_images': 3 if m.appearance else 0,
+                'pose_images': 3 if m.refine_poses else 0}
+
+    for _ in range(CASES):
+        config = TrainConfig.from_options(**draw())
+        fixed = weight_options(weights(config))
+        assert fixed and all(config.effective(k) == v for k, v in fixed.items())
+        read = TrainConfig.from_stored({}, weights=weights(config))
+        assert all(read.effective(k) == v for k, v in fixed.items())
+        assert config.resume_conflicts({}, weights(config)) == []
+        other = TrainConfig.from_options(**draw())
+        lines = other.resume_conflicts({}, weights(config))
+        differ = [k for k, v in fixed.items() if other.effective(k) != v]
+        assert [line.split(':')[0] for line in lines] == [other.flag(k) for k in differ]
+
+
+def test_random_counts_to_the_commands_are_bounded_by_their_parsers(capsys):
+    """Issue 49, items 5 and 6: random whole numbers (and edge numbers) to the count options of
+    colmap, whose values go to COLMAP's C ints, are accepted within their range and otherwise
+    refused by the command line, naming the option and its range - never by pycolmap's
+    "incompatible function arguments"."""
+    from mi_nerfpp.commands.arguments import MAX_THREADS
+    from mi_nerfpp.commands.cli import build_parser
+    from mi_nerfpp.data.sfm import COLMAP_MAX_INT, COLMAP_MINIMUMS
+    parser = build_parser()
+    rng = random.Random('issue-49 counts')
+    ranges = {f'--{name.replace("_", "-")}': (low, COLMAP_MAX_INT)
+              for name, low in COLMAP_MINIMUMS.items()}
+    ranges['--threads'] = (1, MAX_THREADS)
+    checked = 0
+    for flag, (low, high) in ranges.items():
+        for _ in range(CASES):
+            value = rng.choice([rng.randint(-10, 100), int(2 ** rng.uniform(0, 70)),
+                                -int(2 ** rng.uniform(0, 70)), low - 1, low, high, high + 1])
+            argv = ['colmap', 'photos', '--out', 'data', f'{flag}={value}']
+            if low <= value <= high or (flag == '--threads' and value == -1):
+                assert getattr(parser.parse_args(argv), flag[2:].replace('-', '_')) == value
+                continue
+            with pytest.raises(SystemExit):
+                parser.parse_args(argv)
+            line = capsys.readouterr().err.strip().splitlines()[-1]
+            assert f'argument {flag}: expects ' in line and f'to {high}' in line, line
+            checked += 1
+    assert checked > CASES

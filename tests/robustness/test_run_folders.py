@@ -203,7 +203,7 @@ def test_resume_with_another_compositing_space_is_refused(capsys, capture, tmp_p
     assert load_checkpoint(out / 'model.npz')[0].composite == 'srgb'
     status, _, err = _train(capsys, capture, out, '--resume')
     line = one_clear_line(err)
-    assert status == 1 and "--composite: the checkpoint has 'srgb', this run asks for " \
+    assert status == 1 and "--composite: the checkpoint's weights have 'srgb', this run asks for " \
         "'linear'" in line
     assert _train(capsys, capture, out, '--resume', '--composite', 'srgb',
                   '--iterations', '3')[0] == 0
@@ -222,7 +222,7 @@ def test_resume_of_a_checkpoint_from_before_linear_compositing(capsys, capture, 
     np.savez(path, **arrays)
     status, _, err = _train(capsys, capture, out, '--resume')
     line = one_clear_line(err)
-    assert status == 1 and "--composite: the checkpoint composites in 'srgb'" in line
+    assert status == 1 and "--composite: the checkpoint's weights have 'srgb'" in line
 
 
 @pytest.mark.parametrize('held', [True, False])

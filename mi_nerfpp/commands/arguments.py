@@ -83,3 +83,18 @@ def positive_float(value: str) -> float:
     if not (math.isfinite(number) and number > 0):
         raise argparse.ArgumentTypeError(f"expects a finite number above 0, got '{value}'")
     return number
+
+
+def float_between(low: float, high: float, unit: str = ''):
+    """argparse type of finite numbers strictly between ``low`` and ``high`` (``unit``: shown
+    after them)."""
+    def number_in(value: str) -> float:
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not (math.isfinite(number) and low < number < high):
+            raise argparse.ArgumentTypeError(f"expects a number between {low:g} and "
+                                             f"{high:g}{unit}, got '{value}'")
+        return number
+    return number_in

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import argparse
 
-from mi_nerfpp.commands.arguments import resolution
+from mi_nerfpp.commands.arguments import (float_between, positive_float, positive_int,
+                                          resolution, whole_between)
 from mi_nerfpp.data.synth import (DEFAULT_FOV, DEFAULT_RADIUS, DEFAULT_RES,
                                   DEFAULT_SEED, DEFAULT_SPP,
                                   DEFAULT_TRAJECTORY, DEFAULT_VIEWS,
@@ -32,12 +33,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
                     'DATA/capture.json. An identical earlier capture in DATA is reused.')
     p.add_argument('scene', help='Mitsuba scene XML (e.g. scenes/gt_garden.xml)')
     p.add_argument('--out', required=True, metavar='DATA', help='output folder')
-    p.add_argument('--views', type=int, default=DEFAULT_VIEWS,
+    p.add_argument('--views', type=positive_int, default=DEFAULT_VIEWS,
                    help=f'number of views over all splits (default {DEFAULT_VIEWS}; 80/10/10 '
                         f'train/validation/test)')
     p.add_argument('--res', type=resolution, default=DEFAULT_RES, metavar='WxH',
                    help='image size (default %dx%d)' % DEFAULT_RES)
-    p.add_argument('--spp', type=int, default=DEFAULT_SPP,
+    p.add_argument('--spp', type=positive_int, default=DEFAULT_SPP,
                    help=f'samples per pixel (default {DEFAULT_SPP})')
     p.add_argument('--trajectory', choices=TRAJECTORIES, default=DEFAULT_TRAJECTORY,
                    help='orbit: jittered ring around the origin; truck: the Tanks and Temples '
@@ -45,12 +46,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         '(elevation 5-75 deg); arc: DTU-like arc in front (train within +-50 '
                         'deg azimuth; validation = interpolated views, test = extrapolated '
                         'views at 65-90 deg; needs >= 3 views) (default %(default)s)')
-    p.add_argument('--seed', type=int, default=DEFAULT_SEED,
+    p.add_argument('--seed', type=whole_between(0, 2 ** 31 - 1), default=DEFAULT_SEED,
                    help='seed of cameras, splits and sampler (default %(default)s)')
-    p.add_argument('--fov', type=float, default=DEFAULT_FOV,
+    p.add_argument('--fov', type=float_between(0, 180, ' degrees'), default=DEFAULT_FOV,
                    help=f'horizontal field of view in degrees, ignored by truck '
                         f'(default {DEFAULT_FOV:g})')
-    p.add_argument('--radius', type=float, default=DEFAULT_RADIUS,
+    p.add_argument('--radius', type=positive_float, default=DEFAULT_RADIUS,
                    help=f'camera distance from the origin in world units (default '
                         f'{DEFAULT_RADIUS:g})')
     p.set_defaults(func=run)

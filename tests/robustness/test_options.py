@@ -358,6 +358,17 @@ def test_the_step_sizes_are_every_learning_rate_and_loss_weight():
      "'10000000000'"),
     (['colmap', 'photos', '--out', 'data', '--max-image-size', '10000000000'],
      "--max-image-size: expects a whole number from 16 to 2147483647"),
+    # synth's numbers were checked by the Python API, whose messages named 'views', 'fov'...
+    (['synth', 'scene.xml', '--out', 'data', '--views', '-3'],
+     "argument --views: expects a whole number of at least 1, got '-3'"),
+    (['synth', 'scene.xml', '--out', 'data', '--fov', '500'],
+     "argument --fov: expects a number between 0 and 180 degrees, got '500'"),
+    (['synth', 'scene.xml', '--out', 'data', '--radius', 'nan'],
+     "argument --radius: expects a finite number above 0, got 'nan'"),
+    (['synth', 'scene.xml', '--out', 'data', '--seed', '2147483648'],
+     "argument --seed: expects a whole number from 0 to 2147483647, got '2147483648'"),
+    (['synth', 'scene.xml', '--out', 'data', '--spp', '0'],
+     "argument --spp: expects a whole number of at least 1, got '0'"),
     (['colmap', 'photos', '--out', 'data', '--hold', '-1'],
      "--hold: expects a whole number from 0 to 2147483647"),
 ])

@@ -176,14 +176,14 @@ def test_training_allocates_the_occupied_bricks(capture, tmp_path):
     out = tmp_path / 'run'
     assert main(['optimize', capture, '--out', str(out), '--iterations', '40', '--batch-rays',
                  '128', '--samples', '8', '8', '8', '--grid-levels', '8', '16', '--occupancy-res',
-                 '8', '--grid-sparse', '32', '--bg-grid-sparse', '16', '--sparse-at', '0.5',
+                 '16', '--grid-sparse', '32', '--bg-grid-sparse', '16', '--sparse-at', '0.5',
                  '--sparse-entries', '40000', '--preview-every', '0', '--checkpoint-every',
                  '0']) == 0
     model, meta, _ = load_checkpoint(out / 'model.npz')
     fg = model.allocated_bricks()['fg.sparse0']
-    # Bricks of 4³ texels x 4 channels: at most 40,000 entries -> 156 bricks of 512.
-    assert 0 < fg.size <= 40000 // 256 and fg.size < 8 ** 3
-    assert model.parameters()['fg.sparse0'].shape == (fg.size, 4, 4, 4, 4)
+    # Bricks of 2³ texels x 4 channels: at most 40,000 entries -> 1,250 bricks of 4,096.
+    assert 0 < fg.size <= 40000 // 32 and fg.size < 16 ** 3
+    assert model.parameters()['fg.sparse0'].shape == (fg.size, 2, 2, 2, 4)
     # Learned after allocation: the texels moved from zero.
     assert np.abs(model.parameters()['fg.sparse0'].numpy()).max() > 0
 
@@ -191,10 +191,11 @@ def test_training_allocates_the_occupied_bricks(capture, tmp_path):
 def test_sparse_levels_need_occupancy_cells_that_cut_them(capsys, capture, tmp_path):
     from mi_nerfpp.commands.cli import main
     base = ['optimize', capture, '--out', str(tmp_path / 'r'), '--iterations', '1']
-    assert main(base + ['--grid-sparse', '144', '--occupancy-res', '32']) == 1
-    assert ('--grid-sparse must be multiples of 32 (the occupancy cells, --occupancy-res 32) '
-            'of at least 128, got 144') in capsys.readouterr().err
-    assert main(base + ['--grid-sparse', '64', '--occupancy-res', '32']) == 1
-    assert 'of at least 128, got 64' in capsys.readouterr().err
+    assert main(base + ['--grid-sparse', '48', '--occupancy-res', '32']) == 1
+    assert ('--grid-sparse must be multiples of 32 (the occupancy cells, --occupancy-res 32), '
+            'got 48') in capsys.readouterr().err
+    assert main(base + ['--bg-grid-sparse', '24', '--occupancy-res', '32']) == 1
+    assert ('--bg-grid-sparse must be multiples of 16 (the occupancy cells, --occupancy-res '
+            '32), got 24') in capsys.readouterr().err
     assert main(base + ['--grid-sparse', '64', '--no-occupancy']) == 1
     assert '--grid-sparse 64 needs empty-space skipping' in capsys.readouterr().err

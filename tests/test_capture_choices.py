@@ -39,10 +39,45 @@ def notices_of(capture, tmp_path, **options):
     return inputs, observer.of('notice')
 
 
+def test_the_sparse_resolution_follows_the_pixel_footprint():
+    # Twice the finest level, a multiple of the occupancy cells, when its cells (2/R) span two
+    # pixels.
+    assert budget.sparse_resolution(0.0018, 128, 64) == 256        # gt_plaza at 512x384
+    assert budget.sparse_resolution(2 / 256 / 2, 128, 64) == 256   # exactly two pixels
+    assert budget.sparse_resolution(2 / 256 / 2 * 1.01, 128, 64) is None
+    assert budget.sparse_resolution(0.001, 100, 64) == 256          # 200 -> a multiple of 64
+    assert budget.sparse_resolution(0.01, 8, 4) == 16
+
+
+def test_the_sparse_level_is_chosen_from_the_capture_and_announced(capture, tmp_path):
+    footprint = run.centre_footprint(load_dataset(capture).train.cameras)
+    cameras = load_dataset(capture).train.cameras
+    assert footprint == pytest.approx(np.median(
+        [np.linalg.norm(c.c2w[:3, 3]) / c.K[0, 0] for c in cameras]))
+    # --occupancy-res 4: the level is twice the finest dense level; a finest
+    # level whose doubled cells span two pixels gets one, one four times finer does not.
+    fits = max(int(1 / (2 * footprint)) // 2 * 2, 2)
+    for finest, chosen in ((fits, 2 * fits), (4 * fits, None)):
+        inputs, notices = notices_of(capture, tmp_path / str(finest), grid_levels=(4, finest),
+                                     occupancy_res=4, iterations=1)
+        line = [n for n in notices if 'sparse foreground level' in n][0]
+        assert inputs.config.model.grid_sparse == ((chosen,) if chosen else ())
+        if chosen:
+            assert line.startswith(f'sparse foreground level {chosen}³ (a training pixel is '
+                                   f'{footprint:.4f} of the unit ball wide at the centre')
+        else:
+            assert line.startswith(f'no sparse foreground level: a training pixel is '
+                                   f'{footprint:.4f}')
+    # Told: kept as told (none, or a resolution).
+    inputs, notices = notices_of(capture, tmp_path / 'told', grid_sparse=(), iterations=1)
+    assert inputs.config.model.grid_sparse == () and not any('sparse' in n for n in notices)
+
+
 def test_the_chosen_resolution_and_budget_are_announced_and_respected(capture, tmp_path):
     inputs, notices = notices_of(capture, tmp_path)
     n = len(inputs.dataset.train)
-    resolution, schedule_line = notices
+    resolution, sparse_line, schedule_line = notices
+    assert sparse_line.startswith('no sparse foreground level: a training pixel is ')
     assert resolution.startswith(f"training at the images' own resolution, {n} views of "
                                  f'32x24 (images ')
     assert resolution.endswith('available; --downscale to shrink)')
@@ -71,8 +106,9 @@ def test_a_trainer_given_no_budget_takes_the_default_one(capture, tmp_path):
 
 
 @pytest.mark.parametrize('options, downscale, schedule', [
-    ({'minutes': 3.5, 'downscale': 2}, 2, (None, 3.5)),
-    ({'iterations': 7, 'downscale': 1}, 1, (7, None))])
+    ({'minutes': 3.5, 'downscale': 2, 'grid_sparse': ()}, 2, (None, 3.5)),
+    ({'iterations': 7, 'downscale': 1, 'grid_sparse': (16,), 'occupancy_res': 4}, 1,
+     (7, None))])
 def test_given_options_are_kept_and_nothing_is_announced(capture, tmp_path, options, downscale,
                                                         schedule):
     inputs, notices = notices_of(capture, tmp_path, **options)
@@ -80,6 +116,7 @@ def test_given_options_are_kept_and_nothing_is_announced(capture, tmp_path, opti
     assert inputs.config.data.downscale == inputs.dataset.downscale == downscale
     assert inputs.dataset.train.cameras[0].width == 32 // downscale
     assert (inputs.config.schedule.iterations, inputs.config.schedule.minutes) == schedule
+    assert inputs.config.model.grid_sparse == options['grid_sparse']
 
 
 def test_a_capture_too_large_for_the_memory_is_downscaled_and_the_message_says_why(
@@ -92,7 +129,7 @@ def test_a_capture_too_large_for_the_memory_is_downscaled_and_the_message_says_w
     step = budget.plan(TrainConfig()).total
     available = int((step + 0.75 * full) / budget.USABLE_FRACTION) + 1
     monkeypatch.setattr(budget, 'available_bytes', lambda: available)
-    inputs, (resolution, minutes) = notices_of(capture, tmp_path)
+    inputs, (resolution, minutes) = notices_of(capture, tmp_path, grid_sparse=())
     size = run.bytes_text
     assert resolution == (
         f'downscale 2 chosen: {n} views of 16x12, because at their own 32x24 the images would '

@@ -252,6 +252,28 @@ def grid_plane_entries(config, domain, planes=None, channels=None,
     return [combine(h * w for _, (h, w) in plane_shapes(domain, r)) * channels for r in planes]
 
 
+# The sparse foreground level a run chooses unless told (``--grid-sparse``): twice the finest
+# dense level's resolution, where its cells span at least SPARSE_PIXELS training pixels at the
+# scene's centre (finer cells than that the images cannot teach). Measured on gt_plaza at
+# 512x384 (a pixel ~0.0018 of the unit ball there), after 10 minutes alone: 27.21 against
+# 26.80 dB with a sparse level of 256 in both volumes, the foreground's error down 0.8 dB and
+# the background's up 0.25 dB (benchmarks/results/error_split_plaza512_*.json), so the
+# background has none unless told (``--bg-grid-sparse``).
+SPARSE_FACTOR = 2
+SPARSE_PIXELS = 2
+
+
+def sparse_resolution(footprint: float, finest: int, occupancy_res: int) -> int | None:
+    """The resolution of the sparse foreground level for a capture whose training pixels are
+    ``footprint`` wide at the scene's centre (in the unit ball's units): ``SPARSE_FACTOR`` times
+    the ``finest`` dense level, rounded up to a multiple of ``occupancy_res`` (its bricks are
+    the occupancy cells), when its cells (``2/R``) span at least :data:`SPARSE_PIXELS` pixels;
+    None when they would not."""
+    r = SPARSE_FACTOR * int(finest)
+    r = -(-r // occupancy_res) * occupancy_res
+    return r if 2.0 / r >= SPARSE_PIXELS * footprint else None
+
+
 def sparse_level_entries(config, domain, limit=None, channels=None) -> list[int]:
     """Entries of each sparse level of one volume's grid field at most
     (:class:`~.bricks.BrickGrid`): its bricks up to ``--sparse-entries`` (``limit``), or all of

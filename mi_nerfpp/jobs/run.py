@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import matplotlib
 import matplotlib.pyplot as plt
+import numpy as np
 
 from mi_nerfpp.core import budget
 from mi_nerfpp.data import (AutoDownscale, DatasetError, detect_format,
@@ -179,6 +180,40 @@ def default_job(options: dict, progress: bool = False) -> tuple[str, dict]:
     return default_capture(progress=progress), options
 
 
+def centre_footprint(cameras) -> float:
+    """The median width of a training pixel at the scene's centre, in the dataset's frame (the
+    unit ball's units): each camera's distance to the origin over its focal length in pixels."""
+    return float(np.median([np.linalg.norm(c.center) / c.K[0, 0] for c in cameras]))
+
+
+def choose_sparse_level(config: TrainConfig, dataset, stored: dict, observer) -> TrainConfig:
+    """``config`` with its sparse foreground level chosen (``--grid-sparse`` not given): a
+    resumed run's own, else :func:`~mi_nerfpp.core.budget.sparse_resolution` of the capture's
+    :func:`centre_footprint`, announced."""
+    if stored:
+        return config.replace(grid_sparse=tuple(
+            TrainConfig.stored_options(stored).get('grid_sparse') or ()))
+    m = config.model
+    if m.field != 'grid' or not config.sampling.occupancy:
+        return config.replace(grid_sparse=())
+    footprint = centre_footprint(dataset.train.cameras)
+    finest = max(m.levels('ball'))
+    r = budget.sparse_resolution(footprint, finest, config.sampling.occupancy_res)
+    cells = f'{2 / finest / footprint:.1f} pixels per cell of --grid-levels {finest}'
+    if r is None:
+        observer.notice(f'no sparse foreground level: a training pixel is {footprint:.4f} of '
+                        f'the unit ball wide at the centre ({cells}); --grid-sparse RES to add '
+                        f'one')
+        return config.replace(grid_sparse=())
+    config = config.replace(grid_sparse=(r,))
+    entries = sum(budget.sparse_level_entries(config, 'ball'))
+    observer.notice(f'sparse foreground level {r}³ (a training pixel is {footprint:.4f} of the '
+                    f'unit ball wide at the centre: {cells}), at most {entries / 1e6:.1f} M '
+                    f'entries in bricks where the surfaces are; --grid-sparse to change, '
+                    f'--grid-sparse alone for none')
+    return config
+
+
 def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool = False,
             overwrite: bool = False, observer: RunObserver | None = None,
             plan: budget.Plan | None = None) -> RunInputs:
@@ -242,6 +277,8 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
             config = dataclasses.replace(config, data=dataclasses.replace(
                 config.data, downscale=dataset.downscale))
             observer.notice(resolution_line(dataset, downscale, plan))
+        if config.model.grid_sparse is None:
+            config = choose_sparse_level(config, dataset, stored, observer)
         schedule = config.schedule
         if schedule.iterations is None and schedule.minutes is None:
             cam = dataset.train.cameras[0]

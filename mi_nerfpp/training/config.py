@@ -100,10 +100,6 @@ def _finite(v):
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-# The fewest texels along each axis of a foreground sparse level's brick (--grid-sparse).
-MIN_BRICK = 4
-
-
 def per_volume(values):
     """An option of one value for both volumes or one per volume, as (foreground, background)."""
     return tuple(values) * (2 // len(values))
@@ -179,19 +175,21 @@ class ModelOptions(_Options):
                                           type=int, nargs='*', metavar='RES',
                                           default_help='(default: as --grid-planes)',
                                           shapes_model=True)
-    grid_sparse: tuple = option(tuple(_grid_default('sparse')), 'grid field: resolution of each '
-                                'sparse level of the foreground grid: RES³ texels stored only in '
-                                'the bricks (one per occupancy cell) that the occupancy grid '
-                                'finds occupied at each --sparse-at (RES: a multiple of '
-                                '--occupancy-res)', type=int, nargs='*', metavar='RES',
-                                shapes_model=True)
-    bg_grid_sparse: tuple | None = option(None, 'grid field: resolution of each sparse level of '
-                                          'the background grid (longitude x colatitude 2RES x '
-                                          'RES, one texel per occupancy cell along s; RES: a '
-                                          'multiple of half --occupancy-res)', type=int,
-                                          nargs='*', metavar='RES',
-                                          default_help='(default: as --grid-sparse)',
-                                          shapes_model=True)
+    grid_sparse: tuple | None = option(None, 'grid field: resolution of each sparse level of '
+                                       'the foreground grid: RES³ texels stored only in the '
+                                       'bricks (one per occupancy cell) that the occupancy grid '
+                                       'finds occupied at each --sparse-at (RES: a multiple of '
+                                       '--occupancy-res); none: no '
+                                       'sparse level', type=int, nargs='*', metavar='RES',
+                                       default_help="(default: chosen from the capture and "
+                                       "announced: twice the finest --grid-levels where its "
+                                       "cells span at least two training pixels at the scene's "
+                                       "centre, else none)", shapes_model=True)
+    bg_grid_sparse: tuple = option((), 'grid field: resolution of each sparse level of the '
+                                   'background grid (longitude x colatitude 2RES x RES, one '
+                                   'texel per occupancy cell along s; RES: a multiple of half '
+                                   '--occupancy-res)', type=int, nargs='*', metavar='RES',
+                                   default_help='(default: none)', shapes_model=True)
     grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
                                 shapes_model=True)
     fg_warp: float = option(_grid_default('warp_radius'), 'grid field: radius of the inner ball '
@@ -265,6 +263,9 @@ class ModelOptions(_Options):
         self.grid_planes = _as_tuple(self.grid_planes)
         if self.bg_grid_planes is not None:
             self.bg_grid_planes = _as_tuple(self.bg_grid_planes)
+        if self.grid_sparse is not None:
+            self.grid_sparse = _as_tuple(self.grid_sparse)
+        self.bg_grid_sparse = _as_tuple(self.bg_grid_sparse)
         for name in ('grid_planes', 'bg_grid_planes'):
             if any(r < 2 for r in getattr(self, name) or ()):
                 self._bad(name, 'resolutions of at least 2')
@@ -297,9 +298,9 @@ class ModelOptions(_Options):
 
     def sparse(self, domain):
         """The sparse levels' resolutions of one volume's grid field."""
-        if domain == 'inverted_sphere' and self.bg_grid_sparse is not None:
+        if domain == 'inverted_sphere':
             return self.bg_grid_sparse
-        return self.grid_sparse
+        return self.grid_sparse or ()      # (None: not chosen yet, jobs.run.prepare chooses)
 
 
 @dataclass
@@ -509,21 +510,17 @@ class TrainConfig:
             levels = m.sparse(domain)
             if not levels or m.field_of(domain) != 'grid':
                 continue
-            option = name if getattr(m, name) is not None else 'grid_sparse'
+            option = name
             shown = ' '.join(map(str, levels))
             if not s.occupancy:
                 raise ValueError(f'{self.flag(option)} {shown} needs empty-space skipping (its '
                                  f'bricks are the occupancy cells): drop --no-occupancy')
             _, cells_y, cells_x = occ.grid_shape(domain, s.occupancy_res)
-            # Foreground bricks of at least 4³ texels: with 2³, a frozen training step crashed
-            # in Dr.Jit 1.5's replay (bricks of 3³ and up, and the background's, trained
-            # exactly as without freezing).
-            least = MIN_BRICK * cells_y if domain == 'ball' else cells_y
-            if any(r % cells_y or (r if domain == 'ball' else 2 * r) % cells_x or r < least
+            if any(r % cells_y or (r if domain == 'ball' else 2 * r) % cells_x
                    for r in levels):
                 raise ValueError(f'{self.flag(option)} must be multiples of {cells_y} (the '
-                                 f'occupancy cells, --occupancy-res {s.occupancy_res}) of at '
-                                 f'least {least}, got {shown}')
+                                 f'occupancy cells, --occupancy-res {s.occupancy_res}), got '
+                                 f'{shown}')
 
     # ------------------------------------------------------------------ flat options
     @classmethod
@@ -601,18 +598,24 @@ class TrainConfig:
         config = cls.from_options(**options)
         if weights is None:
             return config
-        wrong = {name: value for name, value in weight_options(weights).items()
+        fixed = weight_options(weights)
+        wrong = {name: value for name, value in fixed.items()
                  if config.effective(name) != value}
+        if config.model.grid_sparse is None and 'grid_sparse' in fixed:   # chosen: the weights'
+            wrong['grid_sparse'] = fixed['grid_sparse']
         return config.replace(**wrong) if wrong else config
 
     def effective(self, name: str):
         """The value option ``name`` takes effect with (``--bg-field`` and
-        ``--bg-grid-planes`` unset: the foreground's), sequences as tuples."""
+        ``--bg-grid-planes`` unset: the foreground's; ``--grid-sparse`` unset: none), sequences
+        as tuples."""
         m = self.model
         if name == 'bg_field':
             return m.bg_field or m.field
         if name == 'bg_grid_planes':
             return tuple(m.planes('inverted_sphere'))
+        if name == 'grid_sparse':       # (None: chosen by the run; a model built now has none)
+            return tuple(m.sparse('ball'))
         value = self.options()[name]
         return tuple(value) if isinstance(value, (list, tuple)) else value
 
@@ -747,6 +750,8 @@ def weight_options(weights: dict) -> dict:
         out[('field', 'bg_field')[side]] = field['kind']
         if field['kind'] != 'grid':
             continue
+        # Sparse levels are fixed by the weights too; files without them have none.
+        out[('grid_sparse', 'bg_grid_sparse')[side]] = _as_tuple(field.get('sparse', ()))
         for entry, names in GRID_FIELD_OPTIONS.items():
             name = names[side]
             if name is None or entry not in field or (side and name in out):

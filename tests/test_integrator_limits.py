@@ -108,10 +108,20 @@ def test_a_nan_in_the_sensor_transform_is_refused():
         "nerfpp: the sensor's to_world has NaN or infinite entries")
 
 
+def _render_scene_file(tmp_path, name, scene):
+    """``python -m mi_nerfpp render`` of ``scene`` (XML text) written to ``name`` in
+    ``tmp_path``: the finished process, the scene file and the output path."""
+    xml = tmp_path / name
+    xml.write_text(textwrap.dedent(scene))
+    out = tmp_path / 'out.exr'
+    r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'render', str(xml), '-o', str(out)],
+                       capture_output=True, text=True, timeout=300)
+    return r, xml, out
+
+
 def test_the_render_command_gives_one_line_for_a_far_sensor(tmp_path):
     """End to end: the command exits with the one line, no segfault, nothing written."""
-    xml = tmp_path / 'far.xml'
-    xml.write_text(textwrap.dedent('''\
+    r, _, out = _render_scene_file(tmp_path, 'far.xml', '''\
         <scene version="3.0.0">
             <integrator type="nerfpp"><integer name="fg_samples" value="4"/>
                 <integer name="bg_samples" value="4"/><integer name="fine_samples" value="0"/>
@@ -122,10 +132,7 @@ def test_the_render_command_gives_one_line_for_a_far_sensor(tmp_path):
                 <film type="hdrfilm"><integer name="width" value="4"/>
                     <integer name="height" value="4"/></film>
             </sensor>
-        </scene>'''))
-    out = tmp_path / 'out.exr'
-    r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'render', str(xml), '-o', str(out)],
-                       capture_output=True, text=True, timeout=300)
+        </scene>''')
     assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
     assert 'the sensor is at 1e+25 world units from the origin' in r.stderr
     assert not out.exists()
@@ -141,18 +148,14 @@ def test_path_depths_below_one_are_named_by_the_integrator(name, value):
 
 def test_the_render_command_names_rr_depth_and_the_scene_file(tmp_path):
     """End to end: one line naming the parameter and the scene file, nothing written."""
-    xml = tmp_path / 'rr.xml'
-    xml.write_text(textwrap.dedent('''\
+    r, xml, out = _render_scene_file(tmp_path, 'rr.xml', '''\
         <scene version="3.0.0">
             <integrator type="nerfpp"><integer name="rr_depth" value="0"/></integrator>
             <sensor type="perspective">
                 <film type="hdrfilm"><integer name="width" value="4"/>
                     <integer name="height" value="4"/></film>
             </sensor>
-        </scene>'''))
-    out = tmp_path / 'out.exr'
-    r = subprocess.run([sys.executable, '-m', 'mi_nerfpp', 'render', str(xml), '-o', str(out)],
-                       capture_output=True, text=True, timeout=300)
+        </scene>''')
     lines = [line for line in r.stderr.splitlines() if line.strip()]
     assert r.returncode == 1 and len(lines) == 1, r.stderr[-2000:]
     assert lines[0].startswith("error: render: nerfpp: parameter 'rr_depth' must be >= 1, got 0")

@@ -26,8 +26,6 @@ import numpy as np
 # ball (a surface near a brick's face interpolates into its neighbour); along s only in the
 # inverted sphere, whose bricks span many texels of angle and one of depth.
 DILATION = {'ball': (1, 1, 1), 'inverted_sphere': (1, 0, 0)}
-# The fewest entries of a pool (:meth:`BrickGrid.pool_shape`).
-MIN_POOL = 256
 # The pool's packet type by channel count: one gather reads a texel's channels together.
 _PACKETS = {2: 'Array2f', 4: 'Array4f'}
 
@@ -59,14 +57,10 @@ class BrickGrid:
         return len(self.allocated)
 
     def pool_shape(self, n=None):
-        """The pool parameter's shape for ``n`` allocated bricks (default: those allocated now).
-        While none is, bricks never read: at least :data:`MIN_POOL` entries (Dr.Jit arrays are
-        not empty, and a frozen training step replayed over a pool of 32 entries crashed in
-        Dr.Jit 1.5's replay, in a ``memcpy``)."""
+        """The pool parameter's shape for ``n`` allocated bricks (default: those allocated now);
+        one brick, never read, while none is (Dr.Jit arrays are not empty)."""
         n = self.n_allocated if n is None else int(n)
-        if n == 0:
-            n = -(-MIN_POOL // (self.texels_per_brick * self.channels))
-        return (n,) + self.brick + (self.channels,)
+        return (max(n, 1),) + self.brick + (self.channels,)
 
     def allocate(self, bricks) -> None:
         """Allocate ``bricks`` (flat brick indices over ``blocks``, z slowest), in slot order."""

@@ -32,3 +32,15 @@ def error_line(error: BaseException) -> str:
         where = where.split(': failed to instantiate')[0].split(': Traceback')[0]
         return f'{inner[-1]} ({where})' if where and where not in inner[-1] else inner[-1]
     return ' '.join(lines)
+
+
+def interrupt_in(error: BaseException | None) -> KeyboardInterrupt | None:
+    """The :class:`KeyboardInterrupt` that ``error`` is or wraps, or None. Dr.Jit re-raises an
+    exception from Python code that it calls - a step being recorded by ``drjit.freeze``, a
+    loop body, a search predicate - as a RuntimeError caused by it, once per level: a Ctrl-C
+    or SIGTERM that lands there arrives as such a chain."""
+    while error is not None:
+        if isinstance(error, KeyboardInterrupt):
+            return error
+        error = error.__cause__
+    return None

@@ -369,6 +369,25 @@ def test_ctrl_c_while_a_step_is_recorded_saves_a_checkpoint(dataset, tmp_path, m
     assert resumed.run() is True and resumed.iteration == 4
 
 
+def test_ctrl_c_in_a_preview_loop_body_saves_a_checkpoint(dataset, tmp_path):
+    """A Ctrl-C that lands in a loop body of ``on_preview`` (a preview render, the viewer's
+    callback) arrives wrapped in Dr.Jit's RuntimeError outside the step: the run stops as
+    interrupted, with its checkpoint, rather than failing with 'signal 15'."""
+    tr = Trainer(dataset, str(tmp_path),
+                 TrainConfig.from_options(iterations=4, **dict(SMALL, preview_every=1)))
+    assert tr.run(on_preview=lambda trainer: _interrupt_in_a_loop_body()) is False
+    assert os.path.exists(tmp_path / 'model.npz') and tr.iteration >= 1
+
+
+def test_the_command_line_reports_a_wrapped_ctrl_c_as_interrupted(monkeypatch, capsys):
+    """The command line's status for a Ctrl-C that Dr.Jit re-raised wrapped is 130, not an
+    error line."""
+    from mi_nerfpp.commands import cli, evaluate
+    monkeypatch.setattr(evaluate, 'run', lambda args: _interrupt_in_a_loop_body())
+    assert cli.main(['evaluate', 'nowhere']) == 130
+    assert 'interrupted' in capsys.readouterr().err
+
+
 def test_neutral_grids_and_the_unseen_fill_moves_only_cells_no_sample_reached(dataset,
                                                                               tmp_path):
     """``--grid-init 0`` starts the grid levels at zero (the default at noise of 0.1), the

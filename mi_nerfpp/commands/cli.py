@@ -35,7 +35,7 @@ from mi_nerfpp import variant
 from mi_nerfpp._llvm import LLVMNotFoundError
 from mi_nerfpp.commands import (colmap, evaluate, export, optimize, render,
                                 sweep, synth, video, view)
-from mi_nerfpp.errors import error_line
+from mi_nerfpp.errors import error_line, interrupt_in
 
 DEBUG_ENV = 'MI_NERFPP_DEBUG'
 COMMANDS = (render, optimize, synth, evaluate, video, sweep, colmap, export, view)
@@ -141,6 +141,9 @@ def main(argv=None, *, replace=None):
         print('interrupted', file=sys.stderr)
         return 130
     except Exception as e:
+        if interrupt_in(e) is not None:     # a Ctrl-C in Python code that Dr.Jit called
+            print('interrupted', file=sys.stderr)
+            return 130
         if debugging(args):
             traceback.print_exc()
         print(f'error: {args.command}: {describe(e, args)}', file=sys.stderr)

@@ -44,6 +44,7 @@ from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.core.profiling import stage
 from mi_nerfpp.core.render import distortion, ray_distortion, render_rays
 from mi_nerfpp.data.storage import MAX_STORED_BYTES
+from mi_nerfpp.errors import interrupt_in
 from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
                                         migration_notes, read_version, save_checkpoint)
@@ -374,14 +375,14 @@ class Trainer:
         """One optimization step. Returns ``(loss, fine-pass MSE)`` as Python floats.
 
         A Ctrl-C (or SIGTERM) anywhere in the step raises :class:`KeyboardInterrupt`, also when
-        it lands in Python code that Dr.Jit calls and re-raises wrapped (:func:`_interrupt_in`)."""
+        it lands in Python code that Dr.Jit calls and re-raises wrapped (:func:`~mi_nerfpp.errors.interrupt_in`)."""
         try:
             if self.model.poses is None:
                 return self._step()
             with poses.gradient_scope():
                 return self._step()
         except RuntimeError as e:
-            interrupt = _interrupt_in(e)
+            interrupt = interrupt_in(e)
             if interrupt is None:
                 raise
             raise interrupt from None
@@ -709,7 +710,11 @@ class Trainer:
                 if on_preview and output.preview_every and \
                         self.iteration % output.preview_every == 0:
                     on_preview(self)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, RuntimeError) as e:
+            # Also one that lands in Python code Dr.Jit calls from on_step or on_preview (a
+            # preview's loop body), which arrives wrapped.
+            if interrupt_in(e) is None:
+                raise
             with _signals_deferred(_in_main_thread()):    # a second Ctrl-C must not
                 self.save()                               # break the save
             return False
@@ -779,18 +784,6 @@ def _signals_deferred(enabled):
 
 def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt(f'signal {signum}')
-
-
-def _interrupt_in(error):
-    """The :class:`KeyboardInterrupt` that ``error`` wraps, or None. Dr.Jit re-raises an
-    exception from Python code that it calls - a step being recorded by ``drjit.freeze``, a
-    loop body, a search predicate - as a RuntimeError caused by it, once per level: a Ctrl-C
-    or SIGTERM that lands there arrives as such a chain."""
-    while error is not None:
-        if isinstance(error, KeyboardInterrupt):
-            return error
-        error = error.__cause__
-    return None
 
 
 def data_conflicts(stored: dict, now: dict) -> list[str]:

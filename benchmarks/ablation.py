@@ -29,7 +29,8 @@ from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.jobs.console import ConsoleObserver
 from mi_nerfpp.data import direction_coverage
 from mi_nerfpp.files.exr import read_exr
-from mi_nerfpp.training.metrics import SEEN_BY, masked_psnr, psnr, separation
+from mi_nerfpp.training.metrics import masked_psnr, psnr, separation
+from mi_nerfpp.core.coverage import SEEN_BY
 from mi_nerfpp.training.options import add_options, values
 from mi_nerfpp.data.synth import default_capture
 from mi_nerfpp.output.views import ViewRenderer, encoded_rgb

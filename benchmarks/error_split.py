@@ -37,7 +37,8 @@ from mi_nerfpp.files.exr import read_exr
 from mi_nerfpp.jobs import bench
 from mi_nerfpp.jobs.run import open_run
 from mi_nerfpp.output.views import ViewRenderer, encoded_rgb
-from mi_nerfpp.training.metrics import SEEN_BY, SPLIT_SIGMA, error_split
+from mi_nerfpp.training.metrics import SPLIT_SIGMA, error_split
+from mi_nerfpp.core.coverage import SEEN_BY
 
 REGIONS = ('foreground', 'background', 'specular', 'unseen', 'all')
 

@@ -34,7 +34,8 @@ import numpy as np
 def score(data, test_dir):
     from mi_nerfpp.data import direction_coverage, load_dataset
     from mi_nerfpp.files.exr import read_exr
-    from mi_nerfpp.training.metrics import SEEN_BY, masked_psnr, psnr, separation, ssim
+    from mi_nerfpp.training.metrics import masked_psnr, psnr, separation, ssim
+    from mi_nerfpp.core.coverage import SEEN_BY
     from mi_nerfpp.output.views import encoded_rgb
     dataset = load_dataset(data)
     test, test_color_space = dataset.test, dataset.color_space

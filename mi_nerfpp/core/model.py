@@ -94,8 +94,10 @@ class NeRFPPModel:
 
     def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb',
                  occupancy=None, composite='linear', appearance_images=0, pose_images=0,
-                 sampling=None):
+                 sampling=None, coverage=None):
         self.fg, self.bg = fg, bg
+        # The colour painted where no training view looked (:mod:`.coverage`); None: none.
+        self.coverage = coverage
         self.sampling = Sampling() if sampling is None else sampling
         # Per-training-image colour transforms (:mod:`.appearance`); None: off.
         self.appearance = None

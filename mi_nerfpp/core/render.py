@@ -693,7 +693,7 @@ def _render_visible_background(o, d, fg, render, seed, far=None, footprint=None,
 
 def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
                 skip_occluded=False, ray_gradients=False, far=None, near_gradient=0.0,
-                footprint=None, fused=False):
+                footprint=None, fused=False, coverage=None):
     """Render rays ``o + t·d`` (``|d| = 1``) through the foreground and background volumes.
 
     ``bg_field=None`` renders the foreground volume alone (a bounded NeRF).
@@ -721,6 +721,9 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
     ``fused`` (primal rendering only): each volume's merge and quadrature in one kernel per
     ray (:func:`_fused_quadrature`); the result then has no per-sample arrays (what the
     regularizers and deep output read) but the surfaces that :func:`surface_distance` needs.
+    ``coverage`` (:class:`~.coverage.CoverageFill`, rendering only): paint the background's colour
+    where the training views did not see the rays' directions, on rays that no ``far`` ends
+    (``fine`` of the background only; its samples are kept as they are).
     """
     o, d = mi.Point3f(o), mi.Vector3f(d)
     if not ray_gradients:
@@ -753,6 +756,8 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
         bg = render_volume(volume(Background(o, d, far, footprint), 'bg'), bg_field,
                            sampling.bg_samples, sampling.fine_samples, seed, stream=2,
                            near_gradient=near_gradient, fused=fused, level=level)
+    if bg is not None and coverage is not None:
+        bg = dataclasses.replace(bg, fine=coverage.blend(d, bg.fine, far))
     return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None))
 
 

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
+from mi_nerfpp.core.coverage import views_seeing
+
 # Camera-space axis flips, applied on the right of a camera-to-world matrix.
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 _OPENCV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -162,14 +164,7 @@ def direction_coverage(camera: Camera, others) -> np.ndarray:
     """
     px, py = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
     _, dirs = pixel_rays(camera, px, py)
-    count = np.zeros(len(dirs), dtype=np.int64)
-    for other in others:
-        v = dirs @ other.c2w[:3, :3]            # world directions into that camera's axes
-        ahead = v[:, 2] > 1e-9
-        z = np.where(ahead, v[:, 2], 1.0)
-        u = other.K[0, 0] * v[:, 0] / z + other.K[0, 1] * v[:, 1] / z + other.K[0, 2]
-        w = other.K[1, 1] * v[:, 1] / z + other.K[1, 2]
-        count += ahead & (u >= 0) & (u < other.width) & (w >= 0) & (w < other.height)
+    count = views_seeing(dirs, others)
     return count.reshape(camera.height, camera.width)
 
 

@@ -27,6 +27,9 @@ Keys:
   give its ``param/`` pool its shape;
 * ``occupancy/<volume>`` — the occupancy grid of a volume (``fg``/``bg``) when the model
   skips empty space; its configuration is in ``config["occupancy"]``;
+* ``coverage/seen``, ``coverage/colour`` — the colour painted where no training view looked
+  and the weights it is blended in with (:class:`~mi_nerfpp.core.coverage.CoverageFill`);
+  missing in files written before it, which render the background volume everywhere;
 * ``state/<name>`` — optional arrays of training state (optimizer moments, RNG)
   that rendering ignores.
 
@@ -46,6 +49,7 @@ from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.core.occupancy import OccupancyGrid
 from mi_nerfpp.core.render import SKIPPING, Sampling
+from mi_nerfpp.core.coverage import CoverageFill
 from mi_nerfpp.files.atomic import atomic_write_path
 
 FORMAT = 'mi-nerfpp-checkpoint'
@@ -126,6 +130,9 @@ def save_checkpoint(path, model, meta=None, state=None):
         arrays[f'occupancy/{k}'] = grid.numpy()
     for k, v in model.allocated_bricks().items():
         arrays[f'bricks/{k}'] = np.asarray(v, dtype=np.int64)
+    if model.coverage is not None:
+        for k, v in model.coverage.arrays().items():
+            arrays[f'coverage/{k}'] = v
     for k, v in (state or {}).items():
         arrays[f'state/{k}'] = np.asarray(v)
     bad = _non_finite(arrays)
@@ -197,6 +204,9 @@ def load_checkpoint(path, seed=0):
                             sampling=_sampling(config))
         model.set_bricks({k[len('bricks/'):]: v for k, v in z.items()
                           if k.startswith('bricks/')})
+        fill = {k[len('coverage/'):]: v for k, v in z.items() if k.startswith('coverage/')}
+        if fill:
+            model.coverage = CoverageFill.from_arrays(fill)
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None
 

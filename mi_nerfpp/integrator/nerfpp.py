@@ -123,6 +123,14 @@ class NeRFPPIntegrator(ADIntegrator):
          ``λ < 1e-4``), for a complete ``bg`` layer. Off: those pixels' ``bg``
          layer is 0 and the render is faster; the beauty changes by at most
          ``1e-4``. Differentiable renders always render it. (Default: false)
+     * - fill_unseen
+       - |bool|
+       - Paint the background where no two training views looked (the sky
+         above a ring of cameras) with the training pixels' colour of the
+         nearest directions they saw, blended in by how many saw it
+         (:mod:`~mi_nerfpp.core.coverage`), instead of the background volume's
+         cells there, which no ray trained. Off, or with a checkpoint written
+         before it: the volume everywhere. (Default: true)
      * - chunk_rays
        - |int|
        - Primal renders are evaluated in chunks of this many rays to bound
@@ -213,6 +221,7 @@ class NeRFPPIntegrator(ADIntegrator):
         self.skip_empty = read('skip_empty', bool, True)
         self.stratified = read('stratified', bool, False)
         self.occluded_background = read('occluded_background', bool, False)
+        self.fill_unseen = read('fill_unseen', bool, True)
         self.chunk_rays = read('chunk_rays', int, RENDER_CHUNK_RAYS, minimum=1)
         self.appearance_image = read('appearance_image', int, -1, minimum=-1)
         self.max_samples = read('max_samples', int, MAX_FILM_SAMPLES, minimum=1)

@@ -53,7 +53,8 @@ class VolumeRenderer:
                           skip_occluded=primal and not ig.occluded_background,
                           far=None if far is None else norm.to_model_distance(far),
                           footprint=footprint if model.antialias else None,
-                          fused=primal and not keep_samples)
+                          fused=primal and not keep_samples,
+                          coverage=model.coverage if ig.fill_unseen else None)
         # 4. The layers.
         fg = res.fg.fine
         L, fg_rgb, alpha = res.fine.rgb, fg.rgb, dr.clip(fg.opacity, 0.0, 1.0)

@@ -47,10 +47,6 @@ def masked_psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, data_range: 
     return psnr(pred[mask][None], gt[mask][None], data_range)
 
 
-# A held-out pixel counts as seen when at least this many training views saw its direction.
-SEEN_BY = 2
-
-
 def _ssim_win_size(height: int, width: int) -> int:
     """The largest odd window, at most 7, that fits in the image."""
     side = min(height, width, SSIM_WIN_SIZE)

@@ -43,6 +43,7 @@ from mi_nerfpp.core.frame import reframe_cameras
 from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.core.profiling import stage
 from mi_nerfpp.core.render import distortion, ray_distortion, render_rays
+from mi_nerfpp.core.coverage import CoverageFill
 from mi_nerfpp.data.storage import MAX_STORED_BYTES
 from mi_nerfpp.errors import interrupt_in
 from mi_nerfpp.files.atomic import remove_stale_temporaries
@@ -319,6 +320,11 @@ class Trainer:
                 sampling=config.render_sampling)
             if s.occupancy:
                 self.model.enable_occupancy(s.occupancy_res, s.occupancy_threshold)
+        if self.model.bg is not None and self.model.coverage is None:
+            with stage('coverage fill'):
+                self.model.coverage = CoverageFill.of_views(self.train.cameras,
+                                                            self.train.images,
+                                                            dataset.color_space)
         self.saved_iteration = self.iteration if resume else None
         # Sparse levels allocate at each ``sparse_at`` passed; a resumed run has those behind it.
         self.allocations = []

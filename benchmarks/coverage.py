@@ -1,7 +1,7 @@
 """How much of the held-out error is extrapolation: the test pixels no training view saw.
 
     python benchmarks/coverage.py [LABEL=]RUN [[LABEL=]RUN ...] [--without-occupancy]
-                                  [--without-fill] [--name N]
+                                  [--toggle-fill] [--name N]
 
 For each trained run (a folder written by ``optimize``; several runs of one capture side by
 side) this renders each test view and splits its pixels by
@@ -24,8 +24,9 @@ held-out PSNR is scored in:
 The last column answers whether a target on every test view (none below 24 dB, say) is
 reachable on a capture at all. ``--without-occupancy`` renders each run a second time with its
 occupancy grids off (every interval sampled): what empty-space skipping does to the
-directions few training rays constrain; ``--without-fill`` a second time without the colour
-painted where no training view looked (:mod:`mi_nerfpp.core.coverage`). Results: ``benchmarks/results/<--name>.json``, with a
+directions few training rays constrain; ``--toggle-fill`` a second time with the colour painted
+where no training view looked (:mod:`mi_nerfpp.core.coverage`) toggled: without it when the
+checkpoint holds one, with one made from the training views when it does not. Results: ``benchmarks/results/<--name>.json``, with a
 picture of the two test views with the most unseen pixels (test image, then each render).
 """
 import argparse
@@ -98,9 +99,9 @@ def main():
                     'without its occupancy grids (every interval sampled, %d + %d + %d samples): '
                     'what empty-space skipping changes' % (WHOLE_RAY.fg_samples, WHOLE_RAY.bg_samples,
                                                           WHOLE_RAY.fine_samples))
-    ap.add_argument('--without-fill', action='store_true', help='also render each run without '
-                    'its coverage fill (the background volume in every direction); a run '
-                    'whose checkpoint has none gets one from its training views')
+    ap.add_argument('--toggle-fill', action='store_true', help='also render each run with its '
+                    'coverage fill toggled: without it where the checkpoint holds one, with one '
+                    'made from its training views where it does not')
     ap.add_argument('--name', default='coverage', help='results file name (default coverage)')
     a = ap.parse_args()
     print(f'{"run":>12} {"view":>4} {"unseen":>6} {"model":>6} {"seen":>6} {"unseen":>6} '
@@ -115,19 +116,20 @@ def main():
             raise SystemExit(f'{run}: trained on {data.root}, not on {dataset.root} as '
                              f'{a.runs[0]}: compare runs of one capture')
         dataset = data
-        if model.coverage is None and model.bg is not None:
-            print(f'{run}: its checkpoint has no coverage fill; made from its training views')
-            model.coverage = CoverageFill.of_views(data.train.cameras, data.train.images,
-                                                   data.color_space)
-        fill = model.coverage
+        stored = model.coverage
         name = label or run
-        variants = [(name, False, False)]                   # with the model's render settings
-        if a.without_fill:
-            variants.append((f'{name}, no fill', False, True))
+        variants = [(name, False, stored)]                  # with the model's render settings
+        if a.toggle_fill and model.bg is not None:
+            if stored is None:
+                made = CoverageFill.of_views(data.train.cameras, data.train.images,
+                                             data.color_space)
+                variants.append((f'{name}, with a fill', False, made))
+            else:
+                variants.append((f'{name}, no fill', False, None))
         if a.without_occupancy:
-            variants.append((f'{name}, no skipping', True, False))
-        for name, whole_rays, no_fill in variants:
-            model.coverage = None if no_fill else fill
+            variants.append((f'{name}, no skipping', True, stored))
+        for name, whole_rays, fill in variants:
+            model.coverage = fill
             if whole_rays:
                 model.occupancy = {}
             renderer = ViewRenderer(model, sampling=WHOLE_RAY) if whole_rays \

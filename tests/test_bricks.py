@@ -1,6 +1,8 @@
 """Sparse grid levels (:mod:`mi_nerfpp.core.bricks`): lookups equal the dense texture they
 replace, gradients match finite differences, bricks come from an occupancy mask, and a field
 with sparse levels survives a checkpoint and a training run that allocates them."""
+import json
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -171,7 +173,7 @@ def test_a_checkpoint_without_sparse_levels_loads_as_before(tmp_path):
     assert loaded.allocated_bricks() == {} and 'sparse' not in loaded.fg.config
 
 
-def test_training_allocates_the_occupied_bricks(capture, tmp_path):
+def test_training_allocates_the_occupied_bricks(capture, tmp_path, capsys):
     from mi_nerfpp.commands.cli import main
     out = tmp_path / 'run'
     assert main(['optimize', capture, '--out', str(out), '--iterations', '40', '--batch-rays',
@@ -186,6 +188,14 @@ def test_training_allocates_the_occupied_bricks(capture, tmp_path):
     assert model.parameters()['fg.sparse0'].shape == (fg.size, 2, 2, 2, 4)
     # Learned after allocation: the texels moved from zero.
     assert np.abs(model.parameters()['fg.sparse0'].numpy()).max() > 0
+    # The run says, and records, what each level holds of what the occupancy asked for.
+    with open(out / 'metrics.json') as f:
+        last = {a['level']: a for a in json.load(f)['sparse_allocations']}
+    assert last['fg.sparse0']['bricks'] == fg.size
+    assert last['bg.sparse0']['bricks'] == model.allocated_bricks()['bg.sparse0'].size
+    said = capsys.readouterr().out
+    for level, a in last.items():
+        assert f'sparse level {level}: {a["bricks"]:,} bricks' in said
 
 
 def test_sparse_levels_need_occupancy_cells_that_cut_them(capsys, capture, tmp_path):

@@ -13,7 +13,7 @@ from mi_nerfpp.core.coverage import (CoverageFill, fill_holes, texel_directions,
 from mi_nerfpp.core.render import Sampling, render_rays
 from mi_nerfpp.data.cameras import direction_coverage
 from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
-from mi_nerfpp.output.views import ViewRenderer, rgb
+from mi_nerfpp.output.views import ViewRenderer, encoded_rgb, rgb
 
 RING = [orbit_camera(a, 0.0, 3.0, 32, 24) for a in np.linspace(0, 2 * np.pi, 12,
                                                                endpoint=False)]
@@ -155,3 +155,32 @@ def test_the_fill_round_trips_through_the_checkpoint_and_the_integrator_can_turn
     off = beauty(off_renderer)
     np.testing.assert_allclose(off, beauty(ViewRenderer(without)), rtol=1e-5, atol=1e-6)
     assert np.abs(on - off).max() > 0.01
+
+
+def test_the_run_keeps_the_fill_only_where_it_paints_the_validation_views_better():
+    """``choose_coverage_fill`` scores the validation views' unseen pixels with and without
+    the fill: a view whose sky is the training views' grey keeps the fill; a view whose sky is
+    what the volume renders there keeps the volume (the fill is dropped from the model)."""
+    from mi_nerfpp.data.dataset import Split
+    from mi_nerfpp.training.evaluate import choose_coverage_fill
+    grey = 0.6
+    images = [np.full((24, 32, 3), grey, np.float32)] * len(RING)
+    up = orbit_camera(0.0, 1.5, 1e-3, 16, 12)          # looks where no training view did
+    model = tiny_model()
+    fill = CoverageFill.of_views(RING, images, 'srgb', resolution=64)
+    model.coverage = fill
+    sky = Split([up], ['sky.png'], [np.full((12, 16, 3), grey, np.float32)])
+    choice = choose_coverage_fill(model, sky, RING)
+    assert choice['kept'] and model.coverage is fill
+    assert choice['pixels'] == 12 * 16 and choice['psnr_fill'] > choice['psnr_volume']
+    model.coverage = None
+    volume = np.clip(encoded_rgb(ViewRenderer(model).render(up), model.color_space), 0, 1)
+    model.coverage = fill
+    choice = choose_coverage_fill(model, Split([up], ['v.png'], [volume.astype(np.float32)]),
+                                  RING)
+    assert not choice['kept'] and model.coverage is None
+    assert choice['psnr_volume'] > choice['psnr_fill']
+    # Nothing unseen in the validation views (a training view, which two saw): no choice.
+    model.coverage = fill
+    seen = Split([RING[0]], ['r.png'], [images[0]])
+    assert choose_coverage_fill(model, seen, RING + RING) is None and model.coverage is fill

@@ -98,3 +98,17 @@ def test_default_job_takes_the_default_budget_unless_one_is_given(monkeypatch):
     assert options == {'iterations': 3, 'minutes': None, 'eval_at': None}
     _, options = run.default_job({'iterations': None, 'minutes': None, 'eval_at': ()})
     assert options['minutes'] == DEFAULT_JOB_MINUTES and options['eval_at'] == ()
+
+
+def test_allocation_lines_say_when_the_entries_held_a_level_back():
+    allocations = [{'iteration': 10, 'level': 'fg.sparse0', 'bricks': 100, 'of': 4096,
+                    'occupied': 100, 'entries': 102400},
+                   {'iteration': 30, 'level': 'fg.sparse0', 'bricks': 150, 'of': 4096,
+                    'occupied': 200, 'entries': 153600},
+                   {'iteration': 30, 'level': 'bg.sparse0', 'bricks': 80, 'of': 2048,
+                    'occupied': 80, 'entries': 2000000}]
+    assert run.allocation_lines(allocations) == [
+        'sparse level fg.sparse0: 150 bricks (0.2 M entries) of the 200 the occupancy grid '
+        'asked for: --sparse-entries held it back',
+        'sparse level bg.sparse0: 80 bricks (2.0 M entries) where the occupancy grid found '
+        'surfaces, of 2,048']

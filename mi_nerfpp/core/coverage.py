@@ -21,7 +21,8 @@ the background of a ray of direction ``d`` as
 
 both looked up bilinearly, so it is the volume's wherever two training views saw the
 direction and a smooth colour where none did. Training never blends: its rays are the
-training views' own.
+training views' own. Whether a model keeps its fill is decided at the end of its run, on the
+validation views (:func:`mi_nerfpp.training.evaluate.choose_coverage_fill`).
 """
 from __future__ import annotations
 

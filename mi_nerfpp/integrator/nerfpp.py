@@ -126,11 +126,13 @@ class NeRFPPIntegrator(ADIntegrator):
      * - fill_unseen
        - |bool|
        - Paint the background where no two training views looked (the sky
-         above a ring of cameras) with the training pixels' colour of the
-         nearest directions they saw, blended in by how many saw it
-         (:mod:`~mi_nerfpp.core.coverage`), instead of the background volume's
-         cells there, which no ray trained. Off, or with a checkpoint written
-         before it: the volume everywhere. (Default: true)
+         above a ring of cameras) with the broad colour of the nearest
+         directions they saw, blended in by how many saw it
+         (:mod:`~mi_nerfpp.core.coverage`), instead of the background
+         volume's cells there, which few rays or none trained. A checkpoint
+         holds the fill only when its run found that it paints the validation
+         views' unseen pixels better than the volume; without one (or off),
+         the volume everywhere. (Default: true)
      * - chunk_rays
        - |int|
        - Primal renders are evaluated in chunks of this many rays to bound

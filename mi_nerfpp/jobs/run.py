@@ -54,7 +54,7 @@ from mi_nerfpp.output.views import ViewRenderer, rgb
 from mi_nerfpp.training.config import (DEFAULT_JOB_EVAL_AT,
                                        DEFAULT_JOB_MINUTES, TrainConfig,
                                        default_minutes)
-from mi_nerfpp.training.evaluate import (evaluate_split, finish_run,
+from mi_nerfpp.training.evaluate import (choose_coverage_fill, evaluate_split, finish_run,
                                          matte_warning)
 from mi_nerfpp.training.optim import COLOR_LOSS_NAMES
 from mi_nerfpp.training.train import (Trainer, TrainingError, in_model_frame,
@@ -483,13 +483,18 @@ def report(trainer, progress: list, observer: RunObserver | None = None) -> dict
     Returns the metrics written."""
     observer = observer or RunObserver()
     held_out = trainer.test if len(trainer.test) else trainer.validation
+    fill = choose_coverage_fill(trainer.model, trainer.validation, trainer.train.cameras)
+    if fill is not None and not fill['kept']:
+        trainer.save()                                  # the checkpoint without it
     metrics = finish_run(trainer.out, trainer.model, held_out, trainer.cfg,
                          trainer.checkpoint_path,
                          {'dataset': os.path.abspath(trainer.dataset.root),
                           'iterations': trainer.iteration,
                           'train_seconds': round(trainer.elapsed, 2),
                           'train_samples_per_second': trainer.samples_per_second(),
-                          'progress': progress},
+                          'progress': progress,
+                          'sparse_allocations': trainer.allocations,
+                          'coverage_fill': fill},
                          progress=observer.track)
     plot_training(trainer.history, metrics, trainer.cfg.losses.color_loss,
                   os.path.join(trainer.out, 'training.png'))
@@ -562,12 +567,33 @@ def evaluation_line(point: dict) -> str:
             f'{point["psnr"]:.2f} dB, SSIM {point["ssim"]:.3f}')
 
 
+def allocation_lines(allocations: list[dict]) -> list[str]:
+    """The last allocation of each sparse level in words: how many bricks it holds of those
+    the occupancy grid asked for."""
+    last = {a['level']: a for a in allocations}
+    lines = []
+    for level, a in last.items():
+        capped = a['bricks'] < a['occupied']
+        lines.append(f'sparse level {level}: {a["bricks"]:,} bricks ({a["entries"] / 1e6:.1f} M '
+                     f'entries) ' + (f'of the {a["occupied"]:,} the occupancy grid asked for: '
+                                     f'--sparse-entries held it back' if capped else
+                                     f'where the occupancy grid found surfaces, of {a["of"]:,}'))
+    return lines
+
+
 def summary(result: RunResult) -> tuple[list[str], list[str]]:
     """The outcome of a finished run in words: ``(lines, warnings)``."""
     trainer, metrics, out = result.trainer, result.metrics, result.inputs.out
     lines = [f'trained {trainer.iteration} iterations in {trainer.elapsed / 60:.1f} min '
              f'({metrics["train_samples_per_second"] / 1e6:.2f} M samples/s); '
              f'wall time {result.wall_seconds:.0f} s']
+    lines += allocation_lines(metrics.get('sparse_allocations', []))
+    fill = metrics.get('coverage_fill')
+    if fill:
+        lines.append(f'coverage fill {"kept" if fill["kept"] else "not kept"}: the validation '
+                     f'views\' {fill["pixels"]:,} pixels that no two training views saw score '
+                     f'{fill["psnr_fill"]:.2f} dB with it, {fill["psnr_volume"]:.2f} dB with the '
+                     f'background volume')
     warnings = []
     if 'test' in metrics:
         test = metrics['test']

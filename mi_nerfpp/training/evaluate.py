@@ -13,8 +13,10 @@ import numpy as np
 
 from mi_nerfpp.core.appearance import fit_affine, left_right
 from mi_nerfpp.core.color import srgb_eotf, srgb_oetf
+from mi_nerfpp.core.coverage import SEEN_BY
 from mi_nerfpp.core.frame import SCENE_NEAR_CLIP
 from mi_nerfpp.core.render import Sampling
+from mi_nerfpp.data.cameras import direction_coverage
 from mi_nerfpp.files.atomic import write_json
 from mi_nerfpp.files.exr import write_exr
 from mi_nerfpp.files.preview import write_linear_png
@@ -110,6 +112,45 @@ def matte_warning(test_metrics):
             f'which the random initialization of the background decides. This concerns the layers, '
             f'not the beauty pass: for compositing, train again with another --seed (it draws a new '
             f'background) and compare "soft_alpha" in metrics.json.')
+
+
+def choose_coverage_fill(model, validation, train_cameras) -> dict | None:
+    """Keep the model's coverage fill (:mod:`mi_nerfpp.core.coverage`) only where it paints the
+    validation views' unseen pixels (directions fewer than ``SEEN_BY`` training views saw)
+    better than the background volume: a capture whose volume extrapolates well there (a
+    smooth sky) keeps the volume, one where it shows blocks of wrong colour (trees above a
+    ring of cameras) takes the fill. Both are scored by their mean squared error over all
+    those pixels, in the images' encoding, as the held-out PSNR is. Sets ``model.coverage``
+    to None when the volume wins; returns ``{'kept', 'pixels', 'psnr_fill',
+    'psnr_volume'}``, or None (and keeps the fill) when no validation pixel is unseen."""
+    fill = model.coverage
+    if fill is None or not len(validation):
+        return None
+    unseen = [(i, direction_coverage(cam, train_cameras) < SEEN_BY)
+              for i, cam in enumerate(validation.cameras)]
+    unseen = [(i, mask) for i, mask in unseen if mask.any()]
+    if not unseen:
+        return None
+    mse = {}
+    for keep in (True, False):
+        model.coverage = fill if keep else None
+        renderer = ViewRenderer(model)
+        squared, count = 0.0, 0
+        for i, mask in unseen:
+            pred = np.clip(encoded_rgb(renderer.render(validation.cameras[i]),
+                                       model.color_space), 0.0, 1.0)
+            gt = np.asarray(validation.images[i], dtype=np.float64)[..., :3]
+            squared += float(np.square(pred[mask] - gt[mask]).sum())
+            count += int(mask.sum())
+        mse[keep] = squared / (3 * count)
+    kept = mse[True] <= mse[False]
+    model.coverage = fill if kept else None
+    return {'kept': bool(kept), 'pixels': count, 'psnr_fill': _psnr_of(mse[True]),
+            'psnr_volume': _psnr_of(mse[False])}
+
+
+def _psnr_of(mse):
+    return float('inf') if mse == 0 else float(-10.0 * np.log10(mse))
 
 
 def finish_run(out, model, held_out, cfg, checkpoint_path, metrics, progress=None):

@@ -7,6 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from mi_nerfpp.core.coverage import CoverageFill
 from mi_nerfpp.output import deep
 from mi_nerfpp.files import exr
 from mi_nerfpp.core.model import NeRFPPModel
@@ -25,12 +26,18 @@ def _oiio_flatten(tool, src, out):
     return exr.read_exr(out)
 
 
-def test_deep_exr_flattens_to_the_flat_beauty_in_oiiotool(tmp_path):
+@pytest.mark.parametrize('fill', [False, True])
+def test_deep_exr_flattens_to_the_flat_beauty_in_oiiotool(tmp_path, fill):
     """Target: oiiotool --flatten of the deep file equals the flat render within 2e-3 (the
-    deep render takes the positions of a non-jittered stratified sampler at the same spp)."""
+    deep render takes the positions of a non-jittered stratified sampler at the same spp);
+    also where a coverage fill paints the background (here every direction: no view saw
+    any), whose colour the background's samples then carry."""
     tool = _oiiotool()
     scene = mi.load_dict(scene_dict(width=20, height=14, spp=4, jitter=False))
-    scene.integrator().set_model(tiny_model())
+    model = tiny_model()
+    if fill:
+        model.coverage = CoverageFill(np.zeros((16, 32)), np.full((16, 32, 3), 0.7))
+    scene.integrator().set_model(model)
     counts, samples, beauty = deep.render_deep_to_file(scene, tmp_path / 'd.exr',
                                                         progress=False)
     flat = render_to_files(scene, tmp_path / 'f.exr', progress=False)

@@ -96,14 +96,13 @@ def texel_of(directions, resolution=RESOLUTION) -> np.ndarray:
     return y * width + x
 
 
-def pixel_directions(cam, stride=1) -> np.ndarray:
-    """World directions of ``cam``'s pixel centres (every ``stride``-th along each axis)."""
-    px, py = np.meshgrid(np.arange(0, cam.width, stride) + 0.5,
-                         np.arange(0, cam.height, stride) + 0.5)
-    rays = np.linalg.solve(np.asarray(cam.K, dtype=np.float64),
-                           np.stack([px.ravel(), py.ravel(), np.ones(px.size)]))
-    d = (np.asarray(cam.c2w)[:3, :3] @ rays).T
-    return d / np.linalg.norm(d, axis=1, keepdims=True), (py.astype(int), px.astype(int))
+def pixel_directions(cam, px, py) -> np.ndarray:
+    """Unit world directions ``normalize(R @ K^-1 [px, py, 1])`` through ``cam``'s continuous
+    pixel coordinates ``px, py`` (the centre of pixel (i, j) is (i + ½, j + ½)): ``N x 3``."""
+    px, py = np.broadcast_arrays(np.asarray(px, np.float64), np.asarray(py, np.float64))
+    pixels = np.stack([px.ravel(), py.ravel(), np.ones(px.size)], axis=0)
+    d = (np.asarray(cam.c2w)[:3, :3] @ np.linalg.solve(np.asarray(cam.K, np.float64), pixels)).T
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def _halve(a):
@@ -149,7 +148,7 @@ def fill_holes(sums, counts, smoothing=SMOOTHING) -> np.ndarray:
         levels.append((_halve(s), _halve(c)))
     s, c = levels[-1]
     mean = s / np.maximum(c, 1e-12)[..., None]
-    if not (c > 0).all():          # one row left with holes: their row's mean
+    if not (c > 0).all():          # holes left at the coarsest level: the overall mean
         mean[c <= 0] = s.sum(axis=(0, 1)) / c.sum()
     for s, c in reversed(levels[:-1]):
         up = _double(mean, s.shape)
@@ -171,7 +170,8 @@ def mean_colours(cameras, images, color_space, resolution) -> np.ndarray:
     counts = np.zeros(len(sums))
     for cam, image in zip(cameras, images):
         stride = max(1, int(np.ceil(np.sqrt(cam.width * cam.height / PIXELS_PER_IMAGE))))
-        d, (py, px) = pixel_directions(cam, stride)
+        py, px = np.mgrid[0:cam.height:stride, 0:cam.width:stride]
+        d = pixel_directions(cam, px + 0.5, py + 0.5)
         rgb = np.asarray(image, dtype=np.float64)[py.ravel(), px.ravel(), :3]
         if color_space == 'srgb':
             rgb = srgb_eotf(rgb)

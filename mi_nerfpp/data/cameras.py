@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
-from mi_nerfpp.core.coverage import views_seeing
+from mi_nerfpp.core.coverage import pixel_directions, views_seeing
 
 # Camera-space axis flips, applied on the right of a camera-to-world matrix.
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -146,10 +146,7 @@ def pixel_rays(camera: Camera, px, py) -> tuple[np.ndarray, np.ndarray]:
         ``(origins, dirs)``, each of shape (N, 3) with N the number of pixel positions:
         origins at the camera centre, unit directions ``normalize(R @ K^-1 [px, py, 1])``.
     """
-    px, py = np.broadcast_arrays(np.asarray(px, np.float64), np.asarray(py, np.float64))
-    pixels = np.stack([px.ravel(), py.ravel(), np.ones(px.size)], axis=0)   # (3, N)
-    dirs = (camera.c2w[:3, :3] @ np.linalg.solve(camera.K, pixels)).T
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs = pixel_directions(camera, px, py)
     origins = np.broadcast_to(camera.center, dirs.shape).copy()
     return origins, dirs
 

@@ -22,7 +22,7 @@ from mi_nerfpp.files.exr import write_exr
 from mi_nerfpp.files.preview import write_linear_png
 from mi_nerfpp.output.scene_xml import write_render_xml
 from mi_nerfpp.output.views import ViewRenderer, encoded_rgb, rgb
-from mi_nerfpp.training.metrics import (SOFT_ALPHA, SOFT_ALPHA_WARNING, psnr,
+from mi_nerfpp.training.metrics import (SOFT_ALPHA, SOFT_ALPHA_WARNING, psnr, psnr_from_mse,
                                         soft_alpha_fraction, ssim)
 
 
@@ -145,12 +145,8 @@ def choose_coverage_fill(model, validation, train_cameras) -> dict | None:
         mse[keep] = squared / (3 * count)
     kept = mse[True] <= mse[False]
     model.coverage = fill if kept else None
-    return {'kept': bool(kept), 'pixels': count, 'psnr_fill': _psnr_of(mse[True]),
-            'psnr_volume': _psnr_of(mse[False])}
-
-
-def _psnr_of(mse):
-    return float('inf') if mse == 0 else float(-10.0 * np.log10(mse))
+    return {'kept': bool(kept), 'pixels': count, 'psnr_fill': psnr_from_mse(mse[True]),
+            'psnr_volume': psnr_from_mse(mse[False])}
 
 
 def finish_run(out, model, held_out, cfg, checkpoint_path, metrics, progress=None):

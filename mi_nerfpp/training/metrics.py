@@ -4,6 +4,8 @@ This module must not import drjit or mitsuba.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import structural_similarity
@@ -11,6 +13,10 @@ from skimage.metrics import structural_similarity
 SSIM_WIN_SIZE = 7
 SSIM_MIN_WIN_SIZE = 3
 
+
+def psnr_from_mse(mse: float) -> float:
+    """PSNR in dB of a mean squared error on [0, 1] values (``inf`` for 0)."""
+    return -10.0 * math.log10(mse) if mse > 0 else float('inf')
 
 def _check_pair(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     pred = np.asarray(pred, dtype=np.float64)

@@ -51,6 +51,7 @@ from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
                                         migration_notes, read_version, save_checkpoint)
 from mi_nerfpp.training import optim, priors
 from mi_nerfpp.training.config import TrainConfig, default_minutes, per_volume
+from mi_nerfpp.training.metrics import psnr_from_mse
 
 # Gradients scattered into arrays of up to this many entries are summed in one copy per thread
 # and added up after the kernel (Dr.Jit's "expand" reduction) instead of by atomic adds, in steps
@@ -260,10 +261,6 @@ def in_model_frame(dataset, normalization):
                 split.cameras, dataset.normalization, normalization))
             for name, split in (('train', dataset.train), ('validation', dataset.validation),
                                 ('test', dataset.test))}
-
-
-def psnr_from_mse(m):
-    return -10.0 * math.log10(m) if m > 0 else float('inf')
 
 
 class Trainer:

@@ -450,3 +450,15 @@ def test_an_option_stored_in_another_group_keeps_its_value_and_unknown_ones_are_
     assert ('losses.future_prior, which this version of mi-nerfpp does not know'
             in capsys.readouterr().out)
     assert load_checkpoint(path)[1]['config']['model']['color'] == 'deferred'
+
+
+def test_a_config_stored_by_15f237e_with_the_background_sparse_levels_unset_loads():
+    """15f237e stored ``bg_grid_sparse: None`` for "as ``--grid-sparse``" (the run folders of
+    gt_plaza measured that day): such a config opens with the foreground's sparse levels in the
+    background, as it trained, instead of failing on the None."""
+    from mi_nerfpp.training.config import TrainConfig
+    stored = TrainConfig().to_dict()
+    stored['model'].update(grid_sparse=[256], bg_grid_sparse=None)
+    assert TrainConfig.from_stored(stored).model.bg_grid_sparse == (256,)
+    stored['model'].update(grid_sparse=[])
+    assert TrainConfig.from_stored(stored).model.bg_grid_sparse == ()

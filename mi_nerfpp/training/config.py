@@ -579,7 +579,11 @@ class TrainConfig:
         """The options (by command-line name) of a stored config: :meth:`to_dict`'s nested
         groups, or the flat dict of checkpoints written before the groups; names this version
         does not know are left out (:meth:`unknown_stored` lists them)."""
-        return cls._stored_names(stored)[0]
+        options = cls._stored_names(stored)[0]
+        if 'bg_grid_sparse' in options and options['bg_grid_sparse'] is None:
+            # Runs of 15f237e stored None for "as --grid-sparse" (today: none unless given).
+            options['bg_grid_sparse'] = options.get('grid_sparse') or ()
+        return options
 
     @classmethod
     def unknown_stored(cls, stored: dict) -> list[str]:

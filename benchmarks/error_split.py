@@ -18,8 +18,9 @@ over these regions:
 
 and by frequency: ``low`` is the error that survives a Gaussian blur of ``--sigma`` pixels
 (wrong colours, haze), ``high`` the rest (missing detail). ``--noise-psnr``: the PSNR between
-two renders of the ground truth (``benchmarks/noise_ceiling.py``), whose MSE is the capture's
-own noise: ``excess`` is each region's MSE less it. Per region it prints the share of pixels,
+two renders of the ground truth (``benchmarks/noise_ceiling.py``); half their MSE is the noise
+each test image holds against the converged render: ``excess`` is each region's MSE less it
+(before 2026-11-27 the whole MSE was subtracted, which overstated the excess PSNR). Per region it prints the share of pixels,
 the PSNR, the share of the image's squared error, the low and high MSE and the excess PSNR,
 summed over the test views. Results: ``benchmarks/results/<--name>.json``.
 """
@@ -75,7 +76,8 @@ def main():
     with open(capture) as f:
         info = json.load(f)
     scene = mi.load_file(info['scene_path'])
-    noise = 0.0 if a.noise_psnr is None else 10 ** (-a.noise_psnr / 10)
+    # Two independent renders differ by twice the noise each holds against the converged one.
+    noise = 0.0 if a.noise_psnr is None else 0.5 * 10 ** (-a.noise_psnr / 10)
     renderer = ViewRenderer(model)
     sums = {r: {'n': 0, 'se': 0.0, 'low': 0.0, 'high': 0.0} for r in REGIONS}
     total_pixels, total_se = 0, 0.0
@@ -123,8 +125,8 @@ def main():
         [bench.table(f'Test views of {os.path.basename(os.path.normpath(a.run))}', columns,
                      rows)],
         notes=f'Low: the error after a Gaussian blur of {a.sigma:g} px; high: the rest. '
-              f'Excess: MSE less the capture\'s noise '
-              f'({"not given" if a.noise_psnr is None else f"{a.noise_psnr:g} dB"}).')
+              f'Excess: MSE less the test image\'s noise (half the MSE of two renders '
+              f'{"not given" if a.noise_psnr is None else f"at {a.noise_psnr:g} dB"}).')
 
 
 if __name__ == '__main__':

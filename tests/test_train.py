@@ -15,6 +15,7 @@ from mi_nerfpp.training import priors
 from mi_nerfpp.training.evaluate import evaluate_split
 from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.training.options import values
+from mi_nerfpp.training.error_map import ErrorMap
 from mi_nerfpp.training.train import Trainer, TrainingError
 from tests.helpers import one_thread, straight_and_resumed
 
@@ -52,6 +53,32 @@ def test_resume_continues_where_the_run_stopped(dataset, tmp_path):
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
     _, meta, state = load_checkpoint(tmp_path / 'b' / 'model.npz')
     assert meta['iteration'] == 12 and any(k.startswith('adam.m/') for k in state)
+    # The error map that draws the rays (on by default) resumes with the run.
+    assert straight.error_map is not None and straight.error_map.visited.any()
+    np.testing.assert_array_equal(straight.error_map.error, resumed.error_map.error)
+    np.testing.assert_array_equal(state['error_map'], resumed.error_map.error)
+
+
+def test_the_error_map_draws_rays_where_the_error_is(dataset, tmp_path):
+    # After a short run the map holds each tile's training error (squared, encoded colours);
+    # the tiles it rates worst get more of the next batches' rays than uniform draws would.
+    tr = Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=60, **SMALL))
+    assert tr.cfg.schedule.error_rays > 0
+    tr.run()
+    m = tr.error_map
+    assert m.visited.mean() > 0.9
+    seen = m.error[m.visited]
+    assert 1e-5 < np.median(seen) < 0.05 and seen.max() > 2 * np.median(seen)
+    worst = m.visited & (m.error >= np.quantile(seen, 0.9))
+    index, tiles = m.draw(np.random.default_rng(0), 20_000, 1)
+    assert np.all(index < tr.rays.size)
+    drawn = np.isin(tiles, np.flatnonzero(worst)).mean()
+    uniform = ErrorMap(*m.shape, m.tile, 0.0).probabilities()[worst].sum()
+    assert drawn == pytest.approx(m.probabilities()[worst].sum(), abs=0.015)
+    assert drawn > 1.5 * uniform, (drawn, uniform)
+    off = Trainer(dataset, str(tmp_path / 'off'),
+                  TrainConfig.from_options(iterations=1, error_rays=0, **SMALL))
+    assert off.error_map is None
 
 
 def test_interrupt_saves_a_checkpoint(dataset, tmp_path):

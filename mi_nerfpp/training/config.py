@@ -430,6 +430,11 @@ class ScheduleOptions(_Options):
     minutes: float | None = option(
         None, 'wall-time budget in minutes of training steps', type=float, exclusive='budget')
     batch_rays: int = option(1024, 'rays per step')
+    error_rays: float = option(0.8, "share of each step's rays drawn where the training error "
+                               'is high (an error map over tiles of the training images, as '
+                               "instant-ngp's); the rest uniform over the pixels. 0: all uniform")
+    error_tile: int = option(16, "side in pixels of the error map's tiles (of the full-size "
+                             'training images)')
     seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
     freeze: bool = option(True, 'record the kernels of a training step once and replay them '
                           '(drjit.freeze) instead of tracing every step in Python; re-recorded '
@@ -453,7 +458,8 @@ class ScheduleOptions(_Options):
             self._bad('minutes', 'a positive number of minutes')
         if self.iterations is not None and self.iterations < 1:
             self._bad('iterations', 'at least 1')
-        self._check(('batch_rays',), lambda v: v >= 1, 'at least 1')
+        self._check(('batch_rays', 'error_tile'), lambda v: v >= 1, 'at least 1')
+        self._check(('error_rays',), lambda v: _finite(v) and 0 <= v <= 1, 'a fraction in [0, 1]')
         self._check(('seed',), lambda v: 0 <= v <= MAX_SEED,
                     f'a whole number from 0 to {MAX_SEED} (2^64 - 2)')
         self._check(('sparse_entries',), lambda v: v >= 1, 'at least 1')

@@ -155,9 +155,9 @@ def error_split(pred: np.ndarray, gt: np.ndarray, regions: dict[str, np.ndarray]
     image), ``mse``, ``low`` and ``high`` (mean squared ``e_low`` and ``e_high`` there; the two
     add up to ``mse`` up to their cross term, which is small where the split is clean),
     ``share`` (of the image's summed squared error), ``psnr``, and ``excess``: ``mse`` less
-    ``noise_mse``, the error a capture's own noise leaves (the MSE between two renders of the
-    ground truth, ``benchmarks/noise_ceiling.py``), never below 0, with its PSNR
-    ``excess_psnr``."""
+    ``noise_mse``, the error the test image's own noise leaves (its MSE against the converged
+    image: half the MSE between two independent renders of the ground truth,
+    ``benchmarks/noise_ceiling.py``), never below 0, with its PSNR ``excess_psnr``."""
     pred, gt = _check_pair(pred, gt)
     error = pred - gt
     low = np.stack([gaussian_filter(error[..., c], sigma, mode='reflect')

@@ -106,9 +106,14 @@ def set_learning_rates(opt, progress: float, lr_grid: float = LR_GRID, lr_mlp: f
                            for k in opt.keys()})
 
 
+def squared_error(a, b):
+    """Per ray, the squared error of two ``Color3f`` batches averaged over the channels."""
+    return (dr.square(a.x - b.x) + dr.square(a.y - b.y) + dr.square(a.z - b.z)) / 3.0
+
+
 def mse(a, b):
     """Mean squared error of two ``Color3f`` batches, averaged over rays and channels."""
-    return dr.mean(dr.square(a.x - b.x) + dr.square(a.y - b.y) + dr.square(a.z - b.z)) / 3.0
+    return dr.mean(squared_error(a, b))
 
 
 def charbonnier(a, b, eps: float = CHARBONNIER_EPS, weight: float = CHARBONNIER_WEIGHT):

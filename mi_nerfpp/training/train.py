@@ -51,6 +51,7 @@ from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
                                         migration_notes, read_version, save_checkpoint)
 from mi_nerfpp.training import optim, priors
 from mi_nerfpp.training.config import TrainConfig, default_minutes, per_volume
+from mi_nerfpp.training.error_map import ErrorMap
 from mi_nerfpp.training.metrics import psnr_from_mse
 
 # Gradients scattered into arrays of up to this many entries are summed in one copy per thread
@@ -340,6 +341,13 @@ class Trainer:
         self._compute = (dr.freeze(self._forward_backward) if config.schedule.freeze
                          else self._forward_backward)
         self._recorded = None       # the Python values the frozen step was recorded for
+        # Where the rays go (:mod:`.error_map`); its state resumes with the run.
+        s = config.schedule
+        self.error_map = (ErrorMap(*self.rays.layout[:3], s.error_tile, s.error_rays)
+                          if s.error_rays > 0 else None)
+        if self.error_map is not None:
+            self.error_map.restore(state)
+        self._tiles = None          # the error map's tiles of this step's rays
         # The scatter-reduction settings measured on the CPU (see GRADIENT_*) apply on LLVM.
         self._llvm = llvm_backend()
 
@@ -421,7 +429,7 @@ class Trainer:
             if self.cfg.schedule.batch_rays * self.cfg.samples_per_ray >= EXPAND_MIN_SAMPLES:
                 dr.set_expand_threshold(GRADIENT_EXPAND_THRESHOLD)
         try:
-            loss, fine = self._compute(inputs)
+            loss, fine, per_ray = self._compute(inputs)
         finally:
             if llvm:
                 dr.set_expand_threshold(threshold)
@@ -432,6 +440,8 @@ class Trainer:
         # The model's fields read the parameters after the update (previews, evaluations);
         # a replayed frozen step runs no Python, so the step itself cannot set them.
         self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+        if self.error_map is not None:
+            self.error_map.update(self._tiles, per_ray.numpy())
         self.iteration += 1
         return float(loss.array[0]), float(fine.array[0])
 
@@ -463,8 +473,13 @@ class Trainer:
                                                   per_volume(cfg.sparsity),
                                                   per_volume(cfg.sparsity_start))]
         grids = [k for k in self.opt.keys() if optim.is_grid_level(k)] if cfg.tv > 0 else []
+        if self.error_map is not None:
+            index, self._tiles = self.error_map.draw(self.rng, n, rays.factor)
+            index = mi.UInt32(index)
+        else:
+            index = gen.integers(mi.UInt32, n, 0, rays.size)
         draws = {
-            'index': gen.integers(mi.UInt32, n, 0, rays.size),
+            'index': index,
             'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
             'sparsity': [[gen.random(mi.Float, n) for _ in range(4)] if on else None
                          for on in sparse],
@@ -526,6 +541,7 @@ class Trainer:
         pred = encode(res.fine.rgb)
         loss = optim.COLOR_LOSS_WEIGHT * optim.COLOR_LOSSES[cfg.color_loss](pred, gt)
         fine = dr.detach(optim.mse(pred, gt))     # for the PSNR shown while training
+        per_ray = dr.detach(optim.squared_error(pred, gt))     # for the error map
         if model.appearance is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])
         if cfg.distortion > 0 and cfg.distortion_scope == 'ray':
@@ -550,7 +566,7 @@ class Trainer:
             opt.step(eval=False)
             flag_non_finite(opt, inputs['non_finite'])
             dr.eval()
-        return loss, fine
+        return loss, fine, per_ray
 
     def _coarse_to_fine(self):
         """Double the grids' resolution at each ``coarse_to_fine`` fraction of the run passed."""
@@ -660,8 +676,10 @@ class Trainer:
                 'config': self.cfg.to_dict(), 'dataset': self.dataset.root,
                 'data': self.data_summary()}
         try:
-            save_checkpoint(self.checkpoint_path, self.model, meta=meta,
-                            state=self._optimizer_state())
+            state = self._optimizer_state()
+            if self.error_map is not None:
+                state.update(self.error_map.state())
+            save_checkpoint(self.checkpoint_path, self.model, meta=meta, state=state)
         except NonFiniteStateError as e:
             raise self._diverged(f'{e}, so the checkpoint was not written') from None
         except OSError as e:

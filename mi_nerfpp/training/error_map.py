@@ -1,0 +1,103 @@
+"""Where the training rays go: a map of the training error over tiles of the training images.
+
+instant-ngp draws part of its training pixels where the error is high instead of uniformly.
+On a capture of photo size a run of this machine's minutes sees each pixel about twice
+(gt_plaza 512x384: 101 views of 196,608 pixels, ~41,000 steps of 1,024 rays in 30 minutes),
+so rays spent on sky and flat walls that are already right are rays not spent on the edges and
+textures that are not.
+
+:class:`ErrorMap` keeps, per tile of ``tile x tile`` pixels of each training image (at full
+size), an exponential moving average of the squared error of the training rays that fell in
+it. A batch draws ``share`` of its rays from the tiles in proportion to that error and the
+rest in proportion to the tiles' areas (uniform over pixels, as without a map); within a tile
+the pixel is uniform. A tile no ray has hit yet counts as the largest error (1), so that every
+tile is visited early in the run. The loss is not reweighted: as instant-ngp's, the map makes
+the hard pixels count for more, which is the point of it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# The squared error an unvisited tile counts with (an encoded colour error of 1 in each channel).
+UNVISITED = 1.0
+# Weight of a tile's newest mean error in its moving average.
+RATE = 0.3
+
+
+class ErrorMap:
+    """Per-tile moving average of the training error of ``n`` images of ``height x width``
+    pixels; draws ray indices of a :class:`~mi_nerfpp.training.train.RayBank` level."""
+
+    def __init__(self, n: int, height: int, width: int, tile: int, share: float):
+        if tile < 1:
+            raise ValueError(f'error map: tile of {tile} pixels (at least 1)')
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f'error map: share {share} of the rays (a fraction in [0, 1])')
+        self.shape = (int(n), int(height), int(width))
+        self.tile, self.share = int(tile), float(share)
+        self.rows, self.cols = -(-height // tile), -(-width // tile)
+        self.error = np.full(n * self.rows * self.cols, UNVISITED)
+        self.visited = np.zeros(len(self.error), bool)
+        ys = np.minimum((np.arange(self.rows) + 1) * tile, height) - np.arange(self.rows) * tile
+        xs = np.minimum((np.arange(self.cols) + 1) * tile, width) - np.arange(self.cols) * tile
+        area = np.tile(np.outer(ys, xs).ravel(), n).astype(np.float64)
+        self._area = area / area.sum()
+
+    def probabilities(self) -> np.ndarray:
+        """The chance of each tile for one ray of a batch."""
+        return (self.share * self.error / self.error.sum()
+                + (1.0 - self.share) * self._area)
+
+    def draw(self, rng: np.random.Generator, count: int, factor: int = 1):
+        """``(indices, tiles)``: ``count`` ray indices of the bank's pyramid level ``factor``
+        (``(image · H/F + y) · W/F + x``, UInt32-ready) and the tile each was drawn from."""
+        n, h, w = self.shape
+        cdf = np.cumsum(self.probabilities())
+        tiles = np.minimum(np.searchsorted(cdf, rng.random(count) * cdf[-1], side='right'),
+                           len(cdf) - 1)
+        image, within = np.divmod(tiles, self.rows * self.cols)
+        row, col = np.divmod(within, self.cols)
+        f, t = int(factor), self.tile
+        hf, wf = h // f, w // f
+        y0, y1 = _span(row, t, f, hf)
+        x0, x1 = _span(col, t, f, wf)
+        y = y0 + (rng.random(count) * (y1 - y0)).astype(np.int64)
+        x = x0 + (rng.random(count) * (x1 - x0)).astype(np.int64)
+        return ((image * hf + y) * wf + x).astype(np.uint32), tiles
+
+    def update(self, tiles: np.ndarray, errors: np.ndarray):
+        """Fold one batch's squared errors (per ray, mean over channels) into their tiles."""
+        total = np.bincount(tiles, weights=np.asarray(errors, np.float64),
+                            minlength=len(self.error))
+        count = np.bincount(tiles, minlength=len(self.error))
+        hit = count > 0
+        mean = total[hit] / count[hit]
+        old = self.error[hit]
+        self.error[hit] = np.where(self.visited[hit], (1.0 - RATE) * old + RATE * mean, mean)
+        self.visited |= hit
+        # A tile fitted exactly keeps a little weight (and the sum stays positive).
+        np.maximum(self.error, 1e-12, out=self.error)
+
+    def state(self) -> dict:
+        return {'error_map': self.error.copy(), 'error_map.visited': self.visited.copy()}
+
+    def restore(self, state: dict):
+        """Take the map of a checkpoint's ``state`` if it has one of this map's tiles (a run
+        resumed with another ``--error-tile`` starts its map anew)."""
+        stored = state.get('error_map')
+        if stored is None or np.size(stored) != self.error.size:
+            return
+        self.error[:] = np.asarray(stored, np.float64).ravel()
+        self.visited[:] = np.asarray(state['error_map.visited'], bool).ravel()
+
+
+def _span(tile_index, tile, factor, size):
+    """``[first, end)`` of the pixels of a pyramid level (``factor`` F, ``size`` pixels) whose
+    F-pixel block starts in tile ``tile_index``; where none does (tiles narrower than F), the
+    pixel holding the tile's first pixel."""
+    first = -(-tile_index * tile // factor)
+    end = np.minimum(-(-(tile_index + 1) * tile // factor), size)
+    empty = end <= first
+    first = np.where(empty, np.minimum(tile_index * tile // factor, size - 1), first)
+    end = np.where(empty, first + 1, end)
+    return first, end

@@ -73,11 +73,32 @@ def test_the_sparse_level_is_chosen_from_the_capture_and_announced(capture, tmp_
     assert inputs.config.model.grid_sparse == () and not any('sparse' in n for n in notices)
 
 
+def test_the_error_map_is_chosen_from_the_training_pixels_and_announced(capture, tmp_path,
+                                                                         monkeypatch):
+    # Over the threshold (lowered to this capture's pixels) most rays go by error; told, kept.
+    n = len(load_dataset(capture).train)
+    monkeypatch.setattr(run, 'default_share', lambda pixels: 0.8 if pixels >= n * 32 * 24 else 0.0)
+    inputs, notices = notices_of(capture, tmp_path / 'big', iterations=1)
+    assert inputs.config.schedule.error_rays == 0.8
+    assert (f'80% of the training rays drawn where the error is (an error map over 16-pixel '
+            f'tiles: {n * 32 * 24 / 1e6:.3g} M training pixels); --error-rays to change'
+            in notices)
+    assert run.start(inputs).error_map is not None
+    inputs, notices = notices_of(capture, tmp_path / 'told', error_rays=0.3, iterations=1)
+    assert inputs.config.schedule.error_rays == 0.3
+    assert not any('training rays' in line for line in notices)
+
+
 def test_the_chosen_resolution_and_budget_are_announced_and_respected(capture, tmp_path):
     inputs, notices = notices_of(capture, tmp_path)
     n = len(inputs.dataset.train)
-    resolution, sparse_line, schedule_line = notices
+    resolution, sparse_line, rays_line, schedule_line = notices
     assert sparse_line.startswith('no sparse foreground level: a training pixel is ')
+    pixels = n * 32 * 24 / 1e6
+    assert rays_line == (f'training rays drawn uniformly ({pixels:.3g} M training pixels, under '
+                         f'the 4 M where an error map pays); --error-rays 0.8 to draw most '
+                         f'where the error is')
+    assert inputs.config.schedule.error_rays == 0.0
     assert resolution.startswith(f"training at the images' own resolution, {n} views of "
                                  f'32x24 (images ')
     assert resolution.endswith('available; --downscale to shrink)')
@@ -106,9 +127,9 @@ def test_a_trainer_given_no_budget_takes_the_default_one(capture, tmp_path):
 
 
 @pytest.mark.parametrize('options, downscale, schedule', [
-    ({'minutes': 3.5, 'downscale': 2, 'grid_sparse': ()}, 2, (None, 3.5)),
-    ({'iterations': 7, 'downscale': 1, 'grid_sparse': (16,), 'occupancy_res': 4}, 1,
-     (7, None))])
+    ({'minutes': 3.5, 'downscale': 2, 'grid_sparse': (), 'error_rays': 0.0}, 2, (None, 3.5)),
+    ({'iterations': 7, 'downscale': 1, 'grid_sparse': (16,), 'occupancy_res': 4,
+      'error_rays': 0.5}, 1, (7, None))])
 def test_given_options_are_kept_and_nothing_is_announced(capture, tmp_path, options, downscale,
                                                         schedule):
     inputs, notices = notices_of(capture, tmp_path, **options)
@@ -117,6 +138,7 @@ def test_given_options_are_kept_and_nothing_is_announced(capture, tmp_path, opti
     assert inputs.dataset.train.cameras[0].width == 32 // downscale
     assert (inputs.config.schedule.iterations, inputs.config.schedule.minutes) == schedule
     assert inputs.config.model.grid_sparse == options['grid_sparse']
+    assert inputs.config.schedule.error_rays == options['error_rays']
 
 
 def test_a_capture_too_large_for_the_memory_is_downscaled_and_the_message_says_why(
@@ -129,7 +151,8 @@ def test_a_capture_too_large_for_the_memory_is_downscaled_and_the_message_says_w
     step = budget.plan(TrainConfig()).total
     available = int((step + 0.75 * full) / budget.USABLE_FRACTION) + 1
     monkeypatch.setattr(budget, 'available_bytes', lambda: available)
-    inputs, (resolution, minutes) = notices_of(capture, tmp_path, grid_sparse=())
+    inputs, (resolution, minutes) = notices_of(capture, tmp_path, grid_sparse=(),
+                                               error_rays=0.0)
     size = run.bytes_text
     assert resolution == (
         f'downscale 2 chosen: {n} views of 16x12, because at their own 32x24 the images would '

@@ -15,7 +15,7 @@ from mi_nerfpp.training import priors
 from mi_nerfpp.training.evaluate import evaluate_split
 from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.training.options import values
-from mi_nerfpp.training.error_map import ErrorMap
+from mi_nerfpp.training.error_map import MIN_PIXELS, ErrorMap, default_share
 from mi_nerfpp.training.train import Trainer, TrainingError
 from tests.helpers import one_thread, straight_and_resumed
 
@@ -47,13 +47,14 @@ def test_resume_continues_where_the_run_stopped(dataset, tmp_path):
     # Same batches, same optimizer moments, same occupancy grid and priors: on one thread the
     # resumed run ends bit for bit where the straight run does (see tests.helpers.one_thread).
     straight, resumed = straight_and_resumed(
-        dataset, tmp_path, TrainConfig.from_options(iterations=12, **SMALL), stop_at=6)
+        dataset, tmp_path, TrainConfig.from_options(iterations=12, error_rays=0.8, **SMALL),
+        stop_at=6)
     a, b = _params(straight.model), _params(resumed.model)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
     _, meta, state = load_checkpoint(tmp_path / 'b' / 'model.npz')
     assert meta['iteration'] == 12 and any(k.startswith('adam.m/') for k in state)
-    # The error map that draws the rays (on by default) resumes with the run.
+    # The error map that draws the rays resumes with the run.
     assert straight.error_map is not None and straight.error_map.visited.any()
     np.testing.assert_array_equal(straight.error_map.error, resumed.error_map.error)
     np.testing.assert_array_equal(state['error_map'], resumed.error_map.error)
@@ -62,8 +63,8 @@ def test_resume_continues_where_the_run_stopped(dataset, tmp_path):
 def test_the_error_map_draws_rays_where_the_error_is(dataset, tmp_path):
     # After a short run the map holds each tile's training error (squared, encoded colours);
     # the tiles it rates worst get more of the next batches' rays than uniform draws would.
-    tr = Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=60, **SMALL))
-    assert tr.cfg.schedule.error_rays > 0
+    tr = Trainer(dataset, str(tmp_path),
+                 TrainConfig.from_options(iterations=60, error_rays=0.8, **SMALL))
     tr.run()
     m = tr.error_map
     assert m.visited.mean() > 0.9
@@ -79,6 +80,12 @@ def test_the_error_map_draws_rays_where_the_error_is(dataset, tmp_path):
     off = Trainer(dataset, str(tmp_path / 'off'),
                   TrainConfig.from_options(iterations=1, error_rays=0, **SMALL))
     assert off.error_map is None
+    # Not given: chosen from the training pixels, uniform for a capture this small.
+    chosen = Trainer(dataset, str(tmp_path / 'chosen'),
+                     TrainConfig.from_options(iterations=1, **SMALL))
+    assert chosen.rays.size < MIN_PIXELS
+    assert chosen.error_map is None and chosen.cfg.schedule.error_rays == 0.0
+    assert default_share(MIN_PIXELS) == 0.8 and default_share(MIN_PIXELS - 1) == 0.0
 
 
 def test_interrupt_saves_a_checkpoint(dataset, tmp_path):

@@ -430,9 +430,12 @@ class ScheduleOptions(_Options):
     minutes: float | None = option(
         None, 'wall-time budget in minutes of training steps', type=float, exclusive='budget')
     batch_rays: int = option(1024, 'rays per step')
-    error_rays: float = option(0.8, "share of each step's rays drawn where the training error "
-                               'is high (an error map over tiles of the training images, as '
-                               "instant-ngp's); the rest uniform over the pixels. 0: all uniform")
+    error_rays: float | None = option(
+        None, "share of each step's rays drawn where the training error is high (an error map "
+        "over tiles of the training images, as instant-ngp's); the rest uniform over the "
+        'pixels. 0: all uniform', type=float,
+        default_help='(default: chosen from the capture: 0.8 when the training images hold at '
+                     'least 4 M pixels, which a run sees only a few times each, else 0)')
     error_tile: int = option(16, "side in pixels of the error map's tiles (of the full-size "
                              'training images)')
     seed: int = option(0, 'seed of the initialization, the ray batches and the samples')
@@ -459,7 +462,8 @@ class ScheduleOptions(_Options):
         if self.iterations is not None and self.iterations < 1:
             self._bad('iterations', 'at least 1')
         self._check(('batch_rays', 'error_tile'), lambda v: v >= 1, 'at least 1')
-        self._check(('error_rays',), lambda v: _finite(v) and 0 <= v <= 1, 'a fraction in [0, 1]')
+        self._check(('error_rays',), lambda v: v is None or (_finite(v) and 0 <= v <= 1),
+                    'a fraction in [0, 1]')
         self._check(('seed',), lambda v: 0 <= v <= MAX_SEED,
                     f'a whole number from 0 to {MAX_SEED} (2^64 - 2)')
         self._check(('sparse_entries',), lambda v: v >= 1, 'at least 1')
@@ -589,6 +593,8 @@ class TrainConfig:
         if 'bg_grid_sparse' in options and options['bg_grid_sparse'] is None:
             # Runs of 15f237e stored None for "as --grid-sparse" (today: none unless given).
             options['bg_grid_sparse'] = options.get('grid_sparse') or ()
+        if stored and options.get('error_rays') is None:
+            options['error_rays'] = 0.0     # runs from before the error map drew uniformly
         return options
 
     @classmethod

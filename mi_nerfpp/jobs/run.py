@@ -301,8 +301,8 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
         schedule = config.schedule
         if schedule.error_rays is None and stored:
             # A resumed run draws as it did (runs from before the error map: uniformly).
-            config = config.replace(
-                error_rays=TrainConfig.stored_options(stored).get('error_rays') or 0.0)
+            config = config.replace(error_rays=TrainConfig.stored_options(stored)['error_rays']
+                                    or 0.0)
         elif schedule.error_rays is None:
             config = choose_error_rays(config, dataset, observer)
         if schedule.iterations is None and schedule.minutes is None:

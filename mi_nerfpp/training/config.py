@@ -593,7 +593,7 @@ class TrainConfig:
         if 'bg_grid_sparse' in options and options['bg_grid_sparse'] is None:
             # Runs of 15f237e stored None for "as --grid-sparse" (today: none unless given).
             options['bg_grid_sparse'] = options.get('grid_sparse') or ()
-        if stored and options.get('error_rays') is None:
+        if stored and 'error_rays' not in options:
             options['error_rays'] = 0.0     # runs from before the error map drew uniformly
         return options
 

@@ -85,10 +85,10 @@ class ErrorMap:
         hit = count > 0
         mean = total[hit] / count[hit]
         old = self.error[hit]
-        self.error[hit] = np.where(self.visited[hit], (1.0 - RATE) * old + RATE * mean, mean)
-        self.visited |= hit
         # A tile fitted exactly keeps a little weight (and the sum stays positive).
-        np.maximum(self.error, 1e-12, out=self.error)
+        self.error[hit] = np.maximum(
+            np.where(self.visited[hit], (1.0 - RATE) * old + RATE * mean, mean), 1e-12)
+        self.visited |= hit
 
     def state(self) -> dict:
         return {'error_map': self.error.copy(), 'error_map.visited': self.visited.copy()}

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 from mi_nerfpp.commands.arguments import (float_between, positive_float, positive_int,
                                           resolution, whole_between)
@@ -9,14 +10,20 @@ from mi_nerfpp.data.synth import (DEFAULT_FOV, DEFAULT_RADIUS, DEFAULT_RES,
                                   DEFAULT_SEED, DEFAULT_SPP,
                                   DEFAULT_TRAJECTORY, DEFAULT_VIEWS,
                                   TRAJECTORIES, synthesize)
+from mi_nerfpp.data.synth.realistic import CLEAN_FOLDER, PHONE_RES, realistic_copy
 from mi_nerfpp.files.atomic import check_not_a_file
 
 
 def run(args) -> None:
     check_not_a_file(args.out)
     # Errors end the command at its boundary (mi_nerfpp.commands.cli).
-    synthesize(args.scene, args.out, views=args.views, res=args.res, spp=args.spp,
+    clean = os.path.join(args.out, CLEAN_FOLDER) if args.realistic else args.out
+    synthesize(args.scene, clean, views=args.views, res=args.res, spp=args.spp,
                trajectory=args.trajectory, seed=args.seed, fov=args.fov, radius=args.radius)
+    if args.realistic:
+        realistic_copy(clean, args.out, seed=args.seed)
+        print(f'wrote the realistic stand-in to {args.out} (transforms_*.json; the clean '
+              f'capture it was made from in {clean})')
 
 
 def subject(args):
@@ -54,5 +61,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument('--radius', type=positive_float, default=DEFAULT_RADIUS,
                    help=f'camera distance from the origin in world units (default '
                         f'{DEFAULT_RADIUS:g})')
+    p.add_argument('--realistic', action='store_true',
+                   help='a stand-in of a phone capture: the clean capture goes to '
+                        f'DATA/{CLEAN_FOLDER}/, and DATA gets its training photos with lens '
+                        'distortion, auto-exposure, sensor noise, JPEG, motion blur on some, '
+                        'a transient object on a few and small pose errors '
+                        '(transforms_*.json; held-out views stay clean). A phone photo is '
+                        f'{PHONE_RES[0]}x{PHONE_RES[1]}: --res {PHONE_RES[0] // 4}x'
+                        f'{PHONE_RES[1] // 4} is a quarter of it')
     p.set_defaults(func=run)
     return p

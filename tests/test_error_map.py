@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from mi_nerfpp.training.error_map import RATE, UNVISITED, ErrorMap
+from mi_nerfpp.training.error_map import (CAP, RATE, REFERENCE_EVERY, UNVISITED,
+                                          ErrorMap)
 
 
 def _pixels(index, shape, factor):
@@ -37,15 +38,45 @@ def test_a_drawn_ray_lies_in_the_tile_it_reports(height, width, tile, factor):
         assert np.all(inside | holds | last)
 
 
-def test_rays_go_to_tiles_in_proportion_to_their_error():
-    m = ErrorMap(2, 32, 32, 16, share=1.0)          # 8 tiles
-    m.error[:] = 0.001
-    m.error[5] = 0.009
+def test_rays_go_to_tiles_in_proportion_to_their_error_within_their_image():
+    m = ErrorMap(2, 32, 32, 16, share=1.0)          # 2 images of 4 tiles
+    m.error[:4] = [0.001, 0.001, 0.001, 0.003]      # image 0: one tile 3x its neighbours
+    m.error[4:] = 0.1                               # image 1: off as a whole (an exposure)
+    m._take_reference()
     _, tiles = m.draw(np.random.default_rng(0), 200_000)
     share = np.bincount(tiles, minlength=8) / tiles.size
-    expected = m.error / m.error.sum()
+    # Each image keeps its area's half; within image 0, errors relative to its median 0.001.
+    expected = np.array([1, 1, 1, 3, 1.5, 1.5, 1.5, 1.5]) / 12
     np.testing.assert_allclose(share, expected, rtol=0.03)
-    assert share[5] == pytest.approx(0.5625, rel=0.02)     # 9 of 16 parts
+    np.testing.assert_allclose(m.probabilities(), expected, rtol=1e-12)
+
+
+def test_a_tile_no_scene_explains_takes_at_most_cap_times_its_images_mean():
+    m = ErrorMap(1, 64, 64, 16, share=1.0)          # 16 tiles
+    m.update(np.arange(16), np.full(16, 0.001))
+    for _ in range(REFERENCE_EVERY):                # a transient: huge, for ever
+        m.update(np.array([5]), np.array([1e6]))
+    assert m.reference[0] == pytest.approx(0.001)
+    p = m.probabilities()
+    assert p[5] / p[0] == pytest.approx(CAP, rel=1e-9)
+    assert p[5] == pytest.approx(CAP / (15 + CAP))
+
+
+def test_the_medians_are_taken_every_few_updates_and_resume_with_the_map():
+    m = ErrorMap(2, 32, 32, 16, share=0.5)
+    m.update(np.arange(8), np.full(8, 0.002))
+    np.testing.assert_allclose(m.reference, [0.002, 0.002])
+    m.update(np.arange(4), np.full(4, 0.102))           # not yet taken again
+    np.testing.assert_allclose(m.reference, [0.002, 0.002])
+    for _ in range(REFERENCE_EVERY - 2):
+        m.update(np.array([0]), np.array([0.0]))
+    r = ErrorMap(2, 32, 32, 16, share=0.5)
+    r.restore(m.state())
+    for k in (m, r):                                     # the 32nd update takes them
+        k.update(np.array([7]), np.array([0.002]))
+    np.testing.assert_array_equal(r.reference, m.reference)
+    assert m.reference[0] > 0.002
+    np.testing.assert_array_equal(r.probabilities(), m.probabilities())
 
 
 def test_without_a_share_for_the_error_every_pixel_is_as_likely():
@@ -76,11 +107,14 @@ def test_the_map_keeps_a_moving_average_of_each_tiles_error():
     assert 0 < m.probabilities()[3] < 0.5 / 4 * 1.001          # its share of the uniform half
 
 
-def test_unvisited_tiles_are_drawn_first():
-    m = ErrorMap(4, 64, 64, 16, share=0.9)
-    m.update(np.arange(32), np.full(32, 0.001))          # half the 64 tiles seen, fitted well
+def test_unvisited_tiles_are_drawn_first_within_their_image():
+    m = ErrorMap(2, 64, 64, 16, share=0.9)               # 16 tiles an image
+    m.update(np.arange(8), np.full(8, 0.001))            # half of image 0 seen, fitted well
+    m.update(np.arange(16, 32), np.full(16, 0.001))      # all of image 1
     _, tiles = m.draw(np.random.default_rng(0), 10_000)
-    assert np.mean(tiles >= 32) > 0.9
+    first = tiles[tiles < 16]
+    assert np.mean(first >= 8) > 0.9
+    assert np.mean(tiles < 16) == pytest.approx(0.5, abs=0.03)   # each image its area
 
 
 def test_the_state_round_trips_and_another_tiling_starts_anew():

@@ -8,11 +8,21 @@ textures that are not.
 
 :class:`ErrorMap` keeps, per tile of ``tile x tile`` pixels of each training image (at full
 size), an exponential moving average of the squared error of the training rays that fell in
-it. A batch draws ``share`` of its rays from the tiles in proportion to that error and the
-rest in proportion to the tiles' areas (uniform over pixels, as without a map); within a tile
-the pixel is uniform. A tile no ray has hit yet counts as the largest error (1), so that every
-tile is visited early in the run. The loss is not reweighted: as instant-ngp's, the map makes
-the hard pixels count for more, which is the point of it.
+it. A batch draws ``share`` of its rays from the tiles by error and the rest in
+proportion to the tiles' areas (uniform over pixels, as without a map); within a tile the pixel
+is uniform. A tile no ray has hit yet counts as the largest error (1), so that every tile is
+visited early in the run. The loss is not reweighted: as instant-ngp's, the map makes the hard
+pixels count for more, which is the point of it.
+
+The draw by error follows what one consistent scene can still explain, not all of the error.
+Each image keeps its share of the rays (its area), and within an image a tile is weighted by
+its error *relative to that image's median tile error*, capped at :data:`CAP` times it (the
+medians are taken every :data:`REFERENCE_EVERY` updates and resume with the run). On real
+photos much of the error is what no consistent scene explains: a whole view off (an exposure
+the run cannot model, motion blur, a pose error) or one tile of it (a transient, a glint). A map
+over absolute errors sends most rays there and trains on that noise (issue 58: -0.74 dB on a
+phone capture); relative to its own image, a view that is off as a whole draws as any other,
+and the cap bounds what one unexplainable tile can take.
 """
 from __future__ import annotations
 
@@ -25,6 +35,11 @@ import numpy as np
 # 26.68 dB with 0.8, below its 26.83-27.14 with uniform rays.
 SHARE = 0.8
 MIN_PIXELS = 4_000_000
+# The most a tile's error weight can be, in units of its image's median tile error.
+CAP = 4.0
+# Updates between two takes of the images' median tile errors (a median of every tile each step
+# costs ~3 ms at 1008x756, a tenth of a step).
+REFERENCE_EVERY = 32
 # The squared error an unvisited tile counts with (an encoded colour error of 1 in each channel).
 UNVISITED = 1.0
 # Weight of a tile's newest mean error in its moving average.
@@ -50,15 +65,23 @@ class ErrorMap:
         self.rows, self.cols = -(-height // tile), -(-width // tile)
         self.error = np.full(n * self.rows * self.cols, UNVISITED)
         self.visited = np.zeros(len(self.error), bool)
+        self.reference = np.full(n, UNVISITED)      # each image's median tile error
+        self.updates = 0
         ys = np.minimum((np.arange(self.rows) + 1) * tile, height) - np.arange(self.rows) * tile
         xs = np.minimum((np.arange(self.cols) + 1) * tile, width) - np.arange(self.cols) * tile
         area = np.tile(np.outer(ys, xs).ravel(), n).astype(np.float64)
         self._area = area / area.sum()
 
     def probabilities(self) -> np.ndarray:
-        """The chance of each tile for one ray of a batch."""
-        return (self.share * self.error / self.error.sum()
-                + (1.0 - self.share) * self._area)
+        """The chance of each tile for one ray of a batch: ``share`` by the error relative to
+        its image's (capped, see the module docstring), the rest by area."""
+        n = self.shape[0]
+        area = self._area.reshape(n, -1)
+        error = self.error.reshape(n, -1)
+        image_area = area.sum(axis=1, keepdims=True)
+        weight = area * np.minimum(error / self.reference[:, None], CAP)
+        by_error = weight / weight.sum(axis=1, keepdims=True) * image_area
+        return (self.share * by_error + (1.0 - self.share) * area).ravel()
 
     def draw(self, rng: np.random.Generator, count: int, factor: int = 1):
         """``(indices, tiles)``: ``count`` ray indices of the bank's pyramid level ``factor``
@@ -89,9 +112,18 @@ class ErrorMap:
         self.error[hit] = np.maximum(
             np.where(self.visited[hit], (1.0 - RATE) * old + RATE * mean, mean), 1e-12)
         self.visited |= hit
+        if self.updates % REFERENCE_EVERY == 0:
+            self._take_reference()
+        self.updates += 1
+
+    def _take_reference(self):
+        self.reference = np.maximum(np.median(self.error.reshape(self.shape[0], -1), axis=1),
+                                    1e-12)
 
     def state(self) -> dict:
-        return {'error_map': self.error.copy(), 'error_map.visited': self.visited.copy()}
+        return {'error_map': self.error.copy(), 'error_map.visited': self.visited.copy(),
+                'error_map.reference': self.reference.copy(),
+                'error_map.updates': np.int64(self.updates)}
 
     def restore(self, state: dict):
         """Take the map of a checkpoint's ``state`` if it has one of this map's tiles (a run
@@ -101,6 +133,13 @@ class ErrorMap:
             return
         self.error[:] = np.asarray(stored, np.float64).ravel()
         self.visited[:] = np.asarray(state['error_map.visited'], bool).ravel()
+        reference = state.get('error_map.reference')
+        if reference is not None and np.size(reference) == self.shape[0]:
+            self.reference = np.asarray(reference, np.float64).ravel().copy()
+            self.updates = int(state['error_map.updates'])
+        else:       # a map from before the medians (a checkpoint of 54450a8 or older)
+            self._take_reference()
+            self.updates = 1
 
 
 def _span(tile_index, tile, factor, size):

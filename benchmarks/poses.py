@@ -1,23 +1,31 @@
-"""Held-out PSNR and pose errors without and with ``--refine-poses`` on perturbed poses.
+"""Held-out PSNR and pose errors of pose refinement on perturbed poses, against true poses.
 
-    python benchmarks/poses.py DATA OUT [--degrees D] [--fraction F] [--iterations N]
+    python benchmarks/poses.py DATA OUT [--degrees D] [--fraction F] [--iterations N | --minutes M]
+                               [--cases true given refine ...] [--name poses]
                                [any optimize training option]
 
 Copies the NeRF++-layout capture ``DATA`` to ``OUT/perturbed`` with perturbed training poses
 (:func:`mi_nerfpp.data.synth.perturb_poses`: each training camera but image 0 rotated by
 ``--degrees`` about a random axis and moved by ``--fraction`` of the scene radius; held-out
-poses exact), trains ``--iterations`` steps (default 300) from scratch without and with
-``--refine-poses`` (otherwise the same options), and prints for each the held-out PSNR (test
-views rendered at their given, exact poses: the training loss never refines them) and the
-training cameras' rotation (degrees) and translation (fraction of the scene radius) errors
-against the true poses, mean and max over the perturbed cameras. Results:
-``benchmarks/results/poses.json``.
+poses exact) and trains, each from scratch with the same options, the ``--cases``:
+
+- ``true``: the true poses (``DATA`` itself), no refinement: what refinement should reach;
+- ``given``: the perturbed poses, no refinement;
+- ``refine``: the perturbed poses with ``--refine-poses`` at today's defaults (coarse to fine);
+- ``refine-flat``: the same without coarse to fine, corrections learned from a quarter of the
+  run (``--poses-blur 0 --poses-start 0.25``: the defaults before it).
+
+For each it prints the held-out PSNR (test views rendered at their exact poses, in the frame of
+training image 0, which refinement keeps as given) and the training cameras' rotation (degrees)
+and translation (fraction of the scene radius) errors against the true poses, mean and max over
+the perturbed cameras. Results: ``benchmarks/results/<--name>.json``.
 """
 import argparse
 import os
 
 import mi_nerfpp  # noqa: F401
-from mi_nerfpp.jobs import bench
+from mi_nerfpp.jobs import bench, run
+from mi_nerfpp.training.evaluate import evaluate_split
 from mi_nerfpp.core import poses
 from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.jobs.console import ConsoleObserver
@@ -32,42 +40,57 @@ def errors(c2w, record):
     return rot[1:], trans[1:] / record['radius']
 
 
+CASES = {'true': {}, 'given': {}, 'refine': {'refine_poses': True},
+         'refine-flat': {'refine_poses': True, 'poses_blur': 0.0, 'poses_start': 0.25}}
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('data')
     p.add_argument('out')
     p.add_argument('--degrees', type=float, default=1.0)
     p.add_argument('--fraction', type=float, default=0.01)
+    p.add_argument('--cases', nargs='+', choices=list(CASES), default=list(CASES))
+    p.add_argument('--name', default='poses')
     add_options(p, TrainConfig)
     args = p.parse_args()
-    options = dict(values(args, TrainConfig), checkpoint_every=0, preview_every=0, minutes=None)
-    options['iterations'] = options['iterations'] or 300
-    options.pop('refine_poses', None)
-    cfg = TrainConfig.from_options(**options)
+    options = dict(values(args, TrainConfig), checkpoint_every=0, preview_every=0)
+    if not options.get('minutes'):
+        options['iterations'] = options['iterations'] or 300
+    for key in ('refine_poses', 'poses_blur', 'poses_start'):
+        options.pop(key, None)
     perturbed = os.path.join(args.out, 'perturbed')
     record = perturb_poses(args.data, perturbed, args.degrees, args.fraction, seed=1)
     rot, trans = errors(record['given'], record)
     print(f'given poses: rotation error mean {rot.mean():.3f}° max {rot.max():.3f}°, '
           f'translation error mean {trans.mean():.4f} max {trans.max():.4f} of the radius',
           flush=True)
-    rows = [['given poses', '-', '-', rot.mean(), rot.max(), trans.mean(), trans.max()]]
-    dataset = load_dataset(perturbed)
-    for on, run, tr, r in bench.without_and_with(dataset, cfg, args.out, 'refine_poses',
-                                                 observer=ConsoleObserver('train')):
-        rot, trans = errors(poses.world_poses(tr.model, tr.train.cameras), record)
-        print(f'refine_poses={on!s:5} {run.schedule.iterations} steps: held-out PSNR '
-              f'{r["psnr"]:.2f} dB; rotation error mean {rot.mean():.3f}° max {rot.max():.3f}°, '
-              f'translation error mean {trans.mean():.4f} max {trans.max():.4f} of the radius',
-              flush=True)
-        rows.append([f'--{"" if on else "no-"}refine-poses', run.schedule.iterations,
-                     r['psnr'], rot.mean(), rot.max(), trans.mean(), trans.max()])
-    bench.write_results('poses', 'Camera pose refinement on perturbed poses', [
+    rows = [['given poses (before training)', '-', '-', rot.mean(), rot.max(), trans.mean(),
+             trans.max()]]
+    for case in args.cases:
+        cfg = TrainConfig.from_options(**options, **CASES[case])
+        dataset = load_dataset(args.data if case == 'true' else perturbed)
+        folder = os.path.join(args.out, case)
+        run.check_run_folder(folder, resume=False, overwrite=True)
+        observer = ConsoleObserver('train')
+        trainer = run.start(run.RunInputs(dataset.root, dataset, cfg, folder), observer=observer)
+        run.train(trainer, observer)
+        r = evaluate_split(trainer.model, trainer.test, os.path.join(folder, 'test'))
+        rot, trans = errors(poses.world_poses(trainer.model, trainer.train.cameras),
+                            record)
+        print(f'{case}: {trainer.iteration} steps: held-out PSNR {r["psnr"]:.2f} dB; rotation '
+              f'error mean {rot.mean():.3f}° max {rot.max():.3f}°, translation error mean '
+              f'{trans.mean():.4f} max {trans.max():.4f} of the radius', flush=True)
+        rows.append([case, trainer.iteration, r['psnr'], rot.mean(), rot.max(), trans.mean(),
+                     trans.max()])
+    bench.write_results(args.name, 'Camera pose refinement on perturbed poses', [
         bench.table('Held-out PSNR and training-camera pose errors',
-                    ['poses', 'iterations', 'held-out PSNR (dB)', 'rotation error mean (°)',
+                    ['case', 'steps', 'held-out PSNR (dB)', 'rotation error mean (°)',
                      'rotation error max (°)', 'translation error mean (of radius)',
                      'translation error max (of radius)'], rows)],
         notes=f'Training cameras but image 0 rotated by {args.degrees:g}° about a random axis '
-              f'and moved by {args.fraction:g} of the scene radius; held-out poses exact.')
+              f'and moved by {args.fraction:g} of the scene radius; held-out poses exact; '
+              f'"true" trains on the true poses.')
 
 
 if __name__ == '__main__':

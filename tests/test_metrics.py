@@ -190,3 +190,25 @@ def test_the_error_split_refuses_a_mask_of_another_size_and_reports_empty_region
     empty = error_split(image, image, {'none': np.zeros((8, 8), bool)})
     assert empty['none']['pixels'] == 0.0 and np.isnan(empty['none']['mse'])
     assert empty['all']['mse'] == 0.0 and empty['all']['psnr'] == float('inf')
+
+
+def test_dark_speckles_are_counted_where_a_pixel_falls_below_its_neighbours():
+    from mi_nerfpp.training.metrics import SPECKLE_DEPTH, dark_speckle_share
+    rng = np.random.default_rng(0)
+    image = np.full((40, 50, 3), 0.6) + rng.uniform(-0.02, 0.02, (40, 50, 3))
+    assert dark_speckle_share(image) == 0.0
+    speckled = image.copy()
+    spots = [(5, 7), (20, 30), (33, 44)]
+    for y, x in spots:
+        speckled[y, x] = 0.6 - 2 * SPECKLE_DEPTH
+    assert dark_speckle_share(speckled) == pytest.approx(len(spots) / (40 * 50))
+    # A dark region is no speckle but at its four corners (a 3x3 median there is its
+    # surroundings'): the ground truth's own share is the baseline a render is held to.
+    region = image.copy()
+    region[10:20, 10:20] = 0.1
+    assert dark_speckle_share(region) == pytest.approx(4 / (40 * 50))
+    # Only the mask's pixels count; an empty mask has nothing to measure.
+    mask = np.zeros((40, 50), bool)
+    mask[:10, :10] = True
+    assert dark_speckle_share(speckled, mask) == pytest.approx(1 / 100)
+    assert np.isnan(dark_speckle_share(speckled, np.zeros((40, 50), bool)))

@@ -215,3 +215,31 @@ def test_corrections_are_rendered_at_most_their_largest_length():
     np.testing.assert_allclose(c2w[:3, :3] @ [0, 1, 0], turned, atol=1e-12)
     np.testing.assert_allclose(poses.corrected_c2w(np.eye(4), params[2])[:3, 3], [0.02, 0, 0],
                                rtol=1e-6)
+
+
+def test_the_coarse_to_fine_floor_falls_geometrically_then_goes():
+    start = np.radians(poses.BLUR)
+    assert poses.blur(0.0) == pytest.approx(start)
+    assert poses.blur(poses.SHARP / 2) == pytest.approx(start / np.sqrt(poses.FALL))
+    assert poses.blur(poses.SHARP * 0.999) == pytest.approx(start / poses.FALL, rel=0.01)
+    assert poses.blur(poses.SHARP) == 0.0 and poses.blur(0.9) == 0.0
+    assert poses.blur(0.0, degrees=0.0) == 0.0
+
+
+def test_while_the_floor_is_wide_the_fine_levels_learn_nothing(perturbed, tmp_path):
+    """The blur weighs the grid levels finer than the floor out of the training rays' lookups:
+    a step at the start of a run with a 30-degree floor leaves the finest level's entries as
+    they were but near the cameras (where 30 degrees are still narrow), and one without the
+    floor changes them along the rays."""
+    out, _ = perturbed
+    changed = {}
+    for degrees in (30.0, 0.0):
+        trainer = Trainer(load_dataset(out), str(tmp_path / f'b{degrees:g}'),
+                          TrainConfig.from_options(iterations=4, refine_poses=True,
+                                                   poses_blur=degrees, pyramid=(), **FAST))
+        finest = max((k for k in trainer.opt.keys() if k.startswith('fg.grid')),
+                     key=lambda k: trainer.opt[k].shape[0])
+        before = trainer.opt[finest].numpy().copy()
+        trainer.step()
+        changed[degrees] = int(np.sum(trainer.opt[finest].numpy() != before))
+    assert changed[0.0] > 1000 and changed[30.0] < 0.1 * changed[0.0], changed

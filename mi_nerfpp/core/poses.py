@@ -43,7 +43,25 @@ MAX_LR_POSES = 1.0
 # process in the sample-placement loop, and turns of 1e20 gave NaN directions).
 MAX_SHIFT = 10.0
 MAX_TURN = math.pi
-START = 0.25                # fraction of the run before the corrections are learned
+START = 0.02                # fraction of the run before the corrections are learned
+# Coarse to fine while poses are refined (BARF's schedule, on the grid levels): each training
+# ray's pixel footprint is widened to at least BLUR degrees at the start of the run, so that the
+# fields' levels finer than that footprint are weighted out (:func:`~mi_nerfpp.core.fields.
+# level_weight`) and a pose error of that size moves the rendered image smoothly; the floor falls
+# geometrically, by FALL over the first SHARP of the run (below the pixels' own footprints long
+# before), then goes. (Needs --antialias, on by default.)
+BLUR = 2.0
+SHARP = 0.4
+FALL = 100.0
+
+
+def blur(progress: float, degrees: float = BLUR, sharp: float = SHARP) -> float:
+    """The least pixel footprint (radians per unit distance) of the training rays at
+    ``progress`` (fraction of the run): ``degrees`` falling geometrically to 1/FALL of it at
+    ``sharp``, then 0."""
+    if degrees <= 0 or progress >= sharp:
+        return 0.0
+    return float(math.radians(degrees) * FALL ** (-progress / sharp))
 
 
 def zeros(n_images: int) -> mi.TensorXf:

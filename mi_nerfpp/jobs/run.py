@@ -58,6 +58,7 @@ from mi_nerfpp.training.evaluate import (choose_coverage_fill, evaluate_split, f
                                          matte_warning)
 from mi_nerfpp.training.error_map import MIN_PIXELS, default_share
 from mi_nerfpp.training.optim import COLOR_LOSS_NAMES
+from mi_nerfpp.training.signs import sign_lines
 from mi_nerfpp.training.train import (Trainer, TrainingError, in_model_frame,
                                       samples_per_second)
 
@@ -519,7 +520,11 @@ def report(trainer, progress: list, observer: RunObserver | None = None) -> dict
                           'train_samples_per_second': trainer.samples_per_second(),
                           'progress': progress,
                           'sparse_allocations': trainer.allocations,
-                          'coverage_fill': fill},
+                          'coverage_fill': fill,
+                          'capture_signs': trainer.signs.summary(
+                              [os.path.basename(p) for p in trainer.train.image_paths],
+                              appearance=trainer.cfg.model.appearance,
+                              error_map=trainer.error_map)},
                          progress=observer.track)
     plot_training(trainer.history, metrics, trainer.cfg.losses.color_loss,
                   os.path.join(trainer.out, 'training.png'))
@@ -619,7 +624,7 @@ def summary(result: RunResult) -> tuple[list[str], list[str]]:
                      f'views\' {fill["pixels"]:,} pixels that no two training views saw score '
                      f'{fill["psnr_fill"]:.2f} dB with it, {fill["psnr_volume"]:.2f} dB with the '
                      f'background volume')
-    warnings = []
+    warnings = sign_lines(metrics.get('capture_signs') or {})
     if 'test' in metrics:
         test = metrics['test']
         lines.append(f'held-out views: PSNR {test["psnr"]:.2f} dB, SSIM {test["ssim"]:.3f} over '

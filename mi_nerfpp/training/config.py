@@ -344,6 +344,10 @@ class OptimizerOptions(_Options):
     poses_start: float = option(poses.START, 'fraction of the run after which the pose '
                                 'corrections are learned (before it the fields are too rough '
                                 'to steer them)')
+    poses_blur: float = option(poses.BLUR, 'with --refine-poses, coarse to fine: the training '
+                               'rays see the scene blurred to this many degrees at the start '
+                               '(the size of the pose errors it recovers), sharpening to their '
+                               f'pixels by {poses.SHARP:g} of the run (0: off)')
 
     def _validate(self):
         self._check(('lr_grid', 'lr_mlp', 'lr_final', 'lr_appearance', 'lr_poses'),
@@ -351,6 +355,8 @@ class OptimizerOptions(_Options):
         if not (_finite(self.adam_beta2) and 0 < self.adam_beta2 < 1):
             self._bad('adam_beta2', 'a number in (0, 1)')
         self._check(('poses_start',), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+        self._check(('poses_blur',), lambda v: _finite(v) and 0 <= v <= 90,
+                    'degrees from 0 (off) to 90')
         self._check(('lr_poses',), lambda v: v <= poses.MAX_LR_POSES,
                     f'at most {poses.MAX_LR_POSES:g} (an Adam step moves each camera correction '
                     f'by about the learning rate: radians, and the unit sphere\'s radius)')
@@ -595,6 +601,8 @@ class TrainConfig:
             options['bg_grid_sparse'] = options.get('grid_sparse') or ()
         if stored and 'error_rays' not in options:
             options['error_rays'] = 0.0     # runs from before the error map drew uniformly
+        if stored and 'poses_blur' not in options:
+            options['poses_blur'] = 0.0     # runs from before the coarse-to-fine poses: none
         return options
 
     @classmethod

@@ -111,6 +111,11 @@ def squared_error(a, b):
     return (dr.square(a.x - b.x) + dr.square(a.y - b.y) + dr.square(a.z - b.z)) / 3.0
 
 
+def luminance(c):
+    """Per ray, the Rec. 709 luminance of a ``Color3f`` batch (in its own encoding)."""
+    return 0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+
+
 def mse(a, b):
     """Mean squared error of two ``Color3f`` batches, averaged over rays and channels."""
     return dr.mean(squared_error(a, b))

@@ -52,6 +52,7 @@ from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
 from mi_nerfpp.training import optim, priors
 from mi_nerfpp.training.config import TrainConfig, default_minutes, per_volume
 from mi_nerfpp.training.error_map import ErrorMap, default_share
+from mi_nerfpp.training.signs import CaptureSigns
 from mi_nerfpp.training.metrics import psnr_from_mse
 
 # Gradients scattered into arrays of up to this many entries are summed in one copy per thread
@@ -350,6 +351,9 @@ class Trainer:
         if self.error_map is not None:
             self.error_map.restore(state)
         self._tiles = None          # the error map's tiles of this step's rays
+        # What the run can tell about the capture (:mod:`.signs`), read at its end.
+        self.signs = CaptureSigns(len(self.train))
+        self.signs.restore(state)
         # The scatter-reduction settings measured on the CPU (see GRADIENT_*) apply on LLVM.
         self._llvm = llvm_backend()
 
@@ -442,10 +446,20 @@ class Trainer:
         # The model's fields read the parameters after the update (previews, evaluations);
         # a replayed frozen step runs no Python, so the step itself cannot set them.
         self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+        squared_error, predicted, photographed = (v.numpy() for v in per_ray)
         if self.error_map is not None:
-            self.error_map.update(self._tiles, per_ray.numpy())
+            self.error_map.update(self._tiles, squared_error)
+        self.signs.update(self._view_of(inputs['draws']['index'].numpy(), inputs['rays']),
+                          squared_error, predicted, photographed)
         self.iteration += 1
         return float(loss.array[0]), float(fine.array[0])
+
+    @staticmethod
+    def _view_of(index: np.ndarray, rays: dict) -> np.ndarray:
+        """The training view of each ray ``index`` of a ray bank level (:class:`RayBank`)."""
+        f = rays['factor']
+        _, h, w = rays['layout'][:3]
+        return index.astype(np.int64) // ((h // f) * (w // f))
 
     def _fresh_recording(self, inputs):
         """A new frozen step whenever the Python values of the step's inputs change (the
@@ -495,7 +509,11 @@ class Trainer:
         return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': rays.arrays(),
                 'occupancy': {k: g.density for k, g in self.model.occupancy.items()},
                 'slots': [field.bricks[i].slots for _, field, i in self._sparse_levels()],
-                'non_finite': dr.opaque(mi.UInt32, 0, 1)}     # set by the step's guard
+                'non_finite': dr.opaque(mi.UInt32, 0, 1),     # set by the step's guard
+                # Coarse to fine while poses are refined (:func:`~mi_nerfpp.core.poses.blur`):
+                # a value, not a Python number, so that the frozen step is not recorded anew.
+                'blur': dr.opaque(mi.Float, poses.blur(p, self.cfg.optimizer.poses_blur))
+                if self.model.poses is not None else None}
 
     def _level(self):
         """The ray bank at this point of the run's image pyramid (``--pyramid``), at most as
@@ -520,6 +538,8 @@ class Trainer:
         o, d, gt = rays.batch(index)
         # The pixels' footprints, for fields that filter their lookups by them.
         footprint = rays.footprint(index) if model.antialias else None
+        if footprint is not None and inputs['blur'] is not None:
+            footprint = dr.maximum(footprint, inputs['blur'])
         occupancy = {}
         for k, grid in model.occupancy.items():       # the model's grids are left untouched
             occupancy[k] = copy.copy(grid)
@@ -543,7 +563,9 @@ class Trainer:
         pred = encode(res.fine.rgb)
         loss = optim.COLOR_LOSS_WEIGHT * optim.COLOR_LOSSES[cfg.color_loss](pred, gt)
         fine = dr.detach(optim.mse(pred, gt))     # for the PSNR shown while training
-        per_ray = dr.detach(optim.squared_error(pred, gt))     # for the error map
+        # Per ray, for the error map and the capture's signs (:mod:`.signs`).
+        per_ray = (dr.detach(optim.squared_error(pred, gt)),
+                   dr.detach(optim.luminance(pred)), dr.detach(optim.luminance(gt)))
         if model.appearance is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])
         if cfg.distortion > 0 and cfg.distortion_scope == 'ray':
@@ -681,6 +703,7 @@ class Trainer:
             state = self._optimizer_state()
             if self.error_map is not None:
                 state.update(self.error_map.state())
+            state.update(self.signs.state())
             save_checkpoint(self.checkpoint_path, self.model, meta=meta, state=state)
         except NonFiniteStateError as e:
             raise self._diverged(f'{e}, so the checkpoint was not written') from None

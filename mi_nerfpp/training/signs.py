@@ -1,0 +1,117 @@
+"""What a run can tell a user about their capture: the signs of what holds it back.
+
+A real capture falls short of a clean one for reasons a user can act on: a view whose pose is
+wrong, which is blurred or which has a person in it; photos whose exposure differs; content no
+consistent scene explains. :class:`CaptureSigns` keeps, per training view, moving sums of the
+training rays' squared error and of their predicted and photographed luminance (encoded, as
+the loss compares them) over the last few thousand steps, and :meth:`CaptureSigns.summary`
+turns them into figures (``metrics.json``'s ``capture_signs``) and :func:`sign_lines` into the
+lines a run ends with:
+
+- **views that fit far worse than the rest**: a view error at least :data:`OUTLIER` times the
+  median view's (a wrong pose, motion blur, a transient, another lens);
+- **exposure spread**: each view's brightness against the model's, in stops (a log2 ratio of
+  linear light, from the encoded ratio through sRGB's exponent); a spread of at least
+  :data:`EXPOSURE_SPREAD` stops without ``--appearance`` suggests it;
+- **what no consistent scene explains**: with an error map, the share of the training pixels in
+  tiles whose error stays above :data:`~mi_nerfpp.training.error_map.CAP` times their image's
+  median (transients, glints, misregistration).
+
+docs/training.md ("What the end of a run tells you about the capture") explains each to a user.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mi_nerfpp.training.error_map import CAP
+
+# The weight a step's sums keep at the next step: the signs describe the last ~1,000 steps.
+DECAY = 0.999
+# A view is an outlier from this many times the median view's mean squared error.
+OUTLIER = 3.0
+# The spread (standard deviation over views, stops) from which --appearance is suggested.
+EXPOSURE_SPREAD = 0.15
+# sRGB's encoded ratio to linear ratio: linear ~ encoded^2.2.
+SRGB_EXPONENT = 2.2
+# The views named in a line, at most.
+NAMED = 8
+
+
+class CaptureSigns:
+    """Per-view moving sums of a run's training rays (see the module docstring)."""
+
+    def __init__(self, views: int):
+        self.sums = np.zeros((int(views), 4))       # weight, squared error, predicted Y, photo Y
+
+    def update(self, images: np.ndarray, squared_error, predicted, photographed):
+        """Fold one batch in: per ray its training view, squared error and luminances."""
+        n = len(self.sums)
+        images = np.asarray(images, np.int64)
+        self.sums *= DECAY
+        for column, values in enumerate((None, squared_error, predicted, photographed)):
+            weights = None if values is None else np.asarray(values, np.float64)
+            self.sums[:, column] += np.bincount(images, weights=weights, minlength=n)[:n]
+
+    def summary(self, names=None, appearance: bool = False, error_map=None) -> dict:
+        """The figures of the signs: per view its error relative to the median view and its
+        exposure in stops against the model; the outliers; the spread; the unexplained
+        share (with ``error_map``)."""
+        seen = self.sums[:, 0] > 0
+        if not seen.any():
+            return {}
+        weight = np.where(seen, self.sums[:, 0], 1.0)
+        error = self.sums[:, 1] / weight
+        relative = error / max(float(np.median(error[seen])), 1e-12)
+        ratio = np.maximum(self.sums[:, 3], 1e-9) / np.maximum(self.sums[:, 2], 1e-9)
+        stops = SRGB_EXPONENT * np.log2(ratio)
+        names = list(names) if names is not None else [str(i) for i in range(len(error))]
+        outliers = [int(i) for i in np.argsort(-relative) if seen[i] and relative[i] >= OUTLIER]
+        out = {
+            'views': [{'name': names[i], 'relative_error': round(float(relative[i]), 3),
+                       'stops': round(float(stops[i]), 3)} for i in range(len(error))],
+            'outliers': [names[i] for i in outliers],
+            'exposure_spread_stops': round(float(np.std(stops[seen])), 3),
+            'appearance': bool(appearance),
+        }
+        if error_map is not None and error_map.visited.any():
+            n = error_map.shape[0]
+            tiles = error_map.error.reshape(n, -1)
+            above = (tiles > CAP * error_map.reference[:, None]) \
+                & error_map.visited.reshape(n, -1)
+            area = error_map._area.reshape(n, -1)
+            out['unexplained_share'] = round(float((area * above).sum() / area.sum()), 4)
+        return out
+
+    def state(self) -> dict:
+        return {'capture_signs': self.sums.copy()}
+
+    def restore(self, state: dict):
+        stored = state.get('capture_signs')
+        if stored is not None and np.shape(stored) == self.sums.shape:
+            self.sums[:] = np.asarray(stored, np.float64)
+
+
+def sign_lines(signs: dict) -> list[str]:
+    """The lines a run ends with about its capture (empty when nothing stands out)."""
+    lines = []
+    if not signs:
+        return lines
+    views = {v['name']: v for v in signs['views']}
+    if signs['outliers']:
+        named = ', '.join(f'{name} ({views[name]["relative_error"]:.1f}x)'
+                          for name in signs['outliers'][:NAMED])
+        more = len(signs['outliers']) - NAMED
+        lines.append(f'training views that fit far worse than the median view: {named}'
+                     f'{f" and {more} more" if more > 0 else ""}; a wrong pose '
+                     f'(--refine-poses), motion blur or a passer-by: look at them, leave out '
+                     f'the blurred ones (docs/training.md)')
+    spread = signs['exposure_spread_stops']
+    if not signs['appearance'] and spread >= EXPOSURE_SPREAD:
+        lines.append(f'the training photos\' exposure differs by {spread:.2f} stops (standard '
+                     f'deviation over views): --appearance learns a colour transform per photo')
+    share = signs.get('unexplained_share')
+    if share is not None and share >= 0.01:
+        lines.append(f'{100 * share:.1f} % of the training pixels fit more than {CAP:g}x worse '
+                     f'than their photo\'s median: what no consistent scene explains '
+                     f'(passers-by, glints, misregistered edges)')
+    return lines

@@ -41,6 +41,7 @@ from mi_nerfpp.data.cameras import Camera
 from mi_nerfpp.data.colmap import colmap_frames, pinhole_model
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.nerfpp import write_camera
+from mi_nerfpp.files.atomic import remove_entries
 
 PHOTO_EXTENSIONS = ('.jpg', '.jpeg', '.png', '.tif', '.tiff')
 MATCHING = ('exhaustive', 'sequential')
@@ -321,12 +322,7 @@ def _prepare_output(out: str, has_report: bool) -> None:
     if os.path.isdir(out) and os.listdir(out) and not has_report:
         raise FileExistsError(f'{out}: folder holds files that are not an earlier `colmap` '
                               f'run\'s; choose an empty or new folder')
-    for sub in ('colmap', 'train', 'validation', 'test', SFM_FILE):
-        path = os.path.join(out, sub)
-        if os.path.isdir(path):
-            shutil.rmtree(path)
-        elif os.path.exists(path):
-            os.remove(path)
+    remove_entries(out, ('colmap', 'train', 'validation', 'test', SFM_FILE))
     os.makedirs(out, exist_ok=True)
 
 

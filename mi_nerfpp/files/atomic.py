@@ -7,6 +7,7 @@ import fcntl
 import json
 import os
 import re
+import shutil
 import socket
 import stat
 import sys
@@ -268,6 +269,16 @@ def _alive(pid):
     except PermissionError:
         return True
     return True
+
+
+def remove_entries(folder, names) -> None:
+    """Remove the files and folders ``names`` of ``folder`` that exist (an earlier output)."""
+    for name in names:
+        path = os.path.join(folder, name)
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path)
+        elif os.path.lexists(path):
+            os.remove(path)
 
 
 def check_not_a_file(folder, option: str = '--out'):

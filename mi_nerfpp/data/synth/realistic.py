@@ -29,7 +29,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import shutil
 
 import imageio.v3 as iio
 import numpy as np
@@ -41,7 +40,7 @@ from mi_nerfpp.core.poses import corrected_c2w
 from mi_nerfpp.data.cameras import opencv_to_opengl
 from mi_nerfpp.data.nerfpp import _read_matrix
 from mi_nerfpp.data.undistort import _pixel_map, warp
-from mi_nerfpp.files.atomic import atomic_write_path
+from mi_nerfpp.files.atomic import atomic_write_path, remove_entries
 from mi_nerfpp.files.exr import read_exr
 
 REALISTIC_FILE = 'realistic.json'
@@ -186,14 +185,9 @@ def _prepare(out: str, src: str) -> None:
             raise FileExistsError(f'{out}: folder is not empty and holds no {REALISTIC_FILE}; '
                                   f'the stand-in is written to a new folder or over its own '
                                   f'earlier copy')
-        os.remove(os.path.join(out, REALISTIC_FILE))
-        for name in (*SPLIT_FILES.values(), 'images', 'transients',
-                     *(os.path.splitext(f)[0] + '_undistorted' for f in SPLIT_FILES.values())):
-            path = os.path.join(out, name)
-            if os.path.isdir(path):
-                shutil.rmtree(path)
-            elif os.path.exists(path):
-                os.remove(path)
+        remove_entries(out, (REALISTIC_FILE, *SPLIT_FILES.values(), 'images', 'transients',
+                             *(os.path.splitext(f)[0] + '_undistorted'
+                               for f in SPLIT_FILES.values())))
     os.makedirs(out, exist_ok=True)
 
 

@@ -73,31 +73,29 @@ def test_the_sparse_level_is_chosen_from_the_capture_and_announced(capture, tmp_
     assert inputs.config.model.grid_sparse == () and not any('sparse' in n for n in notices)
 
 
-def test_the_error_map_is_chosen_from_the_training_pixels_and_announced(capture, tmp_path,
-                                                                         monkeypatch):
-    # Over the threshold (lowered to this capture's pixels) most rays go by error; told, kept.
-    n = len(load_dataset(capture).train)
-    monkeypatch.setattr(run, 'default_share', lambda pixels: 0.8 if pixels >= n * 32 * 24 else 0.0)
-    inputs, notices = notices_of(capture, tmp_path / 'big', iterations=1)
-    assert inputs.config.schedule.error_rays == 0.8
-    assert (f'80% of the training rays drawn where the error is (an error map over 16-pixel '
-            f'tiles: {n * 32 * 24 / 1e6:.3g} M training pixels); --error-rays to change'
-            in notices)
-    assert run.start(inputs).error_map is not None
-    inputs, notices = notices_of(capture, tmp_path / 'told', error_rays=0.3, iterations=1)
-    assert inputs.config.schedule.error_rays == 0.3
+def test_rays_are_uniform_unless_told_and_a_resumed_run_draws_as_it_did(capture, tmp_path):
+    inputs, notices = notices_of(capture, tmp_path / 'default', iterations=1)
+    assert inputs.config.schedule.error_rays == 0.0
     assert not any('training rays' in line for line in notices)
+    assert run.start(inputs).error_map is None
+    inputs, _ = notices_of(capture, tmp_path / 'told', error_rays=0.8, iterations=1)
+    assert inputs.config.schedule.error_rays == 0.8
+    trainer = run.start(inputs)
+    assert trainer.error_map is not None
+    trainer.run()
+    inputs.lock.release()
+    # Resumed without the option: the stored share, not today's default.
+    resumed = run.prepare(capture, TrainConfig.from_options(iterations=2),
+                          str(tmp_path / 'told' / 'run'), resume=True)
+    assert resumed.config.schedule.error_rays == 0.8
+    resumed.lock.release()
 
 
 def test_the_chosen_resolution_and_budget_are_announced_and_respected(capture, tmp_path):
     inputs, notices = notices_of(capture, tmp_path)
     n = len(inputs.dataset.train)
-    resolution, sparse_line, rays_line, schedule_line = notices
+    resolution, sparse_line, schedule_line = notices
     assert sparse_line.startswith('no sparse foreground level: a training pixel is ')
-    pixels = n * 32 * 24 / 1e6
-    assert rays_line == (f'training rays drawn uniformly ({pixels:.3g} M training pixels, under '
-                         f'the 4 M where an error map pays); --error-rays 0.8 to draw most '
-                         f'where the error is')
     assert inputs.config.schedule.error_rays == 0.0
     assert resolution.startswith(f"training at the images' own resolution, {n} views of "
                                  f'32x24 (images ')

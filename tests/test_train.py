@@ -15,7 +15,7 @@ from mi_nerfpp.training import priors
 from mi_nerfpp.training.evaluate import evaluate_split
 from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.training.options import values
-from mi_nerfpp.training.error_map import MIN_PIXELS, ErrorMap, default_share
+from mi_nerfpp.training.error_map import ErrorMap
 from mi_nerfpp.training.train import Trainer, TrainingError
 from tests.helpers import one_thread, straight_and_resumed
 
@@ -80,12 +80,10 @@ def test_the_error_map_draws_rays_where_the_error_is(dataset, tmp_path):
     off = Trainer(dataset, str(tmp_path / 'off'),
                   TrainConfig.from_options(iterations=1, error_rays=0, **SMALL))
     assert off.error_map is None
-    # Not given: chosen from the training pixels, uniform for a capture this small.
+    # Not given: uniform.
     chosen = Trainer(dataset, str(tmp_path / 'chosen'),
                      TrainConfig.from_options(iterations=1, **SMALL))
-    assert chosen.rays.size < MIN_PIXELS
     assert chosen.error_map is None and chosen.cfg.schedule.error_rays == 0.0
-    assert default_share(MIN_PIXELS) == 0.8 and default_share(MIN_PIXELS - 1) == 0.0
 
 
 def test_interrupt_saves_a_checkpoint(dataset, tmp_path):

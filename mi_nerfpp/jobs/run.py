@@ -56,7 +56,6 @@ from mi_nerfpp.training.config import (DEFAULT_JOB_EVAL_AT,
                                        default_minutes)
 from mi_nerfpp.training.evaluate import (choose_coverage_fill, evaluate_split, finish_run,
                                          matte_warning)
-from mi_nerfpp.training.error_map import MIN_PIXELS, default_share
 from mi_nerfpp.training.optim import COLOR_LOSS_NAMES
 from mi_nerfpp.training.signs import sign_lines
 from mi_nerfpp.training.train import (Trainer, TrainingError, in_model_frame,
@@ -216,24 +215,6 @@ def choose_sparse_level(config: TrainConfig, dataset, stored: dict, observer) ->
     return config
 
 
-def choose_error_rays(config: TrainConfig, dataset, observer) -> TrainConfig:
-    """``config`` with ``--error-rays`` chosen from the training pixels
-    (:func:`~mi_nerfpp.training.error_map.default_share`), announced."""
-    cam = dataset.train.cameras[0]
-    pixels = len(dataset.train) * cam.width * cam.height
-    share = default_share(pixels)
-    config = config.replace(error_rays=share)
-    if share > 0:
-        observer.notice(f'{share:.0%} of the training rays drawn where the error is (an error '
-                        f'map over {config.schedule.error_tile}-pixel tiles: '
-                        f'{pixels / 1e6:.3g} M training pixels); --error-rays to change')
-    else:
-        observer.notice(f'training rays drawn uniformly ({pixels / 1e6:.3g} M training pixels, '
-                        f'under the {MIN_PIXELS / 1e6:g} M where an error map pays); '
-                        f'--error-rays 0.8 to draw most where the error is')
-    return config
-
-
 def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool = False,
             overwrite: bool = False, observer: RunObserver | None = None,
             plan: budget.Plan | None = None) -> RunInputs:
@@ -305,7 +286,7 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
             config = config.replace(error_rays=TrainConfig.stored_options(stored)['error_rays']
                                     or 0.0)
         elif schedule.error_rays is None:
-            config = choose_error_rays(config, dataset, observer)
+            config = config.replace(error_rays=0.0)     # uniform (training.error_map)
         if schedule.iterations is None and schedule.minutes is None:
             cam = dataset.train.cameras[0]
             minutes = default_minutes(len(dataset.train) * cam.width * cam.height)

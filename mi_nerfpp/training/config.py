@@ -440,8 +440,9 @@ class ScheduleOptions(_Options):
         None, "share of each step's rays drawn where the training error is high (an error map "
         "over tiles of the training images, as instant-ngp's); the rest uniform over the "
         'pixels. 0: all uniform', type=float,
-        default_help='(default: chosen from the capture: 0.8 when the training images hold at '
-                     'least 4 M pixels, which a run sees only a few times each, else 0)')
+        default_help='(default: 0, uniform: on photos the error is largely what no consistent '
+                     'scene explains; 0.8 suits clean synthetic captures of photo size; a '
+                     'resumed run draws as it did)')
     error_tile: int = option(16, "side in pixels of the error map's tiles (of the full-size "
                              'training images)')
     seed: int = option(0, 'seed of the initialization, the ray batches and the samples')

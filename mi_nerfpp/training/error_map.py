@@ -23,18 +23,19 @@ the run cannot model, motion blur, a pose error) or one tile of it (a transient,
 over absolute errors sends most rays there and trains on that noise (issue 58: -0.74 dB on a
 phone capture); relative to its own image, a view that is off as a whole draws as any other,
 and the cap bounds what one unexplainable tile can take.
+
+The map is off by default (``--error-rays 0``: uniform rays). Measured alone on the machine,
+10 minutes each, on the realistic stand-in of a phone capture (gt_garden at 1008x756,
+``synth --realistic``), uniform rays scored 24.59 dB held out, this map with 0.8 of the rays
+23.98 and the absolute map it replaced 23.86 (the phone capture of issue 58: uniform 28.03
+against 27.29 with the absolute map). On clean synthetic captures of photo size the map helps
+(gt_plaza 512x384: 27.57 against 27.33 dB uniform with the absolute map); there
+``--error-rays 0.8`` is worth giving.
 """
 from __future__ import annotations
 
 import numpy as np
 
-# The default share of the rays drawn by error (--error-rays), for captures of at least
-# MIN_PIXELS training pixels; smaller captures draw uniformly. Measured alone on the machine:
-# gt_plaza at 512x384 (19.9 M pixels) 27.57 against 27.33 dB after 10 minutes with 0.8 (0.5:
-# 27.49); the embedded default capture (0.6 M pixels, each seen ~28 times in its 10 minutes)
-# 26.68 dB with 0.8, below its 26.83-27.14 with uniform rays.
-SHARE = 0.8
-MIN_PIXELS = 4_000_000
 # The most a tile's error weight can be, in units of its image's median tile error.
 CAP = 4.0
 # Updates between two takes of the images' median tile errors (a median of every tile each step
@@ -44,11 +45,6 @@ REFERENCE_EVERY = 32
 UNVISITED = 1.0
 # Weight of a tile's newest mean error in its moving average.
 RATE = 0.3
-
-
-def default_share(pixels: int) -> float:
-    """``--error-rays`` when not given, from the number of training pixels."""
-    return SHARE if pixels >= MIN_PIXELS else 0.0
 
 
 class ErrorMap:

@@ -51,7 +51,7 @@ from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
                                         migration_notes, read_version, save_checkpoint)
 from mi_nerfpp.training import optim, priors
 from mi_nerfpp.training.config import TrainConfig, default_minutes, per_volume
-from mi_nerfpp.training.error_map import ErrorMap, default_share
+from mi_nerfpp.training.error_map import ErrorMap
 from mi_nerfpp.training.signs import CaptureSigns
 from mi_nerfpp.training.metrics import psnr_from_mse
 
@@ -343,8 +343,8 @@ class Trainer:
                          else self._forward_backward)
         self._recorded = None       # the Python values the frozen step was recorded for
         # Where the rays go (:mod:`.error_map`); its state resumes with the run.
-        if config.schedule.error_rays is None:     # (jobs.run.prepare chooses and says so)
-            self.cfg = config = config.replace(error_rays=default_share(self.rays.size))
+        if config.schedule.error_rays is None:     # not given: uniform (:mod:`.error_map`)
+            self.cfg = config = config.replace(error_rays=0.0)
         s = config.schedule
         self.error_map = (ErrorMap(*self.rays.layout[:3], s.error_tile, s.error_rays)
                           if s.error_rays > 0 else None)

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from mi_nerfpp.training.error_map import CAP, ErrorMap
-from mi_nerfpp.training.signs import (DECAY, EXPOSURE_SPREAD, OUTLIER, SRGB_EXPONENT,
-                                      CaptureSigns, sign_lines)
+from mi_nerfpp.training.signs import (DECAY, OUTLIER, SRGB_EXPONENT, CaptureSigns,
+                                      sign_lines)
 
 
 def _batches(signs, rng, steps, error, brightness, photo):
@@ -40,11 +40,7 @@ def test_the_exposure_of_each_view_is_measured_in_stops():
     summary = signs.summary()
     np.testing.assert_allclose([v['stops'] for v in summary['views']], stops, atol=1e-3)
     assert summary['exposure_spread_stops'] == pytest.approx(np.std(stops), abs=1e-3)
-    assert summary['exposure_spread_stops'] > EXPOSURE_SPREAD
-    assert any('--appearance' in line for line in sign_lines(summary))
-    # With --appearance the transform absorbs it: not suggested again.
-    assert not any('--appearance' in line for line in
-                   sign_lines(signs.summary(appearance=True)))
+    assert sign_lines(summary) == []        # a lower bound only: no advice on it
 
 
 def test_the_signs_forget_old_steps_and_resume_with_the_run():

@@ -220,7 +220,7 @@ FLAT_TINY_RUN = {
     "color_layers": 1, "color_width": 32, "seed": 0, "freeze": True, "checkpoint_every": 0,
     "preview_every": 0, "downscale": 1, "background": [1.0, 1.0, 1.0], "composite": "linear",
     "appearance": False, "lr_appearance": 0.02, "appearance_prior": 0.001,
-    "refine_poses": False, "lr_poses": 0.001, "poses_start": 0.25}
+    "refine_poses": False, "lr_poses": 0.001, "poses_start": 0.02}   # (today's default)
 
 
 def test_a_checkpoint_with_a_flat_training_config_loads_evaluates_and_resumes(

@@ -602,8 +602,8 @@ class TrainConfig:
             options['bg_grid_sparse'] = options.get('grid_sparse') or ()
         if stored and 'error_rays' not in options:
             options['error_rays'] = 0.0     # runs from before the error map drew uniformly
-        if stored and 'poses_blur' not in options:
-            options['poses_blur'] = 0.0     # runs from before the coarse-to-fine poses: none
+        if stored and options.get('refine_poses') and 'poses_blur' not in options:
+            options['poses_blur'] = 0.0     # refined before coarse to fine: without it
         return options
 
     @classmethod

@@ -449,17 +449,14 @@ class Trainer:
         squared_error, predicted, photographed = (v.numpy() for v in per_ray)
         if self.error_map is not None:
             self.error_map.update(self._tiles, squared_error)
-        self.signs.update(self._view_of(inputs['draws']['index'].numpy(), inputs['rays']),
-                          squared_error, predicted, photographed)
+        self.signs.update(self._view_of(inputs['draws']['index']), squared_error, predicted,
+                          photographed)
         self.iteration += 1
         return float(loss.array[0]), float(fine.array[0])
 
-    @staticmethod
-    def _view_of(index: np.ndarray, rays: dict) -> np.ndarray:
-        """The training view of each ray ``index`` of a ray bank level (:class:`RayBank`)."""
-        f = rays['factor']
-        _, h, w = rays['layout'][:3]
-        return index.astype(np.int64) // ((h // f) * (w // f))
+    def _view_of(self, index) -> np.ndarray:
+        """The training view of each ray ``index`` (UInt32) of this step's ray bank level."""
+        return self._level().images(index).numpy().astype(np.int64)
 
     def _fresh_recording(self, inputs):
         """A new frozen step whenever the Python values of the step's inputs change (the

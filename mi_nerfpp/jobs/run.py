@@ -504,7 +504,6 @@ def report(trainer, progress: list, observer: RunObserver | None = None) -> dict
                           'coverage_fill': fill,
                           'capture_signs': trainer.signs.summary(
                               [os.path.basename(p) for p in trainer.train.image_paths],
-                              appearance=trainer.cfg.model.appearance,
                               error_map=trainer.error_map)},
                          progress=observer.track)
     plot_training(trainer.history, metrics, trainer.cfg.losses.color_loss,

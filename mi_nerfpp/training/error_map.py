@@ -116,6 +116,14 @@ class ErrorMap:
         self.reference = np.maximum(np.median(self.error.reshape(self.shape[0], -1), axis=1),
                                     1e-12)
 
+    def unexplained_share(self) -> float:
+        """The share of the pixels in visited tiles whose error is above :data:`CAP` times their
+        image's median: what the draw caps, and what no consistent scene explains."""
+        n = self.shape[0]
+        above = ((self.error.reshape(n, -1) > CAP * self.reference[:, None])
+                 & self.visited.reshape(n, -1))
+        return float(self._area.reshape(n, -1)[above].sum())
+
     def state(self) -> dict:
         return {'error_map': self.error.copy(), 'error_map.visited': self.visited.copy(),
                 'error_map.reference': self.reference.copy(),

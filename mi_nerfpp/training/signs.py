@@ -54,7 +54,7 @@ class CaptureSigns:
             weights = None if values is None else np.asarray(values, np.float64)
             self.sums[:, column] += np.bincount(images, weights=weights, minlength=n)[:n]
 
-    def summary(self, names=None, appearance: bool = False, error_map=None) -> dict:
+    def summary(self, names=None, error_map=None) -> dict:
         """The figures of the signs: per view its error relative to the median view and its
         exposure in stops against the model; the outliers; the spread; the unexplained
         share (with ``error_map``)."""
@@ -73,15 +73,9 @@ class CaptureSigns:
                        'stops': round(float(stops[i]), 3)} for i in range(len(error))],
             'outliers': [names[i] for i in outliers],
             'exposure_spread_stops': round(float(np.std(stops[seen])), 3),
-            'appearance': bool(appearance),
         }
         if error_map is not None and error_map.visited.any():
-            n = error_map.shape[0]
-            tiles = error_map.error.reshape(n, -1)
-            above = (tiles > CAP * error_map.reference[:, None]) \
-                & error_map.visited.reshape(n, -1)
-            area = error_map._area.reshape(n, -1)
-            out['unexplained_share'] = round(float((area * above).sum() / area.sum()), 4)
+            out['unexplained_share'] = round(error_map.unexplained_share(), 4)
         return out
 
     def state(self) -> dict:

@@ -187,3 +187,35 @@ def test_sfm_errors_say_what_to_do(tmp_path):
     (tmp_path / 'taken' / 'notes.txt').write_text('mine')
     with pytest.raises(FileExistsError, match='not an earlier'):
         run_sfm(folder, tmp_path / 'taken', progress=False)
+
+
+def test_masks_beside_the_photos_keep_features_out_and_go_with_the_photos(photos, tmp_path):
+    """Photos with masks in photos/masks/: COLMAP finds no feature under their black pixels,
+    and the dataset gets each registered photo's mask, undistorted and cropped like the photo
+    (a mask drawn from its photo's brightness still matches the photo in the dataset)."""
+    import imageio.v3 as iio
+    import pycolmap
+    folder = tmp_path / 'photos'
+    shutil.copytree(photos[0], folder)
+    os.makedirs(folder / 'masks')
+    thresholds = {}
+    for name in os.listdir(photos[0]):
+        grey = iio.imread(folder / name)[..., :3].mean(axis=2)
+        thresholds[os.path.splitext(name)[0]] = np.median(grey)
+        mask = np.where(grey > np.median(grey), 255, 0).astype(np.uint8)
+        mask[:, :40] = 0        # and a strip no feature may come from
+        iio.imwrite(folder / 'masks' / (os.path.splitext(name)[0] + '.png'), mask)
+    out = str(tmp_path / 'data')
+    report = run_sfm(folder, out, progress=False)
+    assert report['params']['mask_features'] is True
+    with pycolmap.Database.open(os.path.join(out, 'colmap', 'database.db')) as db:
+        for image in db.read_all_images():
+            keypoints = db.read_keypoints(image.image_id)
+            assert keypoints[:, 0].min() >= 40 - 1, image.name
+    ds = load_dataset(out)
+    assert ds.train.masks is not None and all(m is not None for m in ds.train.masks)
+    for cam, image, mask in zip(ds.train.cameras, ds.train.images, ds.train.masks):
+        assert mask.shape == image.shape[:2]
+        bright = image.mean(axis=2) * 255 > thresholds[cam.name]
+        sure = (mask > 230) | (mask < 25)
+        assert np.mean((mask[sure] > 127) <= bright[sure]) > 0.9, cam.name

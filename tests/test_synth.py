@@ -347,3 +347,24 @@ def test_scenes_are_a_top_level_folder_and_the_cache_is_per_user(monkeypatch, tm
     assert synth.cache_dir() == str(tmp_path / 'xdg' / 'mi-nerfpp')
     monkeypatch.setenv('MI_NERFPP_CACHE', str(tmp_path / 'mine'))
     assert synth.cache_dir() == str(tmp_path / 'mine')
+
+
+def test_object_masks_are_the_ground_truth_foreground(garden, tmp_path):
+    import shutil
+    out = tmp_path / 'g'
+    shutil.copytree(garden[0], out)
+    assert synth.capture.write_object_masks(str(out)) == 6
+    ds = load_dataset(out)
+    gt = read_exr(out / 'test' / 'gt' / '000000.exr')['fg.A']
+    np.testing.assert_array_equal(ds.test.masks[0] > 127, gt > 0.5)
+    assert 0 < np.mean(gt > 0.5) < 1
+
+
+def test_synth_writes_object_masks_on_request(garden, tmp_path, capsys):
+    import shutil
+    out = tmp_path / 'g'
+    shutil.copytree(garden[0], out)
+    assert main(['synth', GARDEN, '--out', str(out), '--views', '6', '--res', '16x12',
+                 '--spp', '4', '--object-masks']) == 0
+    assert 'wrote 6 object masks' in capsys.readouterr().out
+    assert load_dataset(out).train.masks is not None

@@ -10,6 +10,7 @@ from mi_nerfpp.data.synth import (DEFAULT_FOV, DEFAULT_RADIUS, DEFAULT_RES,
                                   DEFAULT_SEED, DEFAULT_SPP,
                                   DEFAULT_TRAJECTORY, DEFAULT_VIEWS,
                                   TRAJECTORIES, synthesize)
+from mi_nerfpp.data.synth.capture import write_object_masks
 from mi_nerfpp.data.synth.realistic import CLEAN_FOLDER, PHONE_RES, realistic_copy
 from mi_nerfpp.files.atomic import check_not_a_file
 
@@ -20,6 +21,10 @@ def run(args) -> None:
     clean = os.path.join(args.out, CLEAN_FOLDER) if args.realistic else args.out
     synthesize(args.scene, clean, views=args.views, res=args.res, spp=args.spp,
                trajectory=args.trajectory, seed=args.seed, fov=args.fov, radius=args.radius)
+    if args.object_masks:
+        count = write_object_masks(clean)
+        print(f'wrote {count} object masks to {clean}/{{train,validation,test}}/mask/ '
+              f'(train with --masks object)')
     if args.realistic:
         realistic_copy(clean, args.out, seed=args.seed)
         print(f'wrote the realistic stand-in to {args.out} (transforms_*.json; the clean '
@@ -61,6 +66,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument('--radius', type=positive_float, default=DEFAULT_RADIUS,
                    help=f'camera distance from the origin in world units (default '
                         f'{DEFAULT_RADIUS:g})')
+    p.add_argument('--object-masks', action='store_true',
+                   help='also write each view\'s object silhouette as its mask '
+                        '(DATA/{split}/mask/*.png, white where the first surface seen lies in '
+                        'the foreground sphere: the ground truth\'s fg.A), for --masks object')
     p.add_argument('--realistic', action='store_true',
                    help='a stand-in of a phone capture: the clean capture goes to '
                         f'DATA/{CLEAN_FOLDER}/, and DATA gets its training photos with lens '

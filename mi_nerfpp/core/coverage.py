@@ -162,23 +162,26 @@ def fill_holes(sums, counts, smoothing=SMOOTHING) -> np.ndarray:
     return mean
 
 
-def mean_colours(cameras, images, color_space, resolution) -> np.ndarray:
+def mean_colours(cameras, images, color_space, resolution, weights=None) -> np.ndarray:
     """The training pixels' mean linear colour over the ``resolution/2 x resolution`` texels
-    of their directions, the texels none falls in filled (:func:`fill_holes`)."""
+    of their directions, the texels none falls in filled (:func:`fill_holes`). ``weights``:
+    per image an ``H x W`` weight of its pixels in [0, 1] (None: all count)."""
     shape = (resolution // 2, resolution)
     sums = np.zeros((shape[0] * shape[1], 3))
     counts = np.zeros(len(sums))
-    for cam, image in zip(cameras, images):
+    for k, (cam, image) in enumerate(zip(cameras, images)):
         stride = max(1, int(np.ceil(np.sqrt(cam.width * cam.height / PIXELS_PER_IMAGE))))
         py, px = np.mgrid[0:cam.height:stride, 0:cam.width:stride]
         d = pixel_directions(cam, px + 0.5, py + 0.5)
         rgb = np.asarray(image, dtype=np.float64)[py.ravel(), px.ravel(), :3]
         if color_space == 'srgb':
             rgb = srgb_eotf(rgb)
+        weight = (np.ones(len(rgb)) if weights is None or weights[k] is None
+                  else np.asarray(weights[k], dtype=np.float64)[py.ravel(), px.ravel()])
         texel = texel_of(d, resolution)
         for c in range(3):
-            sums[:, c] += np.bincount(texel, rgb[:, c], minlength=len(sums))
-        counts += np.bincount(texel, minlength=len(sums))
+            sums[:, c] += np.bincount(texel, weight * rgb[:, c], minlength=len(sums))
+        counts += np.bincount(texel, weight, minlength=len(sums))
     return fill_holes(sums.reshape(shape + (3,)), counts.reshape(shape))
 
 
@@ -204,14 +207,16 @@ class CoverageFill:
 
     @classmethod
     def of_views(cls, cameras, images, color_space='linear', resolution=RESOLUTION,
-                 colour_resolution=COLOUR_RESOLUTION):
+                 colour_resolution=COLOUR_RESOLUTION, weights=None):
         """From the training ``cameras`` and their ``images`` (``H x W x 3`` each, in
-        ``color_space``: sRGB images are decoded to linear light, as the model renders)."""
+        ``color_space``: sRGB images are decoded to linear light, as the model renders);
+        ``weights``: how much each pixel counts in the colours (:func:`mean_colours`)."""
         dirs = texel_directions(resolution)
         views = views_seeing(dirs.reshape(-1, 3), cameras).reshape(dirs.shape[:2])
         seen = gaussian_filter(np.minimum(views, SEEN_BY) / SEEN_BY,
                                WEIGHT_BLUR * resolution / 360.0, mode=['nearest', 'wrap'])
-        colour = mean_colours(cameras, images, color_space, min(colour_resolution, resolution))
+        colour = mean_colours(cameras, images, color_space, min(colour_resolution, resolution),
+                              weights)
         while colour.shape[1] < resolution:
             colour = _double(colour, (2 * colour.shape[0], 2 * colour.shape[1]))
         return cls(seen, colour)

@@ -23,7 +23,9 @@ Splits come from ``transforms_{train,val,test}.json`` when ``transforms_train.js
 (the Blender layout); otherwise a single ``transforms.json`` is split by holding out every
 ``llff_hold``-th frame (by sorted file path) as the test split. ``file_path`` is relative to the
 JSON file and may lack its extension (``.png`` is tried). Frames whose image is missing are
-skipped with a warning.
+skipped with a warning. A frame's ``mask_path`` (nerfstudio's key, relative to the JSON file)
+names its mask (:mod:`mi_nerfpp.data.masks`); masks of distorted frames are undistorted with
+their images, under ``masks/`` in the cache.
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ import warnings
 
 import numpy as np
 
+from mi_nerfpp.data import masks
 from mi_nerfpp.data.cameras import opengl_to_opencv
 from mi_nerfpp.data.colmap import ColmapCamera
 from mi_nerfpp.data.dataset import Dataset, Frame, make_dataset, make_splits
@@ -134,6 +137,7 @@ def _read_frames(json_path: str, sort: bool = False) -> list[Frame]:
             missing.append(str(entry['file_path']))
             continue
         params = {**shared, **_camera_params(entry, source)}
+        mask_path = _mask_path(folder, entry, source)
         size = (int(params['w']), int(params['h'])) if 'w' in params and 'h' in params else None
         frames.append((Frame(
             image_path=image_path,
@@ -141,7 +145,7 @@ def _read_frames(json_path: str, sort: bool = False) -> list[Frame]:
             intrinsics=functools.partial(_intrinsics, params, source),
             source=source,
             name=os.path.splitext(os.path.basename(image_path))[0],
-            size=size), _lens(params, source)))
+            size=size, mask_path=mask_path), _lens(params, source)))
     if missing:
         warnings.warn(f'{json_path}: skipped {len(missing)} of {len(meta["frames"])} frames '
                       f'whose image is missing (first: {missing[0]!r})', stacklevel=3)
@@ -196,14 +200,18 @@ def _undistorted(json_path: str, frames: list[tuple[Frame, tuple | None]]) -> li
         camera = ColmapCamera(0, model, width, height,
                               np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *distortion]))
         views.append(View(frame.image_path, _cache_name(frame.image_path, folder), camera))
+        if frame.mask_path is not None:     # undistorted the same way, under masks/
+            views.append(View(frame.mask_path, os.path.join(
+                masks.FOLDER, _cache_name(frame.mask_path, folder)), camera))
     pinholes = iter(undistort_views(views, out, sources=[json_path], what=json_path))
     index = os.path.join(out, CACHE_INDEX)
     result = []
     for frame, lens in frames:
         if lens is not None:
             pinhole = next(pinholes)
+            mask = next(pinholes).image_path if frame.mask_path is not None else None
             frame = dataclasses.replace(
-                frame, image_path=pinhole.image_path,
+                frame, image_path=pinhole.image_path, mask_path=mask,
                 intrinsics=lambda width, height, K=pinhole.K: K,
                 size=(pinhole.width, pinhole.height),
                 intrinsics_source=f'{index} (undistorted from {frame.source})')
@@ -248,6 +256,18 @@ def _camera_params(entry: dict, source: str) -> dict:
                                f'{entry["is_fisheye"]!r}')
         params['is_fisheye'] = entry['is_fisheye']
     return params
+
+
+def _mask_path(folder: str, entry: dict, source: str) -> str | None:
+    """The mask a frame's ``mask_path`` names (nerfstudio's key, relative to the JSON file),
+    None if it has none."""
+    if entry.get('mask_path') is None:
+        return None
+    path = os.path.normpath(os.path.join(folder, str(entry['mask_path'])))
+    if not os.path.isfile(path):
+        raise DatasetError(f'{path}: the mask that {source} names ("mask_path") is missing: '
+                           f'put it there or remove "mask_path" from the frame')
+    return path
 
 
 def _find_image(folder: str, file_path: str) -> str | None:

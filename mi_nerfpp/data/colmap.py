@@ -4,6 +4,8 @@
 
     ROOT/
         images/            the photos, named as in images.{bin,txt} (subfolders allowed)
+        masks/             optional: the photos' masks, same names and stems, any image
+                           extension (:mod:`mi_nerfpp.data.masks`)
         sparse/0/          cameras, images, points3D as .bin (COLMAP's default) or .txt
                            (``sparse/`` itself holding the files works too, as does pointing
                            at the model folder)
@@ -25,18 +27,23 @@ cameras are normalized by NeRF++'s rule like every other format.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import struct
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from mi_nerfpp.data import masks
 from mi_nerfpp.data.dataset import Dataset, Frame, make_dataset, make_splits
 from mi_nerfpp.data.errors import DatasetError
-from mi_nerfpp.data.undistort import is_fresh, undistort_model
+from mi_nerfpp.data.undistort import View, is_fresh, undistort_model, undistort_views
 
 IMAGE_FOLDER = 'images'
 UNDISTORTED_FOLDER = 'undistorted'
+# Where the masks of an undistorted model are undistorted to (beside UNDISTORTED_FOLDER, which
+# COLMAP's undistorter replaces as a whole).
+UNDISTORTED_MASKS = 'undistorted_masks'
 MODEL_FILES = ('cameras', 'images', 'points3D')
 
 # COLMAP's camera models: id -> (name, number of parameters). The first parameters are the
@@ -403,6 +410,32 @@ def colmap_frames(model: ColmapModel, image_folder: str) -> list[Frame]:
     return frames
 
 
+def with_masks(root: str, model: ColmapModel, frames: list[Frame],
+               progress: bool = True) -> list[Frame]:
+    """The frames with the masks of ``ROOT/masks/`` (:mod:`mi_nerfpp.data.masks`; the
+    frames unchanged when there is no such folder). When ``model`` was undistorted, the masks
+    are undistorted the same way, once, into ``ROOT/undistorted_masks/``."""
+    folder = os.path.join(root, masks.FOLDER)
+    if not os.path.isdir(folder):
+        return frames
+    by_name = {image.name: image for image in model.images.values()}
+    found = {frame.image_path: masks.find_mask(folder, by_name[name].name)
+             for frame, name in zip(frames, sorted(by_name))}
+    original = read_model(find_model(root))
+    if all(c.is_pinhole for c in original.cameras.values()):
+        return [dataclasses.replace(f, mask_path=found[f.image_path]) for f in frames]
+    # Undistorted with the original cameras, as the images were (the same pinhole rule).
+    distorted = {image.name: original.cameras[image.camera_id]
+                 for image in original.images.values()}
+    views = [View(mask, os.path.splitext(name)[0] + '.png', distorted[name])
+             for name, mask in zip(sorted(by_name), found.values()) if mask is not None]
+    pinholes = iter(undistort_views(views, os.path.join(root, UNDISTORTED_MASKS),
+                                    sources=[find_model(root)], what=f'{folder} (masks)',
+                                    progress=progress))
+    return [dataclasses.replace(f, mask_path=next(pinholes).image_path
+                                if found[f.image_path] is not None else None) for f in frames]
+
+
 def _scaled_K(K, camera: ColmapCamera, width: int, height: int, path: str) -> np.ndarray:
     """K for an image of the given size (COLMAP's, rescaled if the image was resized
     uniformly, e.g. the ``images_4`` convention)."""
@@ -434,6 +467,7 @@ def read_colmap(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
     if not frames:
         raise DatasetError(f'{model.folder}: the COLMAP model has no registered images; run '
                            f'the reconstruction again (python -m mi_nerfpp colmap PHOTOS)')
+    frames = with_masks(root, model, frames)
     held_out = set(range(0, len(frames), llff_hold)) if llff_hold > 0 else set()
     if len(held_out) == len(frames):
         held_out = set()

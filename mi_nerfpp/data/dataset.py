@@ -15,6 +15,7 @@ import numpy as np
 
 from mi_nerfpp.core.budget import images_budget
 from mi_nerfpp.core.frame import Normalization
+from mi_nerfpp.data import masks
 from mi_nerfpp.data.cameras import Camera
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.images import image_size, read_stored_image
@@ -45,11 +46,14 @@ class Split:
             compactly (:class:`~mi_nerfpp.data.storage.StoredImages`): ``images[i]`` is a
             float32 (H, W, 3) array, ``images.stored`` the arrays as kept. Float arrays given
             here are kept as float32.
+        masks: per image its mask as 8-bit coverage (uint8 (H, W), 255 = kept; see
+            :mod:`.masks`) or None where it has none; None when no image of the split has one.
     """
 
     cameras: list[Camera]
     image_paths: list[str]
     images: StoredImages
+    masks: list[np.ndarray | None] | None = None
 
     def __post_init__(self):
         self.images = StoredImages.of(self.images)
@@ -82,6 +86,11 @@ class Dataset:
     normalization: Normalization
     downscale: int = 1
 
+    @property
+    def has_masks(self) -> bool:
+        """Whether any photo of any split has a mask (:mod:`.masks`)."""
+        return any(split.masks is not None for split in (self.train, self.validation, self.test))
+
 
 @dataclass
 class Frame:
@@ -96,6 +105,7 @@ class Frame:
         name: camera name (usually the image stem).
         size: (width, height) the format declares, checked against the image; None if none.
         intrinsics_source: where the intrinsics came from, if not from ``source``.
+        mask_path: the photo's mask (:mod:`.masks`), None if it has none.
     """
 
     image_path: str
@@ -105,6 +115,7 @@ class Frame:
     name: str
     size: tuple[int, int] | None = None
     intrinsics_source: str | None = None
+    mask_path: str | None = None
 
 
 MIN_IMAGE_SIZE = 3    # the smallest SSIM window (mi_nerfpp.training.metrics.SSIM_MIN_WIN_SIZE)
@@ -118,7 +129,7 @@ def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.
         DatasetError: unreadable images, images of different sizes, an image whose size differs
             from the one its metadata declares, non-finite or non-rigid poses, bad intrinsics.
     """
-    cameras, paths, images = [], [], []
+    cameras, paths, images, split_masks = [], [], [], []
     first_size = None
     for frame in frames:
         c2w = np.asarray(frame.c2w, dtype=np.float64)
@@ -146,7 +157,12 @@ def make_split(frames: list[Frame], downscale: int = 1, background=(1.0, 1.0, 1.
         cameras.append(camera)
         paths.append(frame.image_path)
         images.append((image, scale))
-    return Split(cameras=cameras, image_paths=paths, images=StoredImages.unify(images))
+        split_masks.append(None if frame.mask_path is None else masks.stored_mask(
+            masks.read_mask(frame.mask_path, (width, height), frame.image_path), downscale))
+    mask_paths = [frame.mask_path for frame in frames]
+    masks.check_coverage(mask_paths, paths, os.path.dirname(paths[0]) if paths else '')
+    return Split(cameras=cameras, image_paths=paths, images=StoredImages.unify(images),
+                 masks=split_masks if any(m is not None for m in split_masks) else None)
 
 
 def _check_downscale(path, width, height, downscale):

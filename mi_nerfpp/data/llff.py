@@ -4,7 +4,8 @@
 matrix ``[R | t | hwf]`` flattened row-major, then the near and far scene depth bounds (unused
 here). ``R``'s columns are the camera's **down, right, backward** axes in world space, ``t`` its
 centre, ``hwf`` the image height, width and focal length in pixels; the principal point is the
-image centre. Every ``llff_hold``-th image is held out as the test split, as in NeRF.
+image centre. Every ``llff_hold``-th image is held out as the test split, as in NeRF. Masks are
+read from an optional ``masks/`` folder beside ``images/`` (:mod:`mi_nerfpp.data.masks`).
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import os
 
 import numpy as np
 
+from mi_nerfpp.data import masks
 from mi_nerfpp.data.dataset import Dataset, Frame, make_dataset, make_splits
 from mi_nerfpp.data.errors import DatasetError
 
@@ -92,6 +94,7 @@ def read_llff(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
                            f'{len(poses_bounds)} poses: they must correspond one to one, '
                            f'in sorted file name order')
     frames = []
+    mask_folder = os.path.join(root, masks.FOLDER)
     for i, (row, image) in enumerate(zip(poses_bounds.astype(np.float64), images)):
         pose = row[:15].reshape(3, 5)
         source = f'{poses_path} (row {i})'
@@ -100,7 +103,9 @@ def read_llff(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
             c2w=llff_to_opencv(pose[:, :4]),
             intrinsics=functools.partial(_intrinsics, pose[:, 4], source, image),
             source=source,
-            name=os.path.splitext(os.path.basename(image))[0]))
+            name=os.path.splitext(os.path.basename(image))[0],
+            mask_path=masks.find_mask(mask_folder, os.path.basename(image))
+            if os.path.isdir(mask_folder) else None))
     held_out = set(range(0, len(frames), llff_hold)) if llff_hold > 0 else set()
     splits, downscale = make_splits({
         'train': [f for i, f in enumerate(frames) if i not in held_out],

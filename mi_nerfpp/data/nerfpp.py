@@ -6,6 +6,8 @@
         rgb/         images: NAME.png / .jpg / .jpeg / .exr
         pose/        NAME.txt: 16 numbers, the 4x4 camera-to-world matrix (OpenCV), row-major
         intrinsics/  NAME.txt: 16 numbers, a 4x4 matrix with K in its top-left 3x3
+        mask/        optional: NAME.png (any image extension), the photo's mask
+                     (:mod:`mi_nerfpp.data.masks`)
 
 Files of the three folders are paired by file name stem. ``validation`` and ``test`` may be
 missing or empty; ``train`` may not.
@@ -16,6 +18,7 @@ import os
 
 import numpy as np
 
+from mi_nerfpp.data import masks
 from mi_nerfpp.data.cameras import Camera
 from mi_nerfpp.data.dataset import (SPLITS, Dataset, Frame, make_dataset,
                                     make_splits)
@@ -132,6 +135,7 @@ def _split_frames(folder: str) -> list[Frame]:
             raise DatasetError(f'{folder}: rgb/ and {sub}/ files are paired by file name stem, '
                                f'but these have no counterpart: {", ".join(names)}')
     frames = []
+    mask_folder = os.path.join(folder, masks.SPLIT_FOLDER)
     for stem in sorted(files['rgb']):
         intrinsics_path = files['intrinsics'][stem]
         K = _read_matrix(intrinsics_path)[:3, :3]
@@ -141,7 +145,9 @@ def _split_frames(folder: str) -> list[Frame]:
             intrinsics=lambda width, height, K=K: K,
             source=files['pose'][stem],
             name=stem,
-            intrinsics_source=intrinsics_path))
+            intrinsics_source=intrinsics_path,
+            mask_path=masks.find_mask(mask_folder, os.path.basename(files['rgb'][stem]))
+            if os.path.isdir(mask_folder) else None))
     return frames
 
 

@@ -4,8 +4,11 @@
 
 1. **images**: the photos (JPG/PNG/TIFF in the folder, not its subfolders) are copied into
    ``OUT/colmap/images/``; photos with an EXIF orientation, 16-bit or palette/alpha pixels are
-   re-encoded upright as 8-bit PNG (COLMAP ignores EXIF orientation).
-2. **features**: SIFT features (``OUT/colmap/database.db``).
+   re-encoded upright as 8-bit PNG (COLMAP ignores EXIF orientation). Their masks, from a
+   ``masks/`` subfolder (:mod:`mi_nerfpp.data.masks`), go to ``OUT/colmap/masks/`` as COLMAP
+   names them.
+2. **features**: SIFT features (``OUT/colmap/database.db``), none under a mask's black pixels
+   (``mask_features``).
 3. **matching**: exhaustive (every pair: best for unordered photos, up to a few hundred) or
    sequential (each frame with the next ``overlap`` frames: video frames in order), both
    without a vocabulary tree.
@@ -15,7 +18,8 @@
    fewer inliers for the first pair, which dense captures with small baselines need) and the
    larger result is kept.
 5. **undistortion** to pinhole cameras (``OUT/colmap/undistorted/``).
-6. **NeRF++ layout**: ``OUT/{train,test}/{rgb,pose,intrinsics}/`` with NeRF++'s normalization
+6. **NeRF++ layout**: ``OUT/{train,test}/{rgb,pose,intrinsics}/`` (and ``mask/``, the masks
+   undistorted and cropped like their photos) with NeRF++'s normalization
    applied (mean camera centre at the origin, farthest camera at radius 1/1.1), every
    ``hold``-th registered photo held out as test.
 
@@ -38,7 +42,8 @@ from tqdm import tqdm
 
 from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.data.cameras import Camera
-from mi_nerfpp.data.colmap import colmap_frames, pinhole_model
+from mi_nerfpp.data import masks
+from mi_nerfpp.data.colmap import colmap_frames, pinhole_model, with_masks
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.nerfpp import write_camera
 from mi_nerfpp.files.atomic import remove_entries
@@ -112,7 +117,7 @@ SFM_SEED = 0   # seed of COLMAP's random generators (global, RANSAC, mapper) for
 def run_sfm(photos, out, matching: str = 'exhaustive', camera: str = 'auto',
             hold: int = DEFAULT_HOLD, max_image_size: int = DEFAULT_MAX_IMAGE_SIZE,
             overlap: int = DEFAULT_OVERLAP, num_threads: int = -1,
-            progress: bool = True) -> dict:
+            progress: bool = True, mask_features: bool = True) -> dict:
     """Poses for a folder of photos, written as a NeRF++ dataset (see the module docstring).
 
     Args:
@@ -128,6 +133,10 @@ def run_sfm(photos, out, matching: str = 'exhaustive', camera: str = 'auto',
         overlap: sequential matching: how many following frames each frame is matched with.
         num_threads: CPU threads for COLMAP (-1: all).
         progress: progress bars and the report printed.
+        mask_features: photos with a mask in ``photos/masks/`` (:mod:`.masks`) give no
+            features where their mask is black (what the masks cover is not the scene:
+            ``--masks ignore``); False: features everywhere (object silhouettes). The masks
+            go with their photos into the dataset either way.
 
     Returns:
         The contents of ``OUT/sfm.json``, plus ``'cached': True`` when nothing was run.
@@ -155,10 +164,16 @@ def run_sfm(photos, out, matching: str = 'exhaustive', camera: str = 'auto',
     if len(names) < 2:
         raise SfmError(f'{photos}: found {len(names)} photos ({", ".join(PHOTO_EXTENSIONS)}); '
                        f'structure from motion needs many overlapping photos (dozens)')
+    mask_folder = os.path.join(photos, masks.FOLDER)
+    photo_masks = {name: masks.find_mask(mask_folder, name) for name in names} \
+        if os.path.isdir(mask_folder) else {}
+    photo_masks = {name: path for name, path in photo_masks.items() if path is not None}
     params = {'photos': os.path.abspath(photos), 'matching': matching, 'camera': camera,
               'hold': hold, 'max_image_size': max_image_size, 'overlap': overlap,
-              'pycolmap': pycolmap.__version__, 'version': SFM_VERSION}
-    inputs = _fingerprint(photos, names)
+              'pycolmap': pycolmap.__version__, 'version': SFM_VERSION,
+              'mask_features': bool(mask_features and photo_masks)}
+    inputs = _fingerprint(photos, names) + _fingerprint(
+        mask_folder, sorted(os.path.relpath(p, mask_folder) for p in photo_masks.values()))
     previous = read_report(out)
     if (previous is not None and previous.get('complete') and previous.get('params') == params
             and previous.get('inputs') == inputs):
@@ -175,13 +190,13 @@ def run_sfm(photos, out, matching: str = 'exhaustive', camera: str = 'auto',
     pycolmap.set_random_seed(SFM_SEED)
     try:
         return _run(pycolmap, photos, out, names, params, inputs, camera, hold,
-                    max_image_size, overlap, matching, num_threads, progress)
+                    max_image_size, overlap, matching, num_threads, progress, photo_masks)
     finally:
         pycolmap.logging.minloglevel = level
 
 
 def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_size, overlap,
-         matching, num_threads, progress) -> dict:
+         matching, num_threads, progress, photo_masks) -> dict:
 
     def bar(desc, total, unit):
         return tqdm(total=total, desc=f'sfm {desc}', unit=unit, disable=not progress,
@@ -201,8 +216,14 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
         colmap_names = {}
         for name in names:
             colmap_names[name] = _prepare_photo(os.path.join(photos, name), image_dir, name)
+            if name in photo_masks:     # COLMAP's naming: the image's name plus .png
+                _prepare_mask(photo_masks[name], os.path.join(photos, name),
+                              os.path.join(workspace, masks.FOLDER, colmap_names[name] + '.png'))
             b.update(1)
     seconds['images'] = time.perf_counter() - t
+    reader = pycolmap.ImageReaderOptions()
+    if params['mask_features']:
+        reader.mask_path = os.path.join(workspace, masks.FOLDER)
 
     t = time.perf_counter()
     listed = sorted(colmap_names.values())
@@ -221,7 +242,8 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
             for i in range(0, len(listed), FEATURE_CHUNK):
                 chunk = listed[i:i + FEATURE_CHUNK]
                 pycolmap.extract_features(database, image_dir, image_names=chunk,
-                                          camera_mode=mode, extraction_options=extraction)
+                                          camera_mode=mode, reader_options=reader,
+                                          extraction_options=extraction)
                 b.update(len(chunk))
     except Exception as e:  # noqa: BLE001 - pycolmap raises ValueError/RuntimeError alike
         raise SfmError(f'{photos}: COLMAP feature extraction failed ({e})') from e
@@ -282,7 +304,7 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
     seconds['undistortion'] = time.perf_counter() - t
 
     t = time.perf_counter()
-    report.update(_write_dataset(out, model, undistorted_images, hold, bar))
+    report.update(_write_dataset(out, model, undistorted_images, hold, bar, workspace))
     seconds['dataset'] = time.perf_counter() - t
 
     by_colmap_name = {v: k for k, v in colmap_names.items()}
@@ -350,6 +372,20 @@ def _prepare_photo(path: str, image_dir: str, name: str) -> str:
                        f'JPG/PNG') from e
 
 
+def _prepare_mask(path: str, photo: str, target: str) -> None:
+    """A photo's mask for COLMAP: 8-bit grayscale PNG, black where the photo is masked out
+    (:func:`~mi_nerfpp.data.masks.read_mask`, which checks it against the photo upright)."""
+    with Image.open(photo) as img:
+        img = ImageOps.exif_transpose(img)
+        size = img.size
+    try:
+        mask = masks.read_mask(path, size, photo)
+    except DatasetError as e:
+        raise SfmError(str(e)) from e
+    os.makedirs(os.path.dirname(target), exist_ok=True)
+    Image.fromarray(np.rint(mask * 255).astype(np.uint8)).save(target)
+
+
 def _map(pycolmap, database, image_dir, workspace, n_images, num_threads, bar):
     """Incremental mapping, retried relaxed when few photos register; the largest model is
     moved to ``workspace/sparse/0``. Returns (its folder or None, registered count)."""
@@ -392,10 +428,11 @@ def _map(pycolmap, database, image_dir, workspace, n_images, num_threads, bar):
     return best_dir, best
 
 
-def _write_dataset(out: str, model, image_folder: str, hold: int, bar) -> dict:
-    """The NeRF++ layout of a pinhole model, normalized; returns the report's entries."""
+def _write_dataset(out: str, model, image_folder: str, hold: int, bar, workspace: str) -> dict:
+    """The NeRF++ layout of a pinhole model, normalized, with the photos' masks (undistorted
+    like them); returns the report's entries."""
 
-    frames = colmap_frames(model, image_folder)
+    frames = with_masks(workspace, model, colmap_frames(model, image_folder), progress=False)
     by_path = {os.path.join(image_folder, im.name): model.cameras[im.camera_id]
                for im in model.images.values()}
     cameras = []
@@ -415,6 +452,10 @@ def _write_dataset(out: str, model, image_folder: str, hold: int, bar) -> dict:
             os.makedirs(os.path.join(split, 'rgb'), exist_ok=True)
             _copy_cropped(frame.image_path, os.path.join(split, 'rgb', stem), camera,
                           offsets[i])
+            if frame.mask_path is not None:
+                os.makedirs(os.path.join(split, masks.SPLIT_FOLDER), exist_ok=True)
+                _copy_cropped(frame.mask_path, os.path.join(split, masks.SPLIT_FOLDER, stem),
+                              camera, offsets[i])
             write_camera(split, stem, normalization.to_model_camera(camera))
             b.update(1)
     points = normalization.to_model_point(model.points) if len(model.points) else model.points

@@ -42,6 +42,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from mi_nerfpp.core import budget
+from mi_nerfpp.data import masks
 from mi_nerfpp.data import (AutoDownscale, DatasetError, detect_format,
                             load_dataset)
 from mi_nerfpp.data.sfm import is_photo_folder, run_sfm
@@ -215,6 +216,30 @@ def choose_sparse_level(config: TrainConfig, dataset, stored: dict, observer) ->
     return config
 
 
+def choose_masks(config: TrainConfig, dataset, stored: dict, observer) -> TrainConfig:
+    """``config`` with the meaning of the photos' masks (:mod:`mi_nerfpp.data.masks`) chosen
+    when ``--masks`` is not given (a resumed run's own; ``ignore`` when the training photos
+    have masks) and announced; ``--masks ignore|object`` without masks is refused."""
+    found = dataset.train.masks
+    meaning = config.losses.masks
+    if meaning is None:
+        meaning = (TrainConfig.stored_options(stored).get('masks') if stored else None) or (
+            masks.DEFAULT_MEANING if found is not None else 'none')
+    if meaning != 'none' and found is None:
+        raise DatasetError(f'{dataset.root}: --masks {meaning}, but no training photo has a '
+                           f'mask (looked for masks/ beside images/, mask/ in each split '
+                           f'folder, "mask_path" in transforms.json: docs/data.md, "Masks")')
+    if found is not None:
+        with_mask = sum(m is not None for m in found)
+        what = {'ignore': 'their black pixels are left out of the colour loss',
+                'object': 'their white pixels are the object\'s silhouette, which the '
+                          'foreground\'s opacity is fitted to',
+                'none': 'not used'}[meaning]
+        observer.notice(f'masks: {with_mask} of {len(found)} training photos have one; '
+                        f'--masks {meaning}: {what} (--masks ignore|object|none to change)')
+    return config.replace(masks=meaning)
+
+
 def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool = False,
             overwrite: bool = False, observer: RunObserver | None = None,
             plan: budget.Plan | None = None) -> RunInputs:
@@ -253,7 +278,9 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
         lock = lock_folder(out, what='run folder (--out)')
         finish_replacement(out, observer)
         check_run_folder(out, resume=resume, overwrite=overwrite)
-        data = photos_to_dataset(data, os.path.join(out, 'sfm'), observer)
+        # Masks of people and cars keep them out of the features too; silhouettes do not.
+        data = photos_to_dataset(data, os.path.join(out, 'sfm'), observer,
+                                 mask_features=config.losses.masks in (None, 'ignore'))
         downscale = config.data.downscale
         checkpoint = os.path.join(out, 'model.npz')
         stored = (read_meta(checkpoint).get('config') or {}
@@ -287,6 +314,7 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
                                     or 0.0)
         elif schedule.error_rays is None:
             config = config.replace(error_rays=0.0)     # uniform (training.error_map)
+        config = choose_masks(config, dataset, stored, observer)
         if schedule.iterations is None and schedule.minutes is None:
             cam = dataset.train.cameras[0]
             minutes = default_minutes(len(dataset.train) * cam.width * cam.height)
@@ -409,9 +437,11 @@ def check_run_folder(out, resume, overwrite):
                          f'another --out')
 
 
-def photos_to_dataset(data: str, sfm_out: str, observer: RunObserver | None = None) -> str:
+def photos_to_dataset(data: str, sfm_out: str, observer: RunObserver | None = None,
+                      mask_features: bool = True) -> str:
     """``data`` if it is a dataset; for a folder of photos without poses, the NeRF++ dataset
-    structure from motion writes to ``sfm_out`` (run once, then reused)."""
+    structure from motion writes to ``sfm_out`` (run once, then reused; ``mask_features``:
+    as :func:`~mi_nerfpp.data.sfm.run_sfm`)."""
     observer = observer or RunObserver()
     try:
         detect_format(data)
@@ -421,7 +451,8 @@ def photos_to_dataset(data: str, sfm_out: str, observer: RunObserver | None = No
             return data  # load_dataset reports what is wrong
     observer.notice(f'{data}: a folder of photos without poses; running structure from motion '
                     f'(COLMAP) into {sfm_out}')
-    run_sfm(data, sfm_out, progress=observer.shows_progress)    # SfmError: to the caller
+    run_sfm(data, sfm_out, progress=observer.shows_progress,     # SfmError: to the caller
+            mask_features=mask_features)
     return sfm_out
 
 
@@ -462,7 +493,8 @@ def train(trainer, observer: RunObserver | None = None) -> Training:
         while eval_at and tr.elapsed >= 60 * eval_at[0] and len(test_views):
             minute = eval_at.pop(0)
             r = evaluate_split(tr.model, test_views, os.path.join(out, f'test_at_{minute:g}min'),
-                               fit_appearance=cfg.model.appearance)
+                               fit_appearance=cfg.model.appearance,
+                               masks=tr.cfg.losses.masks or 'none')
             point = {'minutes': minute, 'iteration': tr.iteration, 'psnr': r['psnr'],
                      'ssim': r['ssim']}
             progress.append(point)
@@ -613,6 +645,11 @@ def summary(result: RunResult) -> tuple[list[str], list[str]]:
             lines.append(f'  (scored NeRF-W style: each view\'s appearance fitted on its left '
                          f'half, right half scored; neutral whole views: PSNR '
                          f'{test["psnr_neutral"]:.2f} dB)')
+        if 'matte_iou' in test:
+            lines.append(f'  with the object masks: foreground matte IoU {test["matte_iou"]:.3f}, '
+                         f'PSNR inside the masks {test["psnr_masked"]:.2f} dB')
+        elif 'psnr_masked' in test:
+            lines.append(f'  PSNR over the pixels the masks keep {test["psnr_masked"]:.2f} dB')
         warning = matte_warning(test)
         if warning:
             warnings.append(warning)

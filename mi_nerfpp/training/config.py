@@ -34,6 +34,7 @@ from mi_nerfpp.core.fields import BACKGROUND_COLOR, COLOR_MODES, GridField
 from mi_nerfpp.core.frame import NERF_CAMERA_RADIUS
 from mi_nerfpp.core.model import FIELD_KINDS, default_field_config
 from mi_nerfpp.core.render import SKIPPING, Sampling
+from mi_nerfpp.data import masks
 from mi_nerfpp.training import optim
 from mi_nerfpp.training.options import (flag, group, groups, option,
                                         option_name, options_of)
@@ -407,14 +408,26 @@ class LossOptions(_Options):
     tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
     appearance_prior: float = option(app.PRIOR, 'weight of the L2 prior that keeps the '
                                      'appearance transforms near the identity')
+    masks: str | None = option(None, "what the photos' masks mean (docs/data.md, \"Masks\"): "
+                               "'ignore' leaves their black pixels out of the colour loss "
+                               "(people, cars); 'object' takes their white pixels as the "
+                               "object's silhouette and fits the foreground's opacity to it "
+                               "(a clean matte); 'none' leaves them unused",
+                               type=str, choices=masks.MEANINGS,
+                               default_help=f"(default: '{masks.DEFAULT_MEANING}' when the "
+                                            f"dataset has masks; announced)")
+    mask_weight: float = option(optim.SILHOUETTE_WEIGHT, 'weight of the silhouette loss of '
+                                '--masks object (the foreground opacity against the mask)')
 
     def _validate(self):
         if self.color_loss not in optim.COLOR_LOSSES:
             self._bad('color_loss', ' or '.join(f"'{k}'" for k in optim.COLOR_LOSSES))
         if self.distortion_scope not in ('volume', 'ray'):
             self._bad('distortion_scope', "'volume' or 'ray'")
+        if self.masks is not None and self.masks not in masks.MEANINGS:
+            self._bad('masks', ' or '.join(f"'{k}'" for k in masks.MEANINGS))
         self._check(('distortion', 'opacity_entropy', 'tv', 'far_smoothness', 'entropy_start',
-                     'appearance_prior',
+                     'appearance_prior', 'mask_weight',
                      'near_gradient'), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
         self._check(('tv_cells',), lambda v: v >= 1, 'at least 1')
         for name, ok, one in (('sparsity', lambda w: w >= 0, 'one finite number >= 0'),

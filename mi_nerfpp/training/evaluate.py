@@ -22,12 +22,16 @@ from mi_nerfpp.files.exr import write_exr
 from mi_nerfpp.files.preview import write_linear_png
 from mi_nerfpp.output.scene_xml import write_render_xml
 from mi_nerfpp.output.views import ViewRenderer, encoded_rgb, rgb
-from mi_nerfpp.training.metrics import (SOFT_ALPHA, SOFT_ALPHA_WARNING, psnr, psnr_from_mse,
-                                        soft_alpha_fraction, ssim)
+from mi_nerfpp.training.metrics import (SOFT_ALPHA, SOFT_ALPHA_WARNING, masked_psnr, psnr,
+                                        psnr_from_mse, soft_alpha_fraction, ssim)
+
+# A held-out pixel is inside its mask (kept, or the object's) from this 8-bit coverage on.
+MASK_INSIDE = 128
 
 
 def evaluate_split(model, split, out_dir, sampling: Sampling | None = None, name='test',
-                   background: bool | None = None, progress=None, fit_appearance=False):
+                   background: bool | None = None, progress=None, fit_appearance=False,
+                   masks: str = 'none'):
     """Render every view of ``split``, write ``{name}_NNN.exr``/``.png`` and return the metrics.
 
     Views are rendered with the model's render settings (the sample counts it was trained
@@ -41,6 +45,11 @@ def evaluate_split(model, split, out_dir, sampling: Sampling | None = None, name
     least squares in linear light, :func:`~mi_nerfpp.core.appearance.fit_affine`) on the left half
     of each view and the right half is scored; that score is then ``psnr`` and the neutral
     full-image scores are kept as ``psnr_neutral`` / ``ssim_neutral``.
+
+    ``masks`` (what the split's masks mean, :mod:`mi_nerfpp.data.masks`; views without a mask
+    are left out of these): 'ignore' adds ``psnr_masked``, the PSNR over each view's kept
+    pixels; 'object' adds ``psnr_masked`` over the object's pixels and ``matte_iou``, the
+    intersection over union of the rendered foreground matte (``fg.A > 0.5``) and the mask.
     """
     os.makedirs(out_dir, exist_ok=True)
     renderer = ViewRenderer(model, sampling, background)
@@ -62,6 +71,12 @@ def evaluate_split(model, split, out_dir, sampling: Sampling | None = None, name
                 'ssim': float(ssim(np.clip(pred, 0, 1), gt))}
         if background:
             view['soft_alpha'] = soft_alpha_fraction(layers['fg.A'])
+        mask = split.masks[i] if masks != 'none' and split.masks is not None else None
+        if mask is not None:
+            inside = mask >= MASK_INSIDE
+            view['psnr_masked'] = float(masked_psnr(np.clip(pred, 0, 1), gt, inside))
+            if masks == 'object':
+                view['matte_iou'] = matte_iou(layers['fg.A'], inside)
         if fit_appearance:
             view['psnr_neutral'], view['ssim_neutral'] = view['psnr'], view['ssim']
             view['psnr'], view['ssim'], view['gain'], view['bias'] = _fitted_right_half(
@@ -71,10 +86,20 @@ def evaluate_split(model, split, out_dir, sampling: Sampling | None = None, name
     result = {'views': views, 'render_seconds': seconds}
     if fit_appearance:
         result['scoring'] = 'appearance fitted on the left half of each view, right half scored'
-    for key in ('psnr', 'ssim', 'psnr_neutral', 'ssim_neutral', 'soft_alpha'):
-        if views and key in views[0]:
-            result[key] = float(np.mean([v[key] for v in views]))
+    for key in ('psnr', 'ssim', 'psnr_neutral', 'ssim_neutral', 'soft_alpha', 'psnr_masked',
+                'matte_iou'):
+        scores = [v[key] for v in views if key in v and np.isfinite(v[key])]
+        if scores:
+            result[key] = float(np.mean(scores))
     return result
+
+
+def matte_iou(alpha: np.ndarray, inside: np.ndarray) -> float:
+    """Intersection over union of the foreground matte ``alpha > 0.5`` and the boolean
+    ``inside`` (1 where both are empty)."""
+    matte = np.asarray(alpha) > 0.5
+    union = np.count_nonzero(matte | inside)
+    return float(np.count_nonzero(matte & inside) / union) if union else 1.0
 
 
 def _fitted_right_half(linear, gt, color_space):
@@ -160,7 +185,8 @@ def finish_run(out, model, held_out, cfg, checkpoint_path, metrics, progress=Non
     if len(held_out):
         metrics['test'] = evaluate_split(model, held_out, os.path.join(out, 'test'),
                                          progress=progress,
-                                         fit_appearance=cfg.model.appearance)
+                                         fit_appearance=cfg.model.appearance,
+                                         masks=cfg.losses.masks or 'none')
         norm = model.normalization
         write_render_xml(os.path.join(out, 'render.xml'), checkpoint_path,
                          norm.to_world_camera(held_out.cameras[0]),

@@ -21,6 +21,8 @@ CHARBONNIER_WEIGHT = 0.3
 # pass now only places samples and the one term of the image weighs 3 (on the default capture,
 # 2,800 steps of 1,024 rays: weights 1 / 2 / 3 / 4 gave 23.5 / 26.3 / 26.8 / 26.5 dB held out).
 COLOR_LOSS_WEIGHT = 3.0
+# The weight of the silhouette loss (--masks object) beside the colour loss.
+SILHOUETTE_WEIGHT = 0.1
 
 
 def is_grid(name: str) -> bool:
@@ -116,18 +118,35 @@ def luminance(c):
     return 0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 
 
-def mse(a, b):
-    """Mean squared error of two ``Color3f`` batches, averaged over rays and channels."""
-    return dr.mean(squared_error(a, b))
+def ray_mean(values, kept=None):
+    """The mean of per-ray ``values``; with ``kept`` (a weight per ray in [0, 1], a mask's
+    coverage), the mean over the kept rays, ``Σ kept·v / Σ kept``, so that a kept pixel
+    weighs as much as without masks."""
+    if kept is None:
+        return dr.mean(values)
+    return dr.sum(kept * values) / dr.maximum(dr.sum(kept), 1.0)
 
 
-def charbonnier(a, b, eps: float = CHARBONNIER_EPS, weight: float = CHARBONNIER_WEIGHT):
+def mse(a, b, kept=None):
+    """Mean squared error of two ``Color3f`` batches, averaged over (the ``kept``, see
+    :func:`ray_mean`) rays and channels."""
+    return ray_mean(squared_error(a, b), kept)
+
+
+def charbonnier(a, b, kept=None, eps: float = CHARBONNIER_EPS,
+                weight: float = CHARBONNIER_WEIGHT):
     """mip-NeRF 360's robust colour loss: ``weight`` times the mean of ``sqrt((a - b)² + ε²)``
-    over rays and channels of two ``Color3f`` batches. Like an absolute error, it weighs the
-    large errors of a few pixels (a capture's Monte Carlo noise, specular glints) less than
-    the squared error does."""
+    over (the ``kept``, see :func:`ray_mean`) rays and channels of two ``Color3f`` batches.
+    Like an absolute error, it weighs the large errors of a few pixels (a capture's Monte
+    Carlo noise, specular glints) less than the squared error does."""
     c = dr.sqrt(dr.square(a - b) + eps * eps)
-    return weight * dr.mean(c.x + c.y + c.z) / 3.0
+    return weight * ray_mean(c.x + c.y + c.z, kept) / 3.0
+
+
+def silhouette_loss(opacity, mask):
+    """The squared error of each ray's foreground opacity against its object mask's coverage
+    (``--masks object``), averaged over the rays."""
+    return dr.mean(dr.square(opacity - mask))
 
 
 COLOR_LOSSES = {'charbonnier': charbonnier, 'mse': mse}

@@ -44,6 +44,7 @@ from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.core.profiling import stage
 from mi_nerfpp.core.render import distortion, ray_distortion, render_rays
 from mi_nerfpp.core.coverage import CoverageFill
+from mi_nerfpp.data import masks
 from mi_nerfpp.data.storage import MAX_STORED_BYTES
 from mi_nerfpp.errors import interrupt_in
 from mi_nerfpp.files.atomic import remove_stale_temporaries
@@ -96,9 +97,13 @@ class RayBank:
     camera :meth:`downscaled <mi_nerfpp.data.Camera.downscaled>` by F sees it, and its colour
     is the block's mean: a box-filtered downsample, read from the same stored pixels (no copy
     per level). :meth:`footprint` gives each ray's pixel width per unit distance at its level.
+
+    Masks (``masks=True`` and a split with masks, :mod:`mi_nerfpp.data.masks`): one byte a
+    pixel, the mask's coverage (255 where a photo has no mask); :meth:`mask` gives each ray's
+    in [0, 1], at a pyramid level its block's mean or least.
     """
 
-    def __init__(self, split):
+    def __init__(self, split, masks: bool = False):
         if len(split) == 0:
             raise TrainingError('the training split is empty')
         images = split.images
@@ -118,6 +123,11 @@ class RayBank:
         stored = [a.astype('<u2').view(np.uint8) if kind == 'uint16' else a
                   for a in images.stored]
         self.pixels = _owned_concatenation(stored, _STORE_TYPES[kind])
+        self.masks = None
+        if masks and split.masks is not None:
+            full = np.full((h, w), 255, dtype=np.uint8)
+            self.masks = _owned_concatenation([full if m is None else m for m in split.masks],
+                                              _UInt8)
         self.layout = (n, h, w, kind, images.scale)
         self.factor = 1
         self.size = n * h * w
@@ -135,8 +145,8 @@ class RayBank:
     def arrays(self):
         """The bank's Dr.Jit arrays and its layout and level as Python values (a frozen step
         takes them as inputs; another layout or level records the step anew)."""
-        return {'cameras': self.cameras, 'pixels': self.pixels, 'layout': self.layout,
-                'factor': self.factor}
+        return {'cameras': self.cameras, 'pixels': self.pixels, 'masks': self.masks,
+                'layout': self.layout, 'factor': self.factor}
 
     @classmethod
     def from_arrays(cls, arrays):
@@ -144,6 +154,7 @@ class RayBank:
         bank = cls.__new__(cls)
         bank.cameras, bank.pixels, bank.layout = (arrays['cameras'], arrays['pixels'],
                                                   arrays['layout'])
+        bank.masks = arrays.get('masks')
         bank.factor = int(arrays.get('factor', 1))
         n, h, w = bank.layout[:3]
         if bank.factor < 1 or h // bank.factor < 1 or w // bank.factor < 1:
@@ -201,6 +212,22 @@ class RayBank:
     def images(self, index):
         """The training-image index of the rays ``index`` (UInt32)."""
         return self._pixel(mi.UInt32(index))[0]
+
+    def mask(self, index, least: bool = False):
+        """The mask coverage of the rays ``index`` in [0, 1] (Float; the bank has masks): the
+        mean over their pixel block at a pyramid level, or with ``least`` its least pixel's
+        (a block's colour holds what any of its pixels shows)."""
+        image, x, y = self._pixel(mi.UInt32(index))
+        n, h, w = self.layout[:3]
+        f = self.factor
+        first = image * (h * w) + (y * f) * w + x * f
+        total = None
+        for dy in range(f):
+            for dx in range(f):
+                value = mi.UInt32(dr.gather(_UInt8, self.masks, first + (dy * w + dx)))
+                total = value if total is None else (
+                    dr.minimum(total, value) if least else total + value)
+        return mi.Float(total) / (255.0 * (1 if least else f * f))
 
     def _colour(self, image, x, y):
         """The colour (three Floats) of this level's pixels ``(x, y)`` of ``image``: the mean
@@ -281,7 +308,15 @@ class Trainer:
         splits = in_model_frame(dataset, normalization)
         self.train, self.validation, self.test = (splits[k] for k in ('train', 'validation',
                                                                       'test'))
-        self.rays = RayBank(self.train)
+        # What the photos' masks mean (:mod:`mi_nerfpp.data.masks`); not given: ignore when
+        # the photos have masks (:func:`mi_nerfpp.jobs.run.prepare` chooses and announces it).
+        self.masks = config.losses.masks or (masks.DEFAULT_MEANING if self.train.masks
+                                             is not None else 'none')
+        if self.masks != 'none' and self.train.masks is None:
+            raise TrainingError(f'--masks {self.masks}: no training photo has a mask (see '
+                                f'docs/data.md, "Masks", for where masks are looked for)')
+        self.cfg = config = config.replace(masks=self.masks)
+        self.rays = RayBank(self.train, masks=True) if self.masks != 'none' else RayBank(self.train)
         if config.schedule.iterations is None and config.schedule.minutes is None:
             # No budget given (:func:`mi_nerfpp.jobs.run.prepare` chooses and announces it first).
             self.cfg = config = config.replace(minutes=default_minutes(self.rays.size))
@@ -321,9 +356,9 @@ class Trainer:
                 self.model.enable_occupancy(s.occupancy_res, s.occupancy_threshold)
         if self.model.bg is not None and self.model.coverage is None:
             with stage('coverage fill'):
-                self.model.coverage = CoverageFill.of_views(self.train.cameras,
-                                                            self.train.images,
-                                                            dataset.color_space)
+                self.model.coverage = CoverageFill.of_views(
+                    self.train.cameras, self.train.images, dataset.color_space,
+                    weights=self._background_weights())
         self.saved_iteration = self.iteration if resume else None
         # Sparse levels allocate at each ``sparse_at`` passed; a resumed run has those behind it.
         self.allocations = []
@@ -356,6 +391,15 @@ class Trainer:
         self.signs.restore(state)
         # The scatter-reduction settings measured on the CPU (see GRADIENT_*) apply on LLVM.
         self._llvm = llvm_backend()
+
+    def _background_weights(self):
+        """Per training image how much each pixel shows of the background (for the coverage
+        fill's colours): masked-out pixels none (``--masks ignore``), the object's none
+        (``--masks object``); None: all of them."""
+        if self.masks == 'none':
+            return None
+        return [None if m is None else (m / 255.0 if self.masks == 'ignore' else 1 - m / 255.0)
+                for m in self.train.masks]
 
     # ------------------------------------------------------------------ optimizer state
     def _optimizer_state(self):
@@ -558,10 +602,17 @@ class Trainer:
             image, params = rays.images(index), opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
         pred = encode(res.fine.rgb)
-        loss = optim.COLOR_LOSS_WEIGHT * optim.COLOR_LOSSES[cfg.color_loss](pred, gt)
-        fine = dr.detach(optim.mse(pred, gt))     # for the PSNR shown while training
+        # Masks: the pixels kept in the colour loss (ignore), or the object's silhouette.
+        mask = (rays.mask(index, least=self.masks == 'ignore') if self.masks != 'none'
+                else None)
+        kept = mask if self.masks == 'ignore' else None
+        loss = optim.COLOR_LOSS_WEIGHT * optim.COLOR_LOSSES[cfg.color_loss](pred, gt, kept)
+        fine = dr.detach(optim.mse(pred, gt, kept))     # for the PSNR shown while training
+        if self.masks == 'object':
+            loss += cfg.mask_weight * optim.silhouette_loss(res.fg.fine.opacity, mask)
         # Per ray, for the error map and the capture's signs (:mod:`.signs`).
-        per_ray = (dr.detach(optim.squared_error(pred, gt)),
+        error = optim.squared_error(pred, gt)
+        per_ray = (dr.detach(error if kept is None else error * kept),
                    dr.detach(optim.luminance(pred)), dr.detach(optim.luminance(gt)))
         if model.appearance is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])

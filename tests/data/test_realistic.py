@@ -177,3 +177,21 @@ def test_bad_folders_are_refused(clean, tmp_path):
     assert (busy / 'notes.txt').read_text() == 'mine'
     with pytest.raises(ValueError, match='unknown degradation'):
         Realism().without('fog')
+
+
+def test_masks_leave_the_transients_out_through_the_lens(clean, tmp_path):
+    """With ``masks=True`` every training photo ships a mask, black exactly on its transient;
+    the reader undistorts the masks with their photos (under the cache's masks/)."""
+    realism = Realism(transient_share=0.5, masks=True).without('noise', 'exposure', 'blur',
+                                                                'poses', 'jpeg')
+    record = realistic_copy(clean, tmp_path / 's', realism, seed=2, progress=False)
+    ds = load_dataset(tmp_path / 's')
+    assert os.path.isdir(tmp_path / 's' / 'transforms_train_undistorted' / 'masks')
+    for i, view in enumerate(record['views']['train']):
+        mask, image = ds.train.masks[i], ds.train.images[i]
+        assert mask.shape == image.shape[:2]
+        assert (mask < 128).any() == ('transient_pixels' in view)
+        if 'transient_pixels' in view:      # as large as the transient, through the lens
+            masked = np.count_nonzero(mask < 128)
+            assert abs(masked / view['transient_pixels'] - 1) < 0.3, (masked, view)
+    assert ds.test.masks is None

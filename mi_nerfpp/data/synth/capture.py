@@ -68,6 +68,7 @@ import shutil
 import time
 
 import drjit as dr
+import imageio.v3 as iio
 import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
@@ -75,6 +76,7 @@ from tqdm import tqdm
 from mi_nerfpp.core import budget as sizing
 from mi_nerfpp.core.color import to_srgb8
 from mi_nerfpp.core.frame import MITSUBA_NEAR_CLIP, Normalization
+from mi_nerfpp.data import masks
 from mi_nerfpp.data.cameras import Camera, mitsuba_sensor_dict, pixel_rays
 from mi_nerfpp.data.dataset import SPLITS
 from mi_nerfpp.data.nerfpp import write_nerfpp
@@ -82,7 +84,7 @@ from mi_nerfpp.data.synth.trajectories import (DEFAULT_FOV, DEFAULT_RADIUS,
                                                DEFAULT_SEED, TRAJECTORIES,
                                                make_cameras, parse_res)
 from mi_nerfpp.files.atomic import atomic_write_path, readable_path
-from mi_nerfpp.files.exr import write_exr
+from mi_nerfpp.files.exr import read_exr, write_exr
 
 CAPTURE_FILE = 'capture.json'
 CAPTURE_FORMAT = 'mi-nerfpp-synth'
@@ -372,3 +374,27 @@ def synthesize(scene_xml, out, views: int = DEFAULT_VIEWS, res=DEFAULT_RES,
         print(f'wrote {views} views ({counts["train"]} train, {counts["validation"]} validation, '
               f'{counts["test"]} test) to {out} in {info["render_seconds"]:.1f} s')
     return dict(info, cached=False)
+
+
+def write_object_masks(out: str) -> int:
+    """Write the object masks of capture ``out``: ``SPLIT/mask/NNNNNN.png``, white where the
+    ground truth's ``fg.A`` is 1 (the first surface a pixel's centre sees lies in the
+    foreground sphere), black elsewhere: the silhouettes ``--masks object`` fits the
+    foreground to (:mod:`mi_nerfpp.data.masks`). Returns the number of masks written."""
+    written = 0
+    for split in SPLITS:
+        gt_folder = os.path.join(out, split, 'gt')
+        if not os.path.isdir(gt_folder):
+            continue
+        os.makedirs(os.path.join(out, split, masks.SPLIT_FOLDER), exist_ok=True)
+        for name in sorted(os.listdir(gt_folder)):
+            if not name.endswith('.exr'):
+                continue
+            alpha = read_exr(os.path.join(gt_folder, name))['fg.A']
+            path = os.path.join(out, split, masks.SPLIT_FOLDER,
+                                os.path.splitext(name)[0] + '.png')
+            with atomic_write_path(path) as tmp:
+                iio.imwrite(tmp, np.where(alpha > 0.5, 255, 0).astype(np.uint8),
+                            extension='.png')
+            written += 1
+    return written

@@ -20,7 +20,8 @@ them:
 
 The validation and test views stay clean pinhole PNGs at their true poses: the ground truth a
 run's held-out scores are measured against. ``realistic.json`` records every value applied
-(per view), and ``transients/NNNNNN.png`` the transients' masks of the training views. Each
+(per view), and ``transients/NNNNNN.png`` the transients' masks of the training views (with
+``Realism(masks=True)`` the photos also ship masks that leave the transients out). Each
 degradation is switched off by setting its amount to 0 (:class:`Realism`), which is how
 ``benchmarks/realistic.py`` prices them one at a time.
 """
@@ -80,6 +81,10 @@ class Realism:
     pose_fraction: float = 0.003
     # Transients: the share of training views with an object no other view has.
     transient_share: float = 0.05
+    # Whether the training photos ship masks (``masks/train/NNNNNN.png``, named by each frame's
+    # ``mask_path``): black on the transient, white elsewhere, as a capture whose people were
+    # masked (:mod:`mi_nerfpp.data.masks`). Phone captures ship none: off by default.
+    masks: bool = False
 
     def lens(self) -> bool:
         return any(v != 0 for v in (self.k1, self.k2, self.p1, self.p2))
@@ -163,6 +168,10 @@ def realistic_copy(src, out, realism: Realism = Realism(), seed: int = 0,
             if split == 'train' and realism.lens():
                 frame.update(camera_model='OPENCV', k1=realism.k1, k2=realism.k2,
                              p1=realism.p1, p2=realism.p2)
+            if split == 'train' and realism.masks:
+                frame['mask_path'] = _write_mask(out, stem, view.pop('transient_mask', None),
+                                                 (h, w), K, realism)
+            view.pop('transient_mask', None)
             frames.append(frame)
             views.append(dict(view, name=stem))
             bar.update(1)
@@ -186,6 +195,7 @@ def _prepare(out: str, src: str) -> None:
                                   f'the stand-in is written to a new folder or over its own '
                                   f'earlier copy')
         remove_entries(out, (REALISTIC_FILE, *SPLIT_FILES.values(), 'images', 'transients',
+                             'masks',
                              *(os.path.splitext(f)[0] + '_undistorted'
                                for f in SPLIT_FILES.values())))
     os.makedirs(out, exist_ok=True)
@@ -207,6 +217,7 @@ def _degrade(src, stem, K, pose, index, r: Realism, rng, radius, blur, transient
         iio.imwrite(os.path.join(out, 'transients', stem + '.png'),
                     mask.astype(np.uint8) * 255)
         view['transient_pixels'] = int(mask.sum())
+        view['transient_mask'] = mask
     if blur and r.blur_length > 0:
         length = max(2.0, r.blur_length * w)
         angle = float(rng.uniform(0.0, np.pi))
@@ -231,6 +242,20 @@ def _degrade(src, stem, K, pose, index, r: Realism, rng, radius, blur, transient
     view['true_c2w'] = pose.tolist()
     view['given_c2w'] = given.tolist()
     return to_srgb8(np.clip(linear, 0.0, 1.0)), view, given
+
+
+def _write_mask(out: str, stem: str, transient, size, K: np.ndarray, r: Realism) -> str:
+    """Write the mask of training photo ``stem`` of ``size`` (height, width): black on its
+    ``transient`` (None: none), through the photo's lens; returns its path relative to
+    ``out``."""
+    keep = np.ones(size) if transient is None else 1.0 - transient
+    if r.lens():
+        keep = _distort(np.repeat(keep[..., None], 3, axis=2), K, r)[..., 0]
+    name = os.path.join('masks', 'train', stem + '.png')
+    os.makedirs(os.path.join(out, 'masks', 'train'), exist_ok=True)
+    with atomic_write_path(os.path.join(out, name)) as tmp:
+        iio.imwrite(tmp, np.where(keep > 0.5, 255, 0).astype(np.uint8), extension='.png')
+    return name
 
 
 def _unit(rng) -> np.ndarray:

@@ -86,7 +86,7 @@ def score(args):
         test = metrics['test']
         trace = iou = ''
         if data in TRANSIENT_CASES:
-            trace, renders[label] = _transient_trace(args.work, run, transient_views, stems)
+            trace, renders[label] = transient_trace(args.work, run, transient_views, stems)
         else:
             iou = round(_matte_iou(run, os.path.join(args.work, data)), 4)
         rows.append([label, metrics['iterations'], round(test['psnr'], 2),
@@ -104,19 +104,22 @@ def score(args):
     print(f'wrote {path}')
 
 
-def _transient_trace(work, run, views, stems):
+def transient_trace(work, run, views, stems, clean_dir=None, stand_in=None):
     """The PSNR of the transients' pixels in the run's renders of their training views against
-    the clean photos, and those renders."""
+    the clean photos, and those renders. ``clean_dir``: the clean capture's training photos
+    (default ``WORK/clean/images/train``, ``.png``; a NeRF++ capture's ``train/rgb``);
+    ``stand_in``: the stand-in whose ``transients/`` masks say where (default
+    ``WORK/transients``)."""
     model, _, _, splits = open_run(run)
     renderer = ViewRenderer(model)
+    clean_dir = clean_dir or os.path.join(work, 'clean', 'images', 'train')
+    stand_in = stand_in or os.path.join(work, 'transients')
     errors, renders = [], []
     for i in views:
         render = np.clip(encoded_rgb(renderer.render(splits.train.cameras[i]),
                                      model.color_space), 0, 1)
-        clean = iio.imread(os.path.join(work, 'clean', 'images', 'train',
-                                        stems[i] + '.png'))[..., :3] / 255.0
-        region = iio.imread(os.path.join(work, 'transients', 'transients',
-                                         stems[i] + '.png')) > 127
+        clean = iio.imread(os.path.join(clean_dir, stems[i] + '.png'))[..., :3] / 255.0
+        region = iio.imread(os.path.join(stand_in, 'transients', stems[i] + '.png')) > 127
         errors.append(np.mean((render[region] - clean[region]) ** 2))
         renders.append(render)
     return round(float(-10 * np.log10(np.mean(errors))), 2), renders

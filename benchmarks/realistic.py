@@ -42,7 +42,9 @@ from mi_nerfpp.training.metrics import SPECKLE_DEPTH, dark_speckle_share
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 # The side of the crops of --crop, in pixels (shown 2x).
 CROP = 160
-CASES = ['all'] + [f'no-{name}' for name in DEGRADATIONS]
+# The degradations a phone capture has (weather is the in-the-wild collection's).
+CASES = ['all'] + [f'no-{name}' for name, fields in DEGRADATIONS.items()
+                   if any(getattr(Realism(), f) for f in fields)]
 
 
 def make(args):

@@ -17,7 +17,8 @@ from mi_nerfpp.core.color import srgb_eotf
 from mi_nerfpp.data.synth import APPEARANCE_FILE, vary_exposure
 from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.training.train import Trainer
-from tests.helpers import per_image_parameters_resume_exactly, scene_dict, tiny_model
+from mi_nerfpp.core.model import NeRFPPModel
+from tests.helpers import TINY_GRID, per_image_parameters_resume_exactly, scene_dict, tiny_model
 
 # Small and fast, the same for both runs; 300 steps at a fixed seed.
 FAST = dict(batch_rays=512, fg_samples=8, bg_samples=8, fine_samples=8, checkpoint_every=0,
@@ -141,12 +142,12 @@ def test_integrator_renders_a_training_image_appearance(tmp_path):
 def test_integrator_refuses_an_appearance_image_the_model_lacks(tmp_path):
     path = _with_appearance(tmp_path)
     with pytest.raises(Exception, match="'appearance_image' is 2 but the model has "
-                                        r"transforms for training images 0\.\.1"):
+                                        r"an appearance for training images 0\.\.1"):
         mi.load_dict(scene_dict(checkpoint=path, appearance_image=2))
     with pytest.raises(Exception, match="'appearance_image' must be >= -1"):
         mi.load_dict(scene_dict(checkpoint=path, appearance_image=-2))
     scene = mi.load_dict(scene_dict(appearance_image=0))
-    with pytest.raises(ValueError, match='no appearance transforms'):
+    with pytest.raises(ValueError, match='no appearance per training image'):
         scene.integrator().set_model(tiny_model())
 
 
@@ -174,3 +175,87 @@ def test_optimize_with_appearance_scores_nerf_w_style_and_keeps_the_neutral_scor
     assert all(len(v['gain']) == 3 and len(v['bias']) == 3 for v in test['views'])
     model, _, _ = load_checkpoint(out / 'model.npz')
     assert model.appearance_images == len(load_dataset(exposed[0]).train)
+
+
+# ----------------------------------------------------------------------------- embeddings
+
+EMBEDDED = dict(TINY_GRID, appearance_dims=3)
+
+
+def embedded_model(n_images=4):
+    model = NeRFPPModel.create(seed=0, fg_config=dict(EMBEDDED, domain='ball'),
+                               bg_config=dict(EMBEDDED, domain='inverted_sphere'),
+                               embedding_images=n_images)
+    assert model.embedding.shape == (n_images, 3) and model.config['embedding_images'] == 4
+    return model
+
+
+def test_the_code_conditions_the_colour_network_and_zero_is_neutral():
+    field = embedded_model().fg
+    rng = np.random.default_rng(0)
+    features = [mi.Float(rng.normal(size=16)) for _ in range(field.channels - 1)
+                for _ in range(len(field.resolutions))]
+    d = dr.normalize(mi.Vector3f(*[mi.Float(rng.normal(size=16)) for _ in range(3)]))
+    neutral = field.color(features, d).numpy()
+    field.appearance_code = [0.0, 0.0, 0.0]
+    np.testing.assert_array_equal(field.color(features, d).numpy(), neutral)
+    field.appearance_code = [mi.Float(rng.normal(size=16)) for _ in range(3)]
+    assert np.abs(field.color(features, d).numpy() - neutral).min() > 0
+
+
+def test_colour_gradient_of_the_embeddings_matches_finite_differences():
+    model = embedded_model()
+    field = model.fg
+    rng = np.random.default_rng(1)
+    features = [mi.Float(rng.normal(size=8)) for _ in range(field.channels - 1)
+                for _ in range(len(field.resolutions))]
+    d = dr.normalize(mi.Vector3f(*[mi.Float(rng.normal(size=8)) for _ in range(3)]))
+    image = mi.UInt32(np.arange(8) % 4)
+    table = rng.normal(size=(4, 3)).astype(np.float32)
+
+    def loss(values):
+        field.appearance_code = app.codes(values, image)
+        c = field.color(features, d)
+        return dr.sum(c.x + 2 * c.y - c.z)
+
+    x = mi.TensorXf(table)
+    dr.enable_grad(x)
+    dr.backward(loss(x))
+    grad = dr.grad(x).numpy()
+    eps = 1e-2
+    for i, j in ((0, 0), (2, 1), (3, 2)):
+        up, down = table.copy(), table.copy()
+        up[i, j] += eps
+        down[i, j] -= eps
+        fd = (loss(mi.TensorXf(up)).numpy() - loss(mi.TensorXf(down)).numpy()) / (2 * eps)
+        assert abs(grad[i, j] - fd) < 2e-3 * max(1.0, abs(fd)), (i, j, grad[i, j], fd)
+
+
+def test_checkpoint_round_trips_and_resumes_exactly_with_embeddings(exposed, tmp_path):
+    saved = per_image_parameters_resume_exactly(
+        load_dataset(exposed[0]), tmp_path, dict(FAST, appearance_embedding=4), FAST,
+        'embedding', '--appearance-embedding')
+    assert saved.shape[1] == 4 and np.any(saved != 0)
+
+
+def test_integrator_renders_a_training_images_code(tmp_path):
+    model = embedded_model()
+    table = np.zeros((4, 3), np.float32)
+    table[2] = [1.5, -2.0, 0.7]
+    model.embedding = mi.TensorXf(table)
+    path = str(tmp_path / 'm.npz')
+    save_checkpoint(path, model)
+    renders = {i: np.array(mi.render(mi.load_dict(scene_dict(
+        jitter=False, checkpoint=path, appearance_image=i)))) for i in (-1, 1, 2)}
+    np.testing.assert_array_equal(renders[1], renders[-1])      # a zero code is the neutral
+    assert np.abs(renders[2] - renders[-1]).max() > 1e-3
+    with pytest.raises(Exception, match="'appearance_image' is 4 but the model has an "
+                                        r"appearance for training images 0\.\.3"):
+        mi.load_dict(scene_dict(checkpoint=path, appearance_image=4))
+
+
+def test_embeddings_need_grid_fields():
+    with pytest.raises(ValueError, match='--appearance-embedding must be 0 for MLP fields'):
+        TrainConfig.from_options(field='nerf', appearance_embedding=4)
+    with pytest.raises(ValueError, match='--appearance-embedding must be a whole number'):
+        TrainConfig.from_options(appearance_embedding=-1)

@@ -11,7 +11,7 @@ from mi_nerfpp.data.synth import (DEFAULT_FOV, DEFAULT_RADIUS, DEFAULT_RES,
                                   DEFAULT_TRAJECTORY, DEFAULT_VIEWS,
                                   TRAJECTORIES, synthesize)
 from mi_nerfpp.data.synth.capture import write_object_masks
-from mi_nerfpp.data.synth.realistic import CLEAN_FOLDER, PHONE_RES, realistic_copy
+from mi_nerfpp.data.synth.realistic import CLEAN_FOLDER, PHONE_RES, Realism, realistic_copy
 from mi_nerfpp.files.atomic import check_not_a_file
 
 
@@ -26,7 +26,8 @@ def run(args) -> None:
         print(f'wrote {count} object masks to {clean}/{{train,validation,test}}/mask/ '
               f'(train with --masks object)')
     if args.realistic:
-        realistic_copy(clean, args.out, seed=args.seed)
+        realism = Realism.in_the_wild() if args.realistic == 'wild' else Realism()
+        realistic_copy(clean, args.out, realism, seed=args.seed)
         print(f'wrote the realistic stand-in to {args.out} (transforms_*.json; the clean '
               f'capture it was made from in {clean})')
 
@@ -70,13 +71,15 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help='also write each view\'s object silhouette as its mask '
                         '(DATA/{split}/mask/*.png, white where the first surface seen lies in '
                         'the foreground sphere: the ground truth\'s fg.A), for --masks object')
-    p.add_argument('--realistic', action='store_true',
+    p.add_argument('--realistic', nargs='?', const='phone', choices=('phone', 'wild'),
                    help='a stand-in of a phone capture: the clean capture goes to '
                         f'DATA/{CLEAN_FOLDER}/, and DATA gets its training photos with lens '
                         'distortion, auto-exposure, sensor noise, JPEG, motion blur on some, '
                         'a transient object on a few and small pose errors '
                         '(transforms_*.json; held-out views stay clean). A phone photo is '
                         f'{PHONE_RES[0]}x{PHONE_RES[1]}: --res {PHONE_RES[0] // 4}x'
-                        f'{PHONE_RES[1] // 4} is a quarter of it')
+                        f'{PHONE_RES[1] // 4} is a quarter of it. --realistic wild: a photo '
+                        'collection of many people over years instead (wider exposure, the sky '
+                        'and the haze changing from photo to photo, passers-by in a third)')
     p.set_defaults(func=run)
     return p

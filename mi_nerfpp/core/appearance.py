@@ -18,6 +18,14 @@ The parameters are one ``(n_images, 6)`` tensor ``[g_r, g_g, g_b, b_r, b_g, b_b]
 the checkpoint as ``param/appearance``. Rendering is neutral unless the integrator is asked for
 a training image's transform (``appearance_image``).
 
+``--appearance-embedding DIMS`` learns, beside or instead of the transform, a code of ``DIMS``
+numbers per training image (NeRF-W's appearance embedding) that both colour networks take with
+the view direction (:attr:`mi_nerfpp.core.fields.GridField.appearance_code`): what an affine
+transform cannot express - a different sky, haze over the distance - is explained per photo
+instead of averaged into the volumes. The codes start at zero and an L2 prior keeps them near
+it, so the zero code is a photo of typical appearance: renders use it unless asked for a
+training image's (``appearance_image``). They are stored as ``param/embedding``, (n, DIMS).
+
 Held-out photos have their own exposure, unknown to the model: :func:`fit_affine` fits it as
 NeRF-W evaluates (the transform of a test image is fitted on its left half - closed-form linear
 least squares in linear light - and the right half is scored).
@@ -29,8 +37,8 @@ import mitsuba as mi
 import numpy as np
 
 PARAMS = 6                  # log-gain and bias per channel
-LR_APPEARANCE = 0.02        # Adam learning rate of the transforms
-PRIOR = 1e-3                # weight of the L2 prior towards the identity
+LR_APPEARANCE = 0.02        # Adam learning rate of the transforms (and of the embeddings)
+PRIOR = 1e-3                # weight of the L2 prior towards the identity (and towards zero)
 
 
 def identity(n_images: int) -> mi.TensorXf:
@@ -65,6 +73,28 @@ def single(params, index: int) -> tuple[np.ndarray, np.ndarray]:
     """``(gain, bias)`` of one image (3-vectors)."""
     gains, biases = gains_biases(params)
     return gains[index], biases[index]
+
+
+# ----------------------------------------------------------------------------- embeddings
+
+def zero_embeddings(n_images: int, dims: int) -> mi.TensorXf:
+    """The appearance embeddings of ``n_images`` images, ``dims`` each, at the neutral code."""
+    if n_images < 1 or dims < 1:
+        raise ValueError(f'appearance embeddings need images and dimensions, got {n_images} '
+                         f'images of {dims}')
+    return dr.zeros(mi.TensorXf, (n_images, dims))
+
+
+def codes(embeddings: mi.TensorXf, image) -> list:
+    """The embedding of image ``image[k]`` (UInt32 per ray) for each ray: ``dims`` Floats."""
+    dims = embeddings.shape[1]
+    image = mi.UInt32(image)
+    return [dr.gather(mi.Float, embeddings.array, image * dims + j) for j in range(dims)]
+
+
+def image_code(embeddings, index: int) -> list:
+    """One training image's embedding as ``dims`` Python floats (a render's code)."""
+    return [float(v) for v in np.asarray(embeddings, dtype=np.float64)[index]]
 
 
 # ----------------------------------------------------------------------------- evaluation

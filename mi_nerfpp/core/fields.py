@@ -353,8 +353,15 @@ class GridField(Field):
     def __init__(self, domain, resolutions=(32, 128), channels=4, hidden=32, dir_octaves=2,
                  density_bias=-3.0, density_activation='exp', color_layers=1, s_ratio=0.5,
                  warp_radius=0.0, color='deferred', antialias=False, planes=(), init=0.1,
-                 sparse=(), sparse_blocks=None, sparse_s=None, seed=0):
+                 sparse=(), sparse_blocks=None, sparse_s=None, appearance_dims=0, seed=0):
         super().__init__(domain)
+        self.appearance_dims = int(appearance_dims)
+        if self.appearance_dims < 0:
+            raise ValueError(f'GridField appearance_dims must be >= 0, got {appearance_dims}')
+        # The appearance code of each ray (``appearance_dims`` Floats, one value per ray, or
+        # one value for all of them), set by whoever renders (:meth:`mi_nerfpp.core.model.
+        # NeRFPPModel.set_appearance`); None: the neutral code, zero.
+        self.appearance_code = None
         self.init = float(init)
         if not self.init >= 0:
             raise ValueError(f'GridField init must be a standard deviation >= 0, got {init}')
@@ -428,8 +435,8 @@ class GridField(Field):
         n_feat = (len(self.resolutions) + len(self.planes) + len(self.sparse)) \
             * (self.channels - 1)
         n_dir = 3 * (1 + 2 * self.dir_octaves)
-        self.color_net = _LateNet(self, 'color', n_feat, n_dir, [self.hidden] * self.color_layers,
-                                  3, rng)
+        self.color_net = _LateNet(self, 'color', n_feat, n_dir + self.appearance_dims,
+                                  [self.hidden] * self.color_layers, 3, rng)
 
     def _grid_shape(self, r, level):
         """Tensor shape (Z, Y, X) of a level at resolution ``r``: texture axes are (x, y, z) =
@@ -457,6 +464,8 @@ class GridField(Field):
         if self.sparse:            # (so that files without sparse levels stay as they were)
             cfg.update(sparse=self.sparse, sparse_blocks=self.sparse_blocks,
                        sparse_s=self.sparse_s)
+        if self.appearance_dims:
+            cfg.update(appearance_dims=self.appearance_dims)
         return cfg
 
     def allocated_bricks(self):
@@ -598,15 +607,25 @@ class GridField(Field):
     def color(self, features, d):
         """Colour (Color3f in [0, 1]) of composited ``features`` (one list entry per feature
         channel, one value per ray) seen along unit directions ``d`` (one per ray)."""
-        out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves))
+        out = self.color_net(features, self._ray_inputs(d))
         return mi.Color3f(*[sigmoid(o) for o in out])
 
     def sample_color(self, features, d, ray):
         """Per-sample colour (``color='sample'``) of samples with ``features`` (one list entry
         per feature channel, one value per sample) on rays ``ray`` of unit directions ``d``
         (one per ray)."""
-        out = self.color_net(features, positional_encoding([d.x, d.y, d.z], self.dir_octaves), ray)
+        out = self.color_net(features, self._ray_inputs(d), ray)
         return mi.Color3f(*[sigmoid(o) for o in out])
+
+    def _ray_inputs(self, d):
+        """What the colour network takes once per ray: the encoded direction and the ray's
+        appearance code (zero unless set, :attr:`appearance_code`)."""
+        inputs = positional_encoding([d.x, d.y, d.z], self.dir_octaves)
+        if self.appearance_dims:
+            zero = dr.zeros(mi.Float, dr.width(d.x))
+            code = self.appearance_code or [0.0] * self.appearance_dims
+            inputs += [zero + c for c in code]      # one value per ray
+        return inputs
 
     def __call__(self, x, d, ray, width=None):
         """Per-sample colour (``color='sample'``): the colour MLP at every sample."""

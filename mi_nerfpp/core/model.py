@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-from mi_nerfpp.core.appearance import identity
+from mi_nerfpp.core.appearance import identity, zero_embeddings
 from mi_nerfpp.core.fields import make_field
 from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.core.occupancy import DEFAULT_DECAY, OccupancyGrid
@@ -94,7 +94,7 @@ class NeRFPPModel:
 
     def __init__(self, fg, bg=None, normalization=Normalization(), color_space='srgb',
                  occupancy=None, composite='linear', appearance_images=0, pose_images=0,
-                 sampling=None, coverage=None):
+                 sampling=None, coverage=None, embedding_images=0):
         self.fg, self.bg = fg, bg
         # The colour painted where no training view looked (:mod:`.coverage`); None: none.
         self.coverage = coverage
@@ -103,6 +103,16 @@ class NeRFPPModel:
         self.appearance = None
         if appearance_images:
             self.appearance = identity(appearance_images)
+        # Per-training-image appearance codes of the colour networks (:mod:`.appearance`,
+        # as many numbers each as the fields' ``appearance_dims``); None: off.
+        self.embedding = None
+        dims = self.appearance_dims
+        if embedding_images and not dims:
+            raise ValueError('appearance embeddings need fields with appearance_dims > 0')
+        if dims and not embedding_images:
+            raise ValueError(f'fields with appearance_dims {dims} need appearance embeddings')
+        if embedding_images:
+            self.embedding = zero_embeddings(embedding_images, dims)
         # Per-training-image camera pose corrections (:mod:`.poses`); None: off.
         self.poses = None
         if pose_images:
@@ -157,6 +167,8 @@ class NeRFPPModel:
                 'normalization': self.normalization.to_config(), 'color_space': self.color_space,
                 'composite': self.composite, 'appearance_images': self.appearance_images,
                 'pose_images': self.pose_images,
+                **({'embedding_images': self.embedding_images} if self.embedding is not None
+                   else {}),
                 'sampling': dataclasses.asdict(self.sampling),
                 'occupancy': {k: g.config for k, g in self.occupancy.items()}}
 
@@ -164,6 +176,24 @@ class NeRFPPModel:
     def appearance_images(self):
         """Number of training images with a colour transform (0: no appearance model)."""
         return 0 if self.appearance is None else self.appearance.shape[0]
+
+    @property
+    def appearance_dims(self) -> int:
+        """Numbers per appearance code the grid fields' colour networks take (0: none)."""
+        return max(int(getattr(f, 'appearance_dims', 0)) for f in (self.fg, self.bg)
+                   if f is not None)
+
+    @property
+    def embedding_images(self):
+        """Number of training images with an appearance embedding (0: none)."""
+        return 0 if self.embedding is None else self.embedding.shape[0]
+
+    def set_appearance(self, code=None):
+        """The appearance code the colour networks render with: ``appearance_dims`` Floats
+        (one value per ray, or one for all) or None, the neutral (zero) code."""
+        for field in (self.fg, self.bg):
+            if field is not None and getattr(field, 'appearance_dims', 0):
+                field.appearance_code = None if code is None else list(code)
 
     @property
     def pose_images(self):
@@ -190,6 +220,8 @@ class NeRFPPModel:
             out.update({f'bg.{k}': v for k, v in self.bg.params.items()})
         if self.appearance is not None:
             out['appearance'] = self.appearance
+        if self.embedding is not None:
+            out['embedding'] = self.embedding
         if self.poses is not None:
             out['poses'] = self.poses
         return out
@@ -225,12 +257,13 @@ class NeRFPPModel:
                 raise KeyError(f'model has no {volume} field for parameters {sorted(sub)}')
             if sub:
                 field.set_parameters(sub)
-        for name, what in (('appearance', 'appearance transforms'), ('poses', 'pose corrections')):
+        for name, what in (('appearance', 'appearance transforms'), ('poses', 'pose corrections'),
+                           ('embedding', 'appearance embeddings')):
             if name in values:
                 if getattr(self, name) is None:
                     raise KeyError(f'model has no {what}')
                 setattr(self, name, values[name])
         unknown = [k for k in values if not k.startswith(('fg.', 'bg.'))
-                   and k not in ('appearance', 'poses')]
+                   and k not in ('appearance', 'poses', 'embedding')]
         if unknown:
             raise KeyError(f'unknown parameter names {unknown}')

@@ -11,6 +11,8 @@ Keys:
   :mod:`~mi_nerfpp.core.appearance`; missing or 0: none),
   "pose_images": n (per-image camera corrections, ``param/poses`` of shape (n, 6),
   :mod:`~mi_nerfpp.core.poses`; missing or 0: none),
+  "embedding_images": n (per-image appearance codes, ``param/embedding`` of shape (n, d), d the
+  fields' ``appearance_dims``, :mod:`~mi_nerfpp.core.appearance`; missing: none),
   "sampling": {"fg_samples": n, "bg_samples": n, "fine_samples": n, "near": t} (the samples
   per ray the model is rendered with, :class:`~mi_nerfpp.core.model.RenderSettings`; missing in
   files written before it: those of the training config in ``meta``, else
@@ -201,6 +203,7 @@ def load_checkpoint(path, seed=0):
                             composite=config.get('composite', 'srgb'),
                             appearance_images=int(config.get('appearance_images', 0)),
                             pose_images=int(config.get('pose_images', 0)),
+                            embedding_images=int(config.get('embedding_images', 0)),
                             sampling=_sampling(config))
         model.set_bricks({k[len('bricks/'):]: v for k, v in z.items()
                           if k.startswith('bricks/')})

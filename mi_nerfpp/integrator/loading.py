@@ -32,11 +32,12 @@ def load_model(name: str):
 
 
 def check_appearance(model, index: int):
-    """Refuse an ``appearance_image`` the model has no colour transform for."""
-    n = model.appearance_images
+    """Refuse an ``appearance_image`` the model has no colour transform or embedding for."""
+    n = max(model.appearance_images, model.embedding_images)
     if index >= n:
-        have = (f'transforms for training images 0..{n - 1}' if n else
-                'no appearance transforms (train with --appearance)')
+        have = (f'an appearance for training images 0..{n - 1}' if n else
+                'no appearance per training image (train with --appearance or '
+                '--appearance-embedding)')
         raise ValueError(f"nerfpp: parameter 'appearance_image' is {index} "
                          f"but the model has {have}; -1 renders neutral")
 

@@ -139,10 +139,12 @@ class NeRFPPIntegrator(ADIntegrator):
          memory. (Default: 32768)
      * - appearance_image
        - |int|
-       - Render with the colour transform (exposure, white balance) learned for
-         this training image of a model trained with ``--appearance``; -1 renders
-         neutral (the model's own colour, that of training image 0). An index
-         the model has no transform for is refused. (Default: -1)
+       - Render with the appearance learned for this training image: its colour
+         transform (exposure, white balance) of a model trained with
+         ``--appearance``, its appearance code of one trained with
+         ``--appearance-embedding``; -1 renders neutral (the model's own colour,
+         that of training image 0, and the zero code). An index the model has no
+         appearance for is refused. (Default: -1)
      * - max_samples
        - |int|
        - Largest film (pixels times samples per pixel) a render accepts; larger

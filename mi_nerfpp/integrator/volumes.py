@@ -11,6 +11,7 @@ from tqdm import tqdm
 from mi_nerfpp.core.color import srgb_to_linear
 from mi_nerfpp.core.layers import BACKGROUND_WEIGHT_FLOOR, layer_channels
 from mi_nerfpp.core.render import render_rays, surface_distance
+from mi_nerfpp.core.appearance import image_code
 from mi_nerfpp.integrator.loading import appearance_transform
 
 
@@ -46,6 +47,10 @@ class VolumeRenderer:
         if not camera:      # path segments that leave a surface: from their origin on
             sampling = dataclasses.replace(sampling, near=0.0)
         keep_samples = record is not None and camera and transform
+        # The colour networks' appearance code: a training image's when asked, else neutral.
+        chosen = ig.appearance_image >= 0 and transform and model.embedding is not None
+        model.set_appearance(image_code(model.embedding, ig.appearance_image) if chosen
+                             else None)
         # 1-3. Sample both volumes, quadrature, Eq. 4 (a recorded render keeps its samples).
         res = render_rays(*norm.to_model_rays(o, d), fg_field,
                           bg_field if ig.background else None, sampling, seed,
@@ -55,6 +60,7 @@ class VolumeRenderer:
                           footprint=footprint if model.antialias else None,
                           fused=primal and not keep_samples,
                           coverage=model.coverage if ig.fill_unseen else None)
+        model.set_appearance(None)
         # 4. The layers.
         fg = res.fg.fine
         L, fg_rgb, alpha = res.fine.rgb, fg.rgb, dr.clip(fg.opacity, 0.0, 1.0)
@@ -65,7 +71,7 @@ class VolumeRenderer:
             # alpha is 0 or 1.
             L, bg = srgb_to_linear(L), srgb_to_linear(bg)
             fg_rgb = alpha * srgb_to_linear(fg_rgb / dr.maximum(alpha, 1e-6))
-        if ig.appearance_image >= 0 and transform:
+        if ig.appearance_image >= 0 and transform and model.appearance is not None:
             # c' = g·c + b on the beauty; fg' = g·fg + α·b and bg' = g·bg + b keep
             # beauty = fg' + (1 - α)·bg'.
             gain, bias = appearance_transform(model, ig.appearance_image)

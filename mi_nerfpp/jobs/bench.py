@@ -213,7 +213,7 @@ def without_and_with(dataset, cfg, out, option, fit_appearance=None, observer=No
         trainer = run.start(run.RunInputs(dataset.root, dataset, config, folder),
                             observer=observer)
         run.train(trainer, observer)
-        fit = config.model.appearance if fit_appearance is None else fit_appearance
+        fit = config.model.per_photo_appearance if fit_appearance is None else fit_appearance
         yield on, config, trainer, evaluate_split(trainer.model, trainer.test,
                                                   os.path.join(folder, 'test'),
                                                   fit_appearance=fit)

@@ -237,7 +237,8 @@ def choose_masks(config: TrainConfig, dataset, stored: dict, observer) -> TrainC
                 'none': 'not used'}[meaning]
         observer.notice(f'masks: {with_mask} of {len(found)} training photos have one; '
                         f'--masks {meaning}: {what} (--masks ignore|object|none to change)')
-    return config.replace(masks=meaning)
+        return config.replace(masks=meaning)
+    return config
 
 
 def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool = False,
@@ -493,7 +494,7 @@ def train(trainer, observer: RunObserver | None = None) -> Training:
         while eval_at and tr.elapsed >= 60 * eval_at[0] and len(test_views):
             minute = eval_at.pop(0)
             r = evaluate_split(tr.model, test_views, os.path.join(out, f'test_at_{minute:g}min'),
-                               fit_appearance=cfg.model.appearance,
+                               fit_appearance=cfg.model.per_photo_appearance,
                                masks=tr.cfg.losses.masks or 'none')
             point = {'minutes': minute, 'iteration': tr.iteration, 'psnr': r['psnr'],
                      'ssim': r['ssim']}

@@ -52,6 +52,9 @@ MAX_SEED = 2 ** 64 - 2
 # frequencies 2^k beyond float32's 24-bit mantissa are noise.
 MAX_COLOR_LAYERS = 64
 MAX_DIR_OCTAVES = 24
+# The largest --appearance-embedding: NeRF-W's codes have 48 numbers; each is an input of the
+# colour networks' per-ray layer.
+MAX_APPEARANCE_DIMS = 64
 # The budget of a run given neither iterations nor minutes (:func:`default_minutes`): the
 # default capture's training pixels (48 views of 128x96) get DEFAULT_JOB_MINUTES, other
 # captures minutes in proportion to the square root of their training pixels, within these
@@ -235,10 +238,23 @@ class ModelOptions(_Options):
                               'bias) per training image; training image 0 is the reference; '
                               'held-out views are then scored NeRF-W style (transform fitted on '
                               'the left half, right half scored)', shapes_model=True)
+    appearance_embedding: int = option(0, 'learn a code of this many numbers per training '
+                                       "image that both colour networks take (NeRF-W's "
+                                       'appearance embedding): a sky or a haze that changes from '
+                                       'photo to photo is explained per photo instead of '
+                                       'fogging the volumes; renders use the neutral (zero) '
+                                       'code; grid fields only (0: none)', metavar='DIMS',
+                                       shapes_model=True)
     refine_poses: bool = option(False, 'learn an SE(3) correction of each training camera '
                                 '(rotation about its centre, translation) jointly with the '
                                 'fields; training image 0 is the reference; held-out views keep '
                                 'their given poses', shapes_model=True)
+
+    @property
+    def per_photo_appearance(self) -> bool:
+        """Whether each training photo has an appearance of its own (a colour transform or an
+        embedding): held-out photos are then scored with theirs fitted (NeRF-W)."""
+        return self.appearance or self.appearance_embedding > 0
 
     def _validate(self):
         if self.kind not in MODEL_KINDS:
@@ -256,6 +272,11 @@ class ModelOptions(_Options):
                     f'kernels)')
         self._check(('density_bias',), _finite, 'a finite number')
         self._check(('grid_init',), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+        self._check(('appearance_embedding',), lambda v: isinstance(v, int) and 0 <= v
+                    <= MAX_APPEARANCE_DIMS, f'a whole number from 0 to {MAX_APPEARANCE_DIMS}')
+        if self.appearance_embedding and 'grid' not in (self.field, self.bg_field or self.field):
+            self._bad('appearance_embedding', '0 for MLP fields (the codes condition the grid '
+                      "fields' colour networks)")
         if not self.grid_levels or min(self.grid_levels) < 2:
             self._bad('grid_levels', 'one or more resolutions of at least 2')
         if self.bg_grid_levels is not None and (not self.bg_grid_levels
@@ -675,7 +696,8 @@ class TrainConfig:
                     color_layers=m.color_layers, hidden=m.color_width,
                     color=m.bg_color if domain == 'inverted_sphere' else m.color,
                     density_bias=m.density_bias, antialias=m.antialias, init=m.grid_init,
-                    planes=list(m.planes(domain)), **extra)
+                    planes=list(m.planes(domain)), appearance_dims=m.appearance_embedding,
+                    **extra)
 
     @property
     def render_sampling(self) -> Sampling:
@@ -778,6 +800,7 @@ def weight_options(weights: dict) -> dict:
     --coarse-to-fine grows them during the run.)"""
     out = {'model': 'nerf' if weights.get('bg') is None else 'nerfpp',
            'appearance': int(weights.get('appearance_images', 0)) > 0,
+           'appearance_embedding': int((weights.get('fg') or {}).get('appearance_dims', 0)),
            'refine_poses': int(weights.get('pose_images', 0)) > 0}
     if weights.get('color_space', 'srgb') == 'srgb':
         out['composite'] = weights.get('composite', 'srgb')

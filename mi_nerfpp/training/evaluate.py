@@ -185,7 +185,7 @@ def finish_run(out, model, held_out, cfg, checkpoint_path, metrics, progress=Non
     if len(held_out):
         metrics['test'] = evaluate_split(model, held_out, os.path.join(out, 'test'),
                                          progress=progress,
-                                         fit_appearance=cfg.model.appearance,
+                                         fit_appearance=cfg.model.per_photo_appearance,
                                          masks=cfg.losses.masks or 'none')
         norm = model.normalization
         write_render_xml(os.path.join(out, 'render.xml'), checkpoint_path,

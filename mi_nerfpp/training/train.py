@@ -315,7 +315,8 @@ class Trainer:
         if self.masks != 'none' and self.train.masks is None:
             raise TrainingError(f'--masks {self.masks}: no training photo has a mask (see '
                                 f'docs/data.md, "Masks", for where masks are looked for)')
-        self.cfg = config = config.replace(masks=self.masks)
+        if self.train.masks is not None:        # (a capture without masks stores none)
+            self.cfg = config = config.replace(masks=self.masks)
         self.rays = RayBank(self.train, masks=True) if self.masks != 'none' else RayBank(self.train)
         if config.schedule.iterations is None and config.schedule.minutes is None:
             # No budget given (:func:`mi_nerfpp.jobs.run.prepare` chooses and announces it first).
@@ -348,6 +349,7 @@ class Trainer:
                 normalization=normalization,
                 color_space=dataset.color_space, composite=m.composite,
                 appearance_images=len(self.train) if m.appearance else 0,
+                embedding_images=len(self.train) if m.appearance_embedding else 0,
                 pose_images=len(self.train) if m.refine_poses else 0,
                 fg_config=config.field_config(m.field, 'ball'),
                 bg_config=config.field_config(m.bg_field, 'inverted_sphere'),
@@ -452,7 +454,8 @@ class Trainer:
         o = self.cfg.optimizer
         self._coarse_to_fine()
         optim.set_learning_rates(self.opt, self.progress(), o.lr_grid, o.lr_mlp, o.lr_final,
-                                 {'appearance': o.lr_appearance, 'poses': o.lr_poses})
+                                 {'appearance': o.lr_appearance, 'embedding': o.lr_appearance,
+                                  'poses': o.lr_poses})
         refresh = self.iteration % self.cfg.sampling.occupancy_every == 0
         # Not with coarse-to-fine grids: a resampled level's moments start anew, so that zero
         # moments no longer tell which cells were seen.
@@ -481,6 +484,7 @@ class Trainer:
         try:
             loss, fine, per_ray = self._compute(inputs)
         finally:
+            self.model.set_appearance(None)     # renders outside the step: the neutral code
             if llvm:
                 dr.set_expand_threshold(threshold)
                 dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
@@ -592,6 +596,8 @@ class Trainer:
         if model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
             params = opt['poses'] if refine else dr.detach(opt['poses'])
             o, d = poses.correct_rays(params, rays.images(index), o, d)
+        if model.embedding is not None:     # each ray's photo's code (:mod:`.appearance`)
+            model.set_appearance(app.codes(opt['embedding'], rays.images(index)))
         res = render_rays(o, d, *model.radiance_fields(), model.sampling, seed=draws['seed'],
                           occupancy=occupancy, ray_gradients=refine,
                           near_gradient=self.near_gradient, footprint=footprint)
@@ -616,6 +622,8 @@ class Trainer:
                    dr.detach(optim.luminance(pred)), dr.detach(optim.luminance(gt)))
         if model.appearance is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])
+        if model.embedding is not None and cfg.appearance_prior > 0:
+            loss += cfg.appearance_prior * app.prior(opt['embedding'])
         if cfg.distortion > 0 and cfg.distortion_scope == 'ray':
             loss += cfg.distortion * dr.mean(ray_distortion(res))
         elif cfg.distortion > 0:

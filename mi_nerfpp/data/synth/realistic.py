@@ -7,6 +7,8 @@ capture (:func:`mi_nerfpp.data.synth.synthesize`, whose ``gt/*.exr`` hold the li
 into a ``transforms.json`` dataset whose *training* photos carry, in the order a camera applies
 them:
 
+0. **weather** (off unless asked, :meth:`Realism.in_the_wild`): the sky tinted and a grey haze
+   over the distance, both changing from view to view;
 1. **transients**: an opaque object (a person-sized shape of one colour, shaded) in a few views;
 2. **motion blur**: a straight streak of ``blur_length`` of the width in a share of the views;
 3. **lens distortion**: OpenCV's ``k1 k2 p1 p2``, written into ``transforms_train.json`` (the
@@ -81,6 +83,12 @@ class Realism:
     pose_fraction: float = 0.003
     # Transients: the share of training views with an object no other view has.
     transient_share: float = 0.05
+    # Weather, per view (a collection shot over years: clear to overcast): the sky (what no
+    # surface hides, depth 0) tinted by up to this many stops per channel, and a haze of a
+    # per-view grey blended over the surfaces with weight haze * u * (1 - exp(-z / HAZE_DEPTH))
+    # (u uniform in [0, 1]); 0: the scene looks the same in every photo.
+    sky_stops: float = 0.0
+    haze: float = 0.0
     # Whether the training photos ship masks (``masks/train/NNNNNN.png``, named by each frame's
     # ``mask_path``): black on the transient, white elsewhere, as a capture whose people were
     # masked (:mod:`mi_nerfpp.data.masks`). Phone captures ship none: off by default.
@@ -88,6 +96,15 @@ class Realism:
 
     def lens(self) -> bool:
         return any(v != 0 for v in (self.k1, self.k2, self.p1, self.p2))
+
+    @classmethod
+    def in_the_wild(cls) -> 'Realism':
+        """A photo collection of one place by many people over years (issue 60): the phone's
+        degradations, exposure and white balance twice as wide, the weather changing the sky
+        and the haze from photo to photo, and a passer-by or a vehicle in a third of the
+        photos."""
+        return cls(exposure_stops=0.8, white_balance=0.16, sky_stops=0.6, haze=0.5,
+                   transient_share=0.3)
 
     def without(self, *names: str) -> 'Realism':
         """This realism with the named degradations switched off (see :data:`DEGRADATIONS`)."""
@@ -109,7 +126,10 @@ DEGRADATIONS = {
     'blur': ('blur_share',),
     'poses': ('pose_degrees', 'pose_fraction'),
     'transients': ('transient_share',),
+    'weather': ('sky_stops', 'haze'),
 }
+# The distance (world units) over which the haze of :attr:`Realism.haze` builds up.
+HAZE_DEPTH = 15.0
 
 
 def realistic_copy(src, out, realism: Realism = Realism(), seed: int = 0,
@@ -208,6 +228,8 @@ def _degrade(src, stem, K, pose, index, r: Realism, rng, radius, blur, transient
     linear = np.nan_to_num(np.maximum(linear, 0.0))
     h, w = linear.shape[:2]
     view = {}
+    if r.sky_stops > 0 or r.haze > 0:
+        linear = _weather(linear, layers['depth.Z'], r, rng, view)
     if transient:
         mask = _transient_mask(h, w, rng)
         colour = rng.uniform(0.02, 0.6, 3)
@@ -256,6 +278,19 @@ def _write_mask(out: str, stem: str, transient, size, K: np.ndarray, r: Realism)
     with atomic_write_path(os.path.join(out, name)) as tmp:
         iio.imwrite(tmp, np.where(keep > 0.5, 255, 0).astype(np.uint8), extension='.png')
     return name
+
+
+def _weather(linear, depth, r: Realism, rng, view) -> np.ndarray:
+    """One photo's weather (:attr:`Realism.sky_stops`, :attr:`Realism.haze`), recorded in
+    ``view``."""
+    sky = (depth <= 0)[..., None]
+    tint = 2.0 ** rng.uniform(-r.sky_stops, r.sky_stops, 3)
+    amount = r.haze * rng.uniform(0.0, 1.0)
+    grey = rng.uniform(0.3, 0.8)
+    weight = (amount * (1.0 - np.exp(-np.maximum(depth, 0.0) / HAZE_DEPTH)))[..., None]
+    view['weather'] = {'sky_gain': [float(t) for t in tint], 'haze': float(amount),
+                       'haze_grey': float(grey)}
+    return np.where(sky, linear * tint, (1.0 - weight) * linear + weight * grey)
 
 
 def _unit(rng) -> np.ndarray:

@@ -15,11 +15,12 @@ import os
 
 from tqdm import tqdm
 
-from mi_nerfpp.commands.arguments import positive_int, resolution
+from mi_nerfpp.commands.arguments import positive_int, resolution, whole_between
 from mi_nerfpp.core import budget
 from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.jobs.cluster import (FramePool, FrameWorker, check_address,
                                     cluster_cpus, session, timeout_line)
+from mi_nerfpp.integrator.loading import check_appearance
 from mi_nerfpp.jobs.run import open_run
 from mi_nerfpp.output.camera_path import (DEFAULT_FPS, path_cameras,
                                           read_path, write_path)
@@ -53,6 +54,10 @@ def add_parser(sub):
                         '(default); --no-skip-empty samples whole rays: slower, and paths that '
                         'leave the captured ring show no rectangular cells where few training '
                         'rays looked')
+    p.add_argument('--appearance-image', type=whole_between(-1, 2 ** 31 - 1), default=-1,
+                   metavar='N', help="render with training image N's appearance (its colour "
+                   'transform of --appearance, its code of --appearance-embedding); -1: the '
+                   'neutral appearance (default)')
     p.add_argument('--frames-dir', metavar='DIR',
                    help='where the frames go (default: the output path without its extension, '
                         'plus _frames); frames already there are not rendered again')
@@ -93,7 +98,15 @@ def cameras_of(args):
     job.update(frames=len(cameras), size=[cameras[0].width, cameras[0].height])
     if not args.skip_empty:              # frames of whole rays are another video's
         job['skip_empty'] = False
+    if args.appearance_image >= 0:       # ... and so are frames of another appearance
+        check_appearance(model, args.appearance_image, flag='--appearance-image')
+        job['appearance_image'] = args.appearance_image
     return checkpoint, cameras, job
+
+
+def look(args) -> dict:
+    """How the frames are rendered (:class:`~mi_nerfpp.output.views.ViewRenderer`'s options)."""
+    return {'skip_empty': args.skip_empty, 'appearance_image': args.appearance_image}
 
 
 def check_frames(count, width, height, what, size_what=None):
@@ -175,15 +188,14 @@ def run(args):
         if pending and args.ray:
             render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar)
         elif pending:
-            render_here(checkpoint, cameras, pending, frames_dir, args.exr, bar,
-                        args.skip_empty)
+            render_here(checkpoint, cameras, pending, frames_dir, args.exr, bar, look(args))
     remove_stale_temporaries(frames_dir)
     write_video(out, read_frames(frames_dir, len(cameras)), fps=video_fps(args))
     print(f'wrote {out} ({len(cameras)} frames; frames in {frames_dir})')
 
 
-def render_here(checkpoint, cameras, pending, frames_dir, exr, bar, skip_empty=True):
-    FrameWorker(checkpoint, skip_empty=skip_empty).render(
+def render_here(checkpoint, cameras, pending, frames_dir, exr, bar, look=None):
+    FrameWorker(checkpoint, look=look).render(
         {i: cameras[i] for i in pending}, frames_dir, exr, on_frame=lambda i: bar.update(1))
 
 
@@ -193,7 +205,7 @@ def render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar):
         workers = min(workers, len(pending))
         bar.write(f'rendering {len(pending)} frames on {workers} Ray workers of '
                   f'{args.worker_cpus} CPU(s)')
-        pool = FramePool(checkpoint, workers, args.worker_cpus, args.skip_empty)
+        pool = FramePool(checkpoint, workers, args.worker_cpus, look(args))
         try:
             pool.render(cameras, pending, os.path.abspath(frames_dir), args.exr,
                         on_frames=bar.update)

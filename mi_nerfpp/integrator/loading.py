@@ -31,14 +31,16 @@ def load_model(name: str):
     return model, meta
 
 
-def check_appearance(model, index: int):
-    """Refuse an ``appearance_image`` the model has no colour transform or embedding for."""
+def check_appearance(model, index: int, flag: str | None = None):
+    """Refuse an ``appearance_image`` the model has no colour transform or embedding for
+    (``flag``: the command-line option that gave it, named instead of the parameter)."""
     n = max(model.appearance_images, model.embedding_images)
     if index >= n:
         have = (f'an appearance for training images 0..{n - 1}' if n else
                 'no appearance per training image (train with --appearance or '
                 '--appearance-embedding)')
-        raise ValueError(f"nerfpp: parameter 'appearance_image' is {index} "
+        what = flag or "nerfpp: parameter 'appearance_image'"
+        raise ValueError(f"{what} is {index} "
                          f"but the model has {have}; -1 renders neutral")
 
 

@@ -175,10 +175,11 @@ class FrameWorker:
     :class:`FramePool` (a Ray actor with ``threads`` CPUs), or the renderer of the
     single-process command (``threads=None``)."""
 
-    def __init__(self, checkpoint, threads=None, skip_empty=True):
+    def __init__(self, checkpoint, threads=None, look=None):
         if threads:
             set_threads(threads)
-        self.checkpoint, self.renderer, self.skip_empty = checkpoint, None, skip_empty
+        # How the frames are rendered: ViewRenderer's skip_empty and appearance_image.
+        self.checkpoint, self.renderer, self.look = checkpoint, None, dict(look or {})
 
     def load(self, checkpoint_data=None):
         """Build the renderer of the checkpoint: from its path where this process sees it,
@@ -195,7 +196,7 @@ class FrameWorker:
                     f.write(ray.get(checkpoint_data[0]))
                 model, _, _ = load_checkpoint(local)
         # With the model's render settings (whole rays without ``skip_empty``).
-        self.renderer = ViewRenderer(model, skip_empty=self.skip_empty)
+        self.renderer = ViewRenderer(model, **self.look)
         return self.renderer
 
     def pid(self):
@@ -213,7 +214,7 @@ class FramePool:
     """``workers`` Ray actors of ``cpus`` CPUs each rendering frames of the checkpoint at
     ``checkpoint`` (a path on the driver)."""
 
-    def __init__(self, checkpoint, workers, cpus=1, skip_empty=True):
+    def __init__(self, checkpoint, workers, cpus=1, look=None):
         ray = import_ray()
         self.ray = ray
         checkpoint = os.path.abspath(checkpoint)
@@ -221,7 +222,7 @@ class FramePool:
             self.data = [ray.put(f.read())]   # fetched only by workers that cannot see the path
         actor = ray.remote(FrameWorker).options(num_cpus=cpus, max_restarts=WORKER_RESTARTS,
                                                 max_task_retries=WORKER_RESTARTS)
-        self.actors = [actor.remote(checkpoint, cpus, skip_empty) for _ in range(workers)]
+        self.actors = [actor.remote(checkpoint, cpus, look) for _ in range(workers)]
 
     def pids(self):
         """The process ids of the workers (after they started)."""

@@ -121,12 +121,15 @@ class ViewRenderer:
     (:attr:`~mi_nerfpp.core.model.NeRFPPModel.render_settings`: the sample counts it was trained
     with, its background); ``sampling`` and ``background`` override them. ``skip_empty=False``
     samples whole rays (the integrator's ``skip_empty``); ``chunk_rays``: the integrator's
-    (its default when None)."""
+    (its default when None); ``appearance_image``: render with that training image's appearance
+    (the integrator's; -1: neutral)."""
 
     def __init__(self, model, sampling: Sampling | None = None, background: bool | None = None,
-                 skip_empty: bool = True, chunk_rays: int | None = None):
+                 skip_empty: bool = True, chunk_rays: int | None = None,
+                 appearance_image: int = -1):
         self.model = model
-        integrator = {'type': 'nerfpp', 'skip_empty': bool(skip_empty)}
+        integrator = {'type': 'nerfpp', 'skip_empty': bool(skip_empty),
+                      'appearance_image': int(appearance_image)}
         if chunk_rays is not None:
             integrator['chunk_rays'] = int(chunk_rays)
         if sampling is not None:

@@ -51,7 +51,7 @@ def test_video_without_skipping_renders_whole_rays(tiny_run, tmp_path, capsys):
     import numpy as np
 
     from mi_nerfpp.jobs.cluster import FrameWorker
-    whole = FrameWorker(os.path.join(tiny_run, 'model.npz'), skip_empty=False).load()
+    whole = FrameWorker(os.path.join(tiny_run, 'model.npz'), look={'skip_empty': False}).load()
     assert whole.scene.integrator().skip_empty is False
     assert whole.scene.integrator().sampling.bg_samples == 64
     out = {}
@@ -64,3 +64,19 @@ def test_video_without_skipping_renders_whole_rays(tiny_run, tmp_path, capsys):
     capsys.readouterr()
     assert main(['video', tiny_run, '-o', out['whole']] + VIDEO) == 1
     assert 'skip_empty' in capsys.readouterr().err
+
+
+def test_video_renders_a_training_images_appearance_on_request(tiny_run, tmp_path, capsys):
+    """``--appearance-image N`` reaches the integrator of the frames (and makes them another
+    video's); a model without an appearance per training image refuses it in one line."""
+    from mi_nerfpp.files.checkpoint import save_checkpoint
+    from mi_nerfpp.jobs.cluster import FrameWorker
+    from tests.test_appearance import embedded_model
+    path = str(tmp_path / 'embedded.npz')
+    save_checkpoint(path, embedded_model())
+    worker = FrameWorker(path, look={'appearance_image': 2}).load()
+    assert worker.scene.integrator().appearance_image == 2
+    assert main(['video', tiny_run, '-o', str(tmp_path / 'a.gif'), '--appearance-image', '0']
+                + VIDEO) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and '--appearance-image is 0 but the model has no appearance' in err[0]

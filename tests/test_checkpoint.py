@@ -11,6 +11,7 @@ from mi_nerfpp.files.checkpoint import VERSION, CheckpointError, load_checkpoint
 from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.core.model import NeRFPPModel
 from tests.helpers import TINY_GRID, scene_dict, tiny_model
+from tests.robustness.common import error_line
 
 
 def test_round_trip_preserves_parameters_config_and_normalization(tmp_path):
@@ -253,6 +254,44 @@ def test_a_checkpoint_with_a_flat_training_config_loads_evaluates_and_resumes(
     model, meta, _ = load_checkpoint(run / 'model.npz')
     assert meta['iteration'] == 7 and meta['config']['schedule']['iterations'] == 7
     assert model.sampling == Sampling(8, 8, 8)
+
+
+
+@pytest.mark.parametrize('retired, words', [({'tv': 0.01}, '--tv 0.01'),
+                                            ({'coarse_to_fine': [0.3, 0.6]},
+                                             '--coarse-to-fine 0.3 0.6'),
+                                            ({'composite': 'srgb'}, '--composite srgb')])
+def test_a_run_trained_with_a_removed_option_evaluates_but_is_not_resumed(
+        tiny_run, capture, tmp_path, capsys, retired, words):
+    """Options measured and not kept were removed (docs/experiments.md); a run that used one
+    still evaluates with its weights, and ``--resume`` refuses it in one line naming the option
+    and the commit that still has it. At their off values they were resumed above."""
+    import shutil
+
+    from mi_nerfpp.commands.cli import main
+    from mi_nerfpp.jobs.run import evaluate_run
+    from mi_nerfpp.training.config import RETIRED_AFTER
+    run = tmp_path / 'old'
+    shutil.copytree(tiny_run, run)
+    trained = json.loads((run / 'metrics.json').read_text())
+    with np.load(run / 'model.npz') as z:
+        arrays = {k: z[k] for k in z.files}
+    config = json.loads(str(arrays['config']))
+    if 'composite' in retired:       # an sRGB model of before linear compositing
+        config['color_space'], config['composite'] = 'srgb', 'srgb'
+    else:
+        config['meta']['config']['losses' if 'tv' in retired else 'schedule'].update(retired)
+    arrays['config'] = np.array(json.dumps(config))
+    np.savez(run / 'model.npz', **arrays)
+    again = evaluate_run(str(run))
+    if 'composite' not in retired:    # (decoded otherwise: another image, as trained then)
+        assert again['test']['psnr'] == pytest.approx(trained['test']['psnr'], abs=1e-3)
+    assert main(['optimize', capture, '--out', str(run), '--resume', '--iterations', '7']) == 1
+    err = capsys.readouterr().err
+    assert error_line(err, "optimize") == (
+        f'{run / "model.npz"} was trained with {words}, which this version no longer has '
+        f'(measured and not kept: docs/experiments.md): resume it with mi-nerfpp at commit '
+        f'{RETIRED_AFTER} or before, or evaluate and render it as it is')
 
 
 def test_version_2_grid_fields_keep_their_per_sample_colour(tmp_path):

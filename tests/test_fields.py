@@ -66,34 +66,6 @@ def test_grid_colour_layers_round_trip_through_config():
         GridField('ball', color_layers=0)
 
 
-@pytest.mark.parametrize('domain', ['ball', 'inverted_sphere'])
-def test_upsampled_grid_renders_the_same_field(domain):
-    """A grid that is linear in its coordinates is reproduced exactly by trilinear upsampling
-    (away from the clamped border), so the field - density and colour - is unchanged."""
-    f = GridField(domain, resolutions=(4, 8), channels=3, hidden=8, dir_octaves=1)
-    Z, Y, X, C = f.params['grid1'].shape
-    z, y, x = np.meshgrid(*[(np.arange(n) + 0.5) / n for n in (Z, Y, X)], indexing='ij')
-    lin = np.stack([x + 0.5 * y - z, 0.3 * x - y, z - 0.2 * x], axis=-1).astype(np.float32)
-    f.set_parameters({'grid1': mi.TensorXf(lin)})
-    rng = np.random.default_rng(1)
-    n = 512
-    # Interior points: at least one coarse cell from every border (and off the longitude seam).
-    c = rng.uniform(0.3, 0.7, size=(n, 3))
-    if domain == 'ball':
-        x_in = [mi.Float((2 * c[:, i] - 1).astype(np.float32)) for i in range(3)]
-    else:
-        lon, colat = (c[:, 0] - 0.5) * 2 * np.pi, c[:, 1] * np.pi
-        v = np.stack([np.sin(colat) * np.cos(lon), np.sin(colat) * np.sin(lon), np.cos(colat)], 1)
-        x_in = [mi.Float(v[:, i].astype(np.float32)) for i in range(3)] + [mi.Float(c[:, 2].astype(np.float32))]
-    d, ray = mi.Vector3f(0, 0, 1), dr.zeros(mi.UInt32, n)
-    s0, c0 = f(x_in, d, ray)
-    f.upsample(1, 32)
-    assert tuple(f.params['grid1'].shape) == f._grid_shape(32, 1) + (3,)
-    s1, c1 = f(x_in, d, ray)
-    np.testing.assert_allclose(np.array(s1), np.array(s0), rtol=1e-4)
-    np.testing.assert_allclose(np.array(c1), np.array(c0), atol=1e-5)
-
-
 def test_background_grid_cells_along_s_follow_s_ratio():
     """The inverted-sphere grid is 2R x R x max(s_ratio R, 4) (longitude, colatitude, s); the ratio
     round-trips through the config, and configs written before it existed read as 0.5."""
@@ -110,8 +82,8 @@ def test_background_grid_cells_along_s_follow_s_ratio():
 
 def test_background_grid_takes_one_s_ratio_per_level():
     """Per-level ratios: a fine angular level with few cells along s over a coarse level
-    resolved in depth; they round-trip through the config and through coarse-to-fine
-    upsampling, and a list of the wrong length is refused."""
+    resolved in depth; they round-trip through the config, and a list of the wrong length is
+    refused."""
     f = GridField('inverted_sphere', resolutions=(16, 64), channels=3, hidden=8,
                   s_ratio=[0.5, 1 / 16])
     assert tuple(f.params['grid0'].shape) == (8, 16, 32, 3)
@@ -119,8 +91,6 @@ def test_background_grid_takes_one_s_ratio_per_level():
     again = make_field(f.config)
     assert again.s_ratio == [0.5, 0.0625]
     assert tuple(again.params['grid1'].shape) == (4, 64, 128, 3)
-    f.upsample(0, 32)
-    assert tuple(f.params['grid0'].shape) == (16, 32, 64, 3)
     with pytest.raises(ValueError, match='one per level'):
         GridField('inverted_sphere', resolutions=(16, 64), s_ratio=[0.5])
 

@@ -349,7 +349,7 @@ def test_render_volume_fine_pass_varying_density():
 
 
 def test_distortion_loss_matches_pairwise_definition():
-    from mi_nerfpp.core.render import distortion
+    from mi_nerfpp.training.priors import distortion
     rng = np.random.default_rng(3)
     n_rays, n = 7, 9
     m = np.sort(rng.uniform(0, 1, (n_rays, n)), axis=1)
@@ -379,7 +379,8 @@ def test_ray_distortion_puts_both_volumes_on_one_axis():
     m/2 (weights w_fg) followed by the background samples at ½ + m/2 (weights λ·w_bg), and it
     penalizes a ray whose weight is split between the volumes more than one that either
     volume owns."""
-    from mi_nerfpp.core.render import RenderResult, VolumeRender, ray_distortion
+    from mi_nerfpp.core.render import RenderResult, VolumeRender
+    from mi_nerfpp.training.priors import ray_distortion
     rng = np.random.default_rng(5)
     n_rays, n_fg, n_bg = 6, 5, 4
 
@@ -412,7 +413,7 @@ def test_ray_distortion_puts_both_volumes_on_one_axis():
 def test_ray_distortion_gradient_matches_finite_differences():
     """d/dθ of the whole-ray distortion of a rendered batch, where θ scales the foreground's
     density (so it moves weight between the volumes through λ), against central differences."""
-    from mi_nerfpp.core.render import ray_distortion
+    from mi_nerfpp.training.priors import ray_distortion
     o, d = rays(64, seed=9)
     seed = mi.UInt32(np.arange(64, dtype=np.uint32))
     bg = AnalyticField(lambda x: 2.0 + 3.0 * x[3], (0.2, 0.3, 0.4))

@@ -180,9 +180,9 @@ def test_optimize_options_come_from_train_config():
 
 def test_config_round_trips_through_its_stored_form_and_flat_options():
     cfg = TrainConfig.from_options(model='nerf', fine_samples=3, sparsity=0.02,
-                                   coarse_to_fine=[0.5], eval_at=(5, 2))
+                                   pyramid=[0.5], eval_at=(5, 2))
     assert cfg.model.kind == 'nerf' and cfg.losses.sparsity == (0.02,)
-    assert cfg.schedule.coarse_to_fine == (0.5,) and cfg.output.eval_at == (2, 5)
+    assert cfg.schedule.pyramid == (0.5,) and cfg.output.eval_at == (2, 5)
     stored = cfg.to_dict()
     assert stored['model']['kind'] == 'nerf' and stored['sampling']['fine_samples'] == 3
     assert TrainConfig.from_stored(stored) == cfg
@@ -318,7 +318,7 @@ def test_sparsity_prior_weighs_each_volume_by_its_own_weight(dataset, tmp_path):
 
 @pytest.mark.parametrize('extra', [dict(sparsity_start=(0.5,)),
                                    dict(refine_poses=True, poses_start=0.5, appearance=True,
-                                        sparsity_start=(0.0, 0.5), tv=0.01, tv_cells=256,
+                                        sparsity_start=(0.0, 0.5),
                                         occupancy_every=3)])
 def test_frozen_step_replays_the_traced_step(dataset, tmp_path, extra):
     """A frozen step (recorded once, replayed) computes what tracing every step computes:
@@ -391,8 +391,9 @@ def test_ctrl_c_while_a_step_is_recorded_saves_a_checkpoint(dataset, tmp_path, m
         monkeypatch.setattr(NeRFPP, 'update_occupancy',
                             once(NeRFPP.update_occupancy, _interrupt_in_a_loop_body))
     else:
-        monkeypatch.setattr(train_module, 'ray_distortion', once(
-            train_module.ray_distortion, ctrl_c if where == 'recorded' else _interrupt_in_a_loop_body))
+        from mi_nerfpp.training import priors
+        monkeypatch.setattr(priors, 'ray_distortion', once(
+            priors.ray_distortion, ctrl_c if where == 'recorded' else _interrupt_in_a_loop_body))
     tr = Trainer(dataset, str(tmp_path), TrainConfig.from_options(iterations=4, **SMALL))
     assert tr.run() is False
     assert os.path.exists(tmp_path / 'model.npz') and tr.iteration == 0
@@ -420,13 +421,9 @@ def test_the_command_line_reports_a_wrapped_ctrl_c_as_interrupted(monkeypatch, c
     assert 'interrupted' in capsys.readouterr().err
 
 
-def test_neutral_grids_and_the_unseen_fill_moves_only_cells_no_sample_reached(dataset,
-                                                                              tmp_path):
+def test_neutral_grids_start_at_zero(dataset, tmp_path):
     """``--grid-init 0`` starts the grid levels at zero (the default at noise of 0.1), the
-    colour MLP the same; with ``--unseen-fill``, every ``--occupancy-every`` steps the entries
-    whose Adam second moment is still zero (no sample reached them) take their neighbours'
-    mean, periodic in longitude in the background, and no other entry moves; without it they
-    keep their start."""
+    colour MLP the same."""
     zero = Trainer(dataset, str(tmp_path / 'zero'),
                    TrainConfig.from_options(grid_init=0.0, **SMALL))
     noisy = Trainer(dataset, str(tmp_path / 'noisy'), TrainConfig.from_options(**SMALL))
@@ -436,32 +433,3 @@ def test_neutral_grids_and_the_unseen_fill_moves_only_cells_no_sample_reached(da
             assert not a.any() and 0.08 < b.std() < 0.12, k
         else:
             np.testing.assert_array_equal(a, b, err_msg=k)
-
-    def trained(name, fill):
-        tr = Trainer(dataset, str(tmp_path / name), TrainConfig.from_options(
-            grid_init=0.1, unseen_fill=fill, occupancy_every=4, **SMALL))
-        start = _params(tr.model)
-        for _ in range(9):                  # fills before steps 4 and 8
-            tr.step()
-        return tr, start
-
-    for fill in (False, True):
-        tr, start = trained(str(fill), fill)
-        for k in tr.opt.keys():
-            if not k.split('.')[-1].startswith('grid'):
-                continue
-            free = np.array(tr.opt.state[k][3][2]) == 0
-            assert 0 < free.mean() < 1, k
-            moved = np.array(tr.opt[k]).ravel()[free] != start[k].ravel()[free]
-            assert moved.any() == fill, k
-    # One fill by hand: exactly priors.unseen_fill of the entries with zero moments.
-    before = {k: np.array(tr.opt[k]) for k in tr.opt.keys()}
-    tr._unseen_fill()
-    for k in tr.opt.keys():
-        if not k.split('.')[-1].startswith('grid'):
-            np.testing.assert_array_equal(np.array(tr.opt[k]), before[k], err_msg=k)
-            continue
-        free = tr.opt.state[k][3][2] == 0
-        expected = priors.unseen_fill(mi.TensorXf(before[k].ravel(), before[k].shape), free,
-                                      periodic=k.startswith('bg.'))
-        np.testing.assert_array_equal(np.array(tr.opt[k]), np.array(expected), err_msg=k)

@@ -490,26 +490,6 @@ class GridField(Field):
         """Whether colour comes from features composited along the ray (one MLP per ray)."""
         return self.color_mode == 'deferred'
 
-    def upsample(self, level, resolution):
-        """Resample grid ``level`` to ``resolution`` by trilinear interpolation of the current grid
-        (coarse-to-fine training): the field is unchanged up to interpolation error."""
-        shape = self._grid_shape(int(resolution), level)
-        Z, Y, X = shape
-        i = dr.arange(mi.UInt32, X * Y * Z)
-        # Cell centres of the new grid in texture coordinates (x, y, z) = (X, Y, Z) axes.
-        p = mi.Point3f((mi.Float(i % X) + 0.5) / X, (mi.Float((i // X) % Y) + 0.5) / Y,
-                       (mi.Float(i // (X * Y)) + 0.5) / Z)
-        tex = self.textures[level]
-        with dr.suspend_grad():
-            tex.set_tensor(dr.detach(self.params[f'grid{level}']))
-            values = tex.eval(p)
-        data = dr.zeros(mi.Float, X * Y * Z * self.channels)
-        for c, v in enumerate(values):
-            dr.scatter(data, v, i * self.channels + c)
-        self.resolutions[level] = int(resolution)
-        self.params[f'grid{level}'] = mi.TensorXf(data, shape + (self.channels,))
-        tex.set_tensor(self.params[f'grid{level}'])
-
     def cell_size(self, level):
         """The width of a cell of ``level`` in the units of :meth:`Volume.footprint_at
         <mi_nerfpp.core.render.Volume.footprint_at>`: ``2/R`` of the (warped) ball, ``π/R`` radians of

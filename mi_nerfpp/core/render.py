@@ -592,52 +592,6 @@ def _shade_visible(volume, field, t, w, transmittance, n, features=None):
     return rgb
 
 
-def distortion(w, m, n):
-    """Distortion loss of mip-NeRF 360 (Barron et al. 2022, Eq. 15) per ray, in O(n).
-
-    ``Σ_ij w_i w_j |m_i − m_j| + ⅓ Σ_i w_i² δ_i`` over sorted sample positions ``m``
-    (normalized to [0, 1] along the volume) with ``δ_i = m_{i+1} − m_i``: small when
-    the weight of a ray is concentrated in one compact interval, so it removes
-    floaters and haze. The pairwise sum is ``2 Σ_i w_i (m_i Σ_{j<i} w_j − Σ_{j<i} w_j m_j)``.
-    """
-    n_rays = dr.width(w) // n
-    ray, k = flat_index(n_rays, n)
-    last = k == n - 1
-    m_next = dr.gather(mi.Float, m, ray * n + k + 1, ~last)
-    delta = dr.select(last, dr.maximum(1.0 - m, 0.0), m_next - m)
-    w_before = dr.block_prefix_sum(w, n, exclusive=True)
-    wm_before = dr.block_prefix_sum(w * m, n, exclusive=True)
-    per_sample = 2.0 * w * (m * w_before - wm_before) + (1.0 / 3.0) * dr.square(w) * delta
-    return dr.block_sum(per_sample, n)
-
-
-def ray_distortion(res):
-    """Distortion loss of whole rays (Float per ray): both volumes' fine samples on one axis,
-    the foreground chord on ``[0, ½)`` and the background's ``v = 1 − s/s_max`` on
-    ``[½, 1)``, with weights ``w_fg`` and ``λ·w_bg`` (Eq. 4's share of each volume).
-
-    Unlike the loss of each volume on its own, it sees a ray whose weight is split between a
-    surface in the foreground and another in the background as spread out (mip-NeRF 360
-    applies it to the whole ray likewise), so it favours one volume owning a surface over a
-    half-transparent foreground in front of a background that paints the rest."""
-    fg, bg = res.fg, res.bg
-    if bg is None:
-        return distortion(fg.weights, fg.position, fg.n)
-    if bg.rays is not None:
-        raise ValueError('ray_distortion needs the background of every ray (no skip_occluded)')
-    n_rays = dr.width(fg.fine.opacity)
-    n = fg.n + bg.n
-    ray, k = flat_index(n_rays, n)
-    in_fg = k < fg.n
-    i_fg, i_bg = ray * fg.n + k, ray * bg.n + (k - fg.n)
-    lam = dr.gather(mi.Float, 1.0 - fg.fine.opacity, ray)
-    w = dr.select(in_fg, dr.gather(mi.Float, fg.weights, i_fg, in_fg),
-                  lam * dr.gather(mi.Float, bg.weights, i_bg, ~in_fg))
-    m = dr.select(in_fg, 0.5 * dr.gather(mi.Float, fg.position, i_fg, in_fg),
-                  dr.fma(0.5, dr.gather(mi.Float, bg.position, i_bg, ~in_fg), 0.5))
-    return distortion(w, m, n)
-
-
 @dataclass
 class Sampling:
     """Samples per ray - coarse foreground, coarse background, fine per volume - and the ray

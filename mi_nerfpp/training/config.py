@@ -55,6 +55,16 @@ MAX_DIR_OCTAVES = 24
 # The largest --appearance-embedding: NeRF-W's codes have 48 numbers; each is an input of the
 # colour networks' per-ray layer.
 MAX_APPEARANCE_DIMS = 64
+# Options measured and not kept (docs/experiments.md, each with the figure that decided it),
+# removed after RETIRED_AFTER, with the value each took when off (None: any value, it only
+# mattered with another option on). A stored config that used one otherwise is not resumed
+# (:meth:`TrainConfig.retired_in`); its weights still evaluate and render. ``composite`` is
+# read from the weights: sRGB models of before linear compositing ('srgb', the default of
+# files that do not say) render as they were trained (:mod:`mi_nerfpp.core.model`).
+RETIRED_OPTIONS = {'lazy_adam': False, 'coarse_to_fine': [], 'unseen_fill': False,
+                   'far_smoothness': 0.0, 'tv': 0.0, 'tv_cells': None, 'opacity_entropy': 0.0,
+                   'entropy_start': None, 'distortion_scope': 'ray', 'composite': 'linear'}
+RETIRED_AFTER = 'b4d9de3'
 # The budget of a run given neither iterations nor minutes (:func:`default_minutes`): the
 # default capture's training pixels (48 views of 128x96) get DEFAULT_JOB_MINUTES, other
 # captures minutes in proportion to the square root of their training pixels, within these
@@ -229,11 +239,6 @@ class ModelOptions(_Options):
     grid_init: float = option(_grid_default('init'), 'grid field: standard deviation of the '
                               'noise the grid levels start with; 0 starts them neutral, so '
                               'that cells no training ray reaches hold no colour of their own')
-    composite: str = option('linear', "sRGB photos: 'linear' decodes each sample's colour and "
-                            'composites in linear light, so that the EXR layers recombine '
-                            "exactly; 'srgb' sums the encoded colours (the layers recombine "
-                            'only approximately)', choices=('linear', 'srgb'),
-                            shapes_model=True)
     appearance: bool = option(False, 'learn a colour transform (exposure, white-balance gain and '
                               'bias) per training image; training image 0 is the reference; '
                               'held-out views are then scored NeRF-W style (transform fitted on '
@@ -297,13 +302,11 @@ class ModelOptions(_Options):
         if (not self.bg_s_ratio or not all(_finite(q) and 0 < q <= 1 for q in self.bg_s_ratio)
                 or len(self.bg_s_ratio) not in (1, len(self.levels('inverted_sphere')))):
             self._bad('bg_s_ratio', 'one number in (0, 1], or one per background grid level')
-        if self.composite not in ('linear', 'srgb'):
-            self._bad('composite', "'linear' or 'srgb'")
         if self.bg_field is None:
             self.bg_field = self.field
 
     def levels(self, domain):
-        """The final grid resolutions of one volume's grid field."""
+        """The grid resolutions of one volume's grid field."""
         if domain == 'inverted_sphere' and self.bg_grid_levels is not None:
             return self.bg_grid_levels
         return self.grid_levels
@@ -358,8 +361,6 @@ class OptimizerOptions(_Options):
     lr_final: float = option(optim.LR_FINAL, 'learning rates decay exponentially to this '
                              'fraction of their start over the run')
     adam_beta2: float = option(optim.ADAM_BETA2, "decay of Adam's second-moment estimate")
-    lazy_adam: bool = option(False, 'leave parameters whose gradient is zero untouched in an Adam '
-                             'step (moments included)')
     lr_appearance: float = option(app.LR_APPEARANCE, 'learning rate of the appearance transforms')
     lr_poses: float = option(poses.LR_POSES, 'learning rate of the pose corrections (radians and '
                              'model-frame units: the cameras lie in the unit sphere)')
@@ -392,14 +393,6 @@ class LossOptions(_Options):
     distortion: float = option(0.01, 'weight of the mip-NeRF 360 distortion loss, which '
                                'gathers the weights along a ray against floaters and haze '
                                '(0: off)')
-    distortion_scope: str = option('ray', "'ray': the distortion loss of whole rays, both "
-                                   'volumes on one axis, so that a surface split between the '
-                                   'volumes counts as spread out (crisper foreground mattes); '
-                                   "'volume': of each volume on its own",
-                                   choices=('volume', 'ray'))
-    opacity_entropy: float = option(0.0, 'weight of the binary-entropy prior on the foreground '
-                                    'opacity of each ray (pushes it to 0 or 1)')
-    entropy_start: float = option(0.0, 'fraction of the run after which the entropy prior applies')
     sparsity: tuple = option((0.01,), 'weight of the sparsity prior: Cauchy loss log(1 + 2σ²) '
                              'of the density at random points of each volume (Plenoxels), which '
                              'removes haze and floaters: one for both volumes, or one for the '
@@ -417,16 +410,6 @@ class LossOptions(_Options):
                                   'their camera (in the units of the unit sphere of NeRF++) by '
                                   '(distance / this)² (Floaters No More: fewer '
                                   'floaters near the cameras; 0: off)')
-    far_smoothness: float = option(0.0, "weight of the smoothness prior on the background "
-                                   "grid's far slice (what directions no training view saw "
-                                   'show), which continues the neighbouring colours there')
-    unseen_fill: bool = option(False, 'every --occupancy-every steps, grid entries that no '
-                               'training sample has reached yet take the mean of their '
-                               'neighbours (a harmonic fill): what no photo constrains '
-                               'continues its surroundings smoothly instead of keeping its '
-                               'start (not with --coarse-to-fine)')
-    tv: float = option(0.0, 'weight of the total-variation prior on the feature grids')
-    tv_cells: int = option(16384, 'grid cells per level sampled for the TV prior each step')
     appearance_prior: float = option(app.PRIOR, 'weight of the L2 prior that keeps the '
                                      'appearance transforms near the identity')
     masks: str | None = option(None, "what the photos' masks mean (docs/data.md, \"Masks\"): "
@@ -443,14 +426,10 @@ class LossOptions(_Options):
     def _validate(self):
         if self.color_loss not in optim.COLOR_LOSSES:
             self._bad('color_loss', ' or '.join(f"'{k}'" for k in optim.COLOR_LOSSES))
-        if self.distortion_scope not in ('volume', 'ray'):
-            self._bad('distortion_scope', "'volume' or 'ray'")
         if self.masks is not None and self.masks not in masks.MEANINGS:
             self._bad('masks', ' or '.join(f"'{k}'" for k in masks.MEANINGS))
-        self._check(('distortion', 'opacity_entropy', 'tv', 'far_smoothness', 'entropy_start',
-                     'appearance_prior', 'mask_weight',
-                     'near_gradient'), lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
-        self._check(('tv_cells',), lambda v: v >= 1, 'at least 1')
+        self._check(('distortion', 'appearance_prior', 'mask_weight', 'near_gradient'),
+                    lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
         for name, ok, one in (('sparsity', lambda w: w >= 0, 'one finite number >= 0'),
                               ('sparsity_start', lambda f: 0 <= f <= 1, 'one fraction in [0, 1]')):
             v = _as_tuple(getattr(self, name))          # per volume: see per_volume()
@@ -483,9 +462,6 @@ class ScheduleOptions(_Options):
     freeze: bool = option(True, 'record the kernels of a training step once and replay them '
                           '(drjit.freeze) instead of tracing every step in Python; re-recorded '
                           'when a prior starts or the grids change resolution')
-    coarse_to_fine: tuple = option((), 'grid field: fractions of the run at which the grids '
-                                   'double in resolution (they start at RES / 2^n)', type=float,
-                                   nargs='*', metavar='F', shapes_model=True)
     sparse_at: tuple = option((0.1, 0.3), 'grid field: fractions of the run at which sparse '
                               'levels allocate their bricks where the occupancy grid is occupied '
                               '(again at each: bricks kept keep their texels)', type=float,
@@ -508,7 +484,7 @@ class ScheduleOptions(_Options):
         self._check(('seed',), lambda v: 0 <= v <= MAX_SEED,
                     f'a whole number from 0 to {MAX_SEED} (2^64 - 2)')
         self._check(('sparse_entries',), lambda v: v >= 1, 'at least 1')
-        for name in ('coarse_to_fine', 'pyramid', 'sparse_at'):
+        for name in ('pyramid', 'sparse_at'):
             if not all(_finite(f) and 0 < f < 1 for f in getattr(self, name)):
                 self._bad(name, 'fractions between 0 and 1')
 
@@ -643,8 +619,32 @@ class TrainConfig:
     @classmethod
     def unknown_stored(cls, stored: dict) -> list[str]:
         """The entries of a stored config that name no option of this version (written by
-        another version), as ``group.key``."""
-        return cls._stored_names(stored)[1]
+        another version), as ``group.key``; retired options (:data:`RETIRED_OPTIONS`) are
+        not among them."""
+        return [k for k in cls._stored_names(stored)[1]
+                if k.rsplit('.', 1)[-1] not in RETIRED_OPTIONS]
+
+    @classmethod
+    def retired_in(cls, stored: dict, weights: dict | None = None) -> list[str]:
+        """The retired options (:data:`RETIRED_OPTIONS`) that a stored config, or the
+        checkpoint's model config ``weights``, used with a value other than off, as command-line
+        words (``--tv 0.01``): a run that used one cannot go on with this version."""
+        values = {}
+        for part, entry in stored.items():
+            for key, value in (entry.items() if isinstance(entry, dict) else [(part, entry)]):
+                if key in RETIRED_OPTIONS:
+                    values[key] = value
+        if weights is not None and weights.get('color_space', 'srgb') == 'srgb':
+            values['composite'] = weights.get('composite', 'srgb')
+        out = []
+        for key, value in values.items():
+            off = RETIRED_OPTIONS[key]
+            if off is None or value == off or (isinstance(off, list) and not value):
+                continue
+            shown = ' '.join(map(str, value)) if isinstance(value, (list, tuple)) else value
+            spelled = '--' + key.replace('_', '-')
+            out.append(spelled if value is True else f'{spelled} {shown}')
+        return out
 
     @classmethod
     def from_stored(cls, stored: dict, weights: dict | None = None):
@@ -684,14 +684,13 @@ class TrainConfig:
         if kind != 'grid':
             return default_field_config(kind, domain)
         m = self.model
-        start = [max(r >> len(self.schedule.coarse_to_fine), 4) for r in m.levels(domain)]
         ratio = m.bg_s_ratio[0] if len(m.bg_s_ratio) == 1 else list(m.bg_s_ratio)
         extra = ({'s_ratio': ratio} if domain == 'inverted_sphere' else
                  {'warp_radius': m.fg_warp})
         if m.sparse(domain):
             extra.update(sparse=list(m.sparse(domain)), sparse_blocks=list(
                 occ.grid_shape(domain, self.sampling.occupancy_res)))
-        return dict(kind='grid', domain=domain, resolutions=start,
+        return dict(kind='grid', domain=domain, resolutions=list(m.levels(domain)),
                     channels=m.grid_channels, dir_octaves=m.dir_octaves,
                     color_layers=m.color_layers, hidden=m.color_width,
                     color=m.bg_color if domain == 'inverted_sphere' else m.color,
@@ -795,15 +794,12 @@ GRID_FIELD_OPTIONS = {
 def weight_options(weights: dict) -> dict:
     """The model-shaping options that a checkpoint's model config fixes (its weights were
     made with them), by option name, as :meth:`TrainConfig.effective` gives them: the model
-    kind, each volume's field kind and its grid options, the appearance and pose models, and
-    for sRGB models where samples are composited. (The grid resolutions are not among them:
-    --coarse-to-fine grows them during the run.)"""
+    kind, each volume's field kind and its grid options, the appearance and pose models.
+    (The grid resolutions are not among them: the stored config has them.)"""
     out = {'model': 'nerf' if weights.get('bg') is None else 'nerfpp',
            'appearance': int(weights.get('appearance_images', 0)) > 0,
            'appearance_embedding': int((weights.get('fg') or {}).get('appearance_dims', 0)),
            'refine_poses': int(weights.get('pose_images', 0)) > 0}
-    if weights.get('color_space', 'srgb') == 'srgb':
-        out['composite'] = weights.get('composite', 'srgb')
     for side, key in enumerate(('fg', 'bg')):
         field = weights.get(key)
         if not field:

@@ -32,12 +32,6 @@ def is_grid(name: str) -> bool:
     return name.rsplit('.', 1)[-1].startswith(('grid', 'plane', 'sparse'))
 
 
-def is_grid_level(name: str) -> bool:
-    """Whether a parameter is a dense 3-D grid level (``grid0``, ``bg.grid1``, ...): what the
-    grid priors (total variation, far-field smoothness) apply to."""
-    return name.rsplit('.', 1)[-1].startswith('grid')
-
-
 class Adam(dr.opt.Adam):
     """``drjit.opt.Adam`` whose step schedules every parameter's update before evaluating any.
 
@@ -79,15 +73,10 @@ class Adam(dr.opt.Adam):
         return dr.fma(step, next(self._scales), value), (t_p + 1, m_t, v_t, v_max_p)
 
 
-def adam(params: dict, lr: float = LR_MLP, lazy: bool = False, beta_2: float = ADAM_BETA2):
-    """An Adam optimizer holding ``params`` (name -> array).
-
-    ``lazy``: entries whose gradient is zero in a step are left alone, moments included
-    (``mask_updates``, as instant-ngp does for its grids): a grid cell that no sample
-    touched does not keep drifting on stale momentum. ``beta_2``: decay of the second-moment
-    estimate (instant-ngp uses 0.99 for its sparsely touched grids).
-    """
-    opt = Adam(lr=lr, mask_updates=lazy, beta_2=beta_2)
+def adam(params: dict, lr: float = LR_MLP, beta_2: float = ADAM_BETA2):
+    """An Adam optimizer holding ``params`` (name -> array); ``beta_2``: decay of the
+    second-moment estimate (instant-ngp uses 0.99 for its sparsely touched grids)."""
+    opt = Adam(lr=lr, beta_2=beta_2)
     for k, v in params.items():
         opt[k] = v
     return opt

@@ -1,133 +1,27 @@
 """Regularizers of the radiance fields (added to the colour loss by :mod:`.train`).
 
 * :func:`cauchy_sparsity` — Plenoxels' sparsity prior ``log(1 + 2σ²)`` of the density at
-  random points: it saturates for surfaces, so a thin opaque surface costs little while a
-  volume of haze costs in every cell it fills. It removes the foreground veil that the
-  background would otherwise compensate for (see the README's tuning table).
-* :func:`opacity_entropy` — binary entropy of a ray's foreground opacity, minimal at 0 and 1.
-* :func:`grid_tv` — total variation of a feature grid on random cells.
-* :func:`far_field_smoothness` — smoothness of the background's far slice (``s = 0``), which
-  directions no training view saw show.
+  random points (:func:`random_points`): it saturates for surfaces, so a thin opaque surface
+  costs little while a volume of haze costs in every cell it fills. It removes the foreground
+  veil that the background would otherwise compensate for.
+* :func:`ray_distortion` — mip-NeRF 360's distortion loss (:func:`distortion`) of whole rays,
+  both volumes on one axis: it gathers the weights along a ray against floaters and haze.
 
-Each returns a scalar Float (a mean), differentiable in its inputs.
-
-Cells that no training sample reaches get no gradient from any of these: they keep what they
-started with. :func:`unseen_fill` moves them instead, one step of descent on
-:func:`dirichlet_energy` restricted to them (a harmonic fill, as inpainting does), so that
-places and directions no photo constrains continue their surroundings smoothly.
+Each is differentiable in its inputs. The priors that were measured and not kept (total
+variation, opacity entropy, far-field smoothness, the harmonic fill of unseen cells) are
+recorded in docs/experiments.md.
 """
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
 
-ENTROPY_EPSILON = 1e-4
+from mi_nerfpp.core.sampling import flat_index
 
 
 def cauchy_sparsity(density):
     """Mean of ``log(1 + 2σ²)`` over density samples ``σ`` (Float)."""
     return dr.mean(dr.log(1.0 + 2.0 * dr.square(density)))
-
-
-def opacity_entropy(opacity):
-    """Mean binary entropy ``-(a log a + (1 - a) log(1 - a))`` of opacities, clamped away from 0
-    and 1 by ENTROPY_EPSILON."""
-    a = dr.clip(opacity, ENTROPY_EPSILON, 1.0 - ENTROPY_EPSILON)
-    return dr.mean(-(a * dr.log(a) + (1.0 - a) * dr.log(1.0 - a)))
-
-
-def grid_tv(grid, cells):
-    """Mean squared difference between cells and their +x, +y, +z neighbours (clamped at the
-    border), over the cell indices ``cells`` (UInt32) of a (Z, Y, X, C) grid tensor, averaged
-    over the channels."""
-    Z, Y, X, C = grid.shape
-    x = cells % X
-    y = (cells // X) % Y
-    z = cells // (X * Y)
-    total = mi.Float(0.0)
-    for c in range(C):
-        def at(zz, yy, xx):
-            return dr.gather(mi.Float, grid.array, ((zz * Y + yy) * X + xx) * C + c)
-        v = at(z, y, x)
-        for n in (at(z, y, dr.minimum(x + 1, X - 1)), at(z, dr.minimum(y + 1, Y - 1), x),
-                  at(dr.minimum(z + 1, Z - 1), y, x)):
-            total += dr.mean(dr.square(n - v))
-    return total / C
-
-
-def far_field_smoothness(grid):
-    """Mean squared difference of neighbouring cells (longitude, periodic, and colatitude) in
-    the far slice ``s = 0`` of a background grid tensor of shape (S, colatitude, longitude, C),
-    over its feature channels (1..C-1).
-
-    What a ray sees where the background holds no surface is the far slice: the infinite last
-    interval takes all the light left. Directions no training view saw leave their cells there
-    as they were initialized, and render as blocks of arbitrary colour; this prior diffuses the
-    neighbours' features into them (a smooth continuation). Adam rescales each cell's gradient,
-    so a small weight moves unconstrained cells as fast as any, while the cells the photos
-    constrain hardly notice it."""
-    S, Y, X, C = grid.shape
-    i = dr.arange(mi.UInt32, Y * X)
-    y, x = i // X, i % X
-
-    def at(yy, xx, c):
-        return dr.gather(mi.Float, grid.array, (yy * X + xx) * C + c)
-
-    total = mi.Float(0.0)
-    for c in range(1, C):
-        v = at(y, x, c)
-        east = at(y, dr.select(x + 1 == X, 0, x + 1), c)
-        south = at(dr.minimum(y + 1, Y - 1), x, c)
-        total += dr.mean(dr.square(east - v)) + dr.mean(dr.square(south - v))
-    return total / (C - 1)
-
-
-def _neighbours(shape, periodic):
-    """For each entry of a (Z, Y, X, C) grid tensor: the flat indices of the same channel in
-    the six neighbouring cells (-x, +x, -y, +y, -z, +z), periodic along X when
-    ``periodic`` (the background's longitude), the entry itself past a clamped border."""
-    Z, Y, X, C = shape
-    i = dr.arange(mi.UInt32, Z * Y * X * C)
-    c, cell = i % C, i // C
-    x, y, z = cell % X, (cell // X) % Y, cell // (X * Y)
-
-    def step(v, n, up, wrap):
-        edge, beyond = (n - 1, 0) if up else (0, n - 1)
-        return dr.select(v == edge, beyond if wrap else edge, v + 1 if up else v - 1)
-
-    def at(zz, yy, xx):
-        return ((zz * Y + yy) * X + xx) * C + c
-
-    return [at(z, y, step(x, X, False, periodic)), at(z, y, step(x, X, True, periodic)),
-            at(z, step(y, Y, False, False), x), at(z, step(y, Y, True, False), x),
-            at(step(z, Z, False, False), y, x), at(step(z, Z, True, False), y, x)]
-
-
-def dirichlet_energy(grid, periodic=False):
-    """``E = Σ (g[n] − g[i])²`` over every entry ``i`` of a (Z, Y, X, C) grid tensor and its
-    +x, +y, +z neighbour ``n`` (each pair of neighbouring cells once; periodic along X when
-    ``periodic``, no term past a clamped border): the smoothness that :func:`unseen_fill`
-    descends on."""
-    n = _neighbours(grid.shape, periodic)
-    v = grid.array
-    total = mi.Float(0.0)
-    for j in n[1::2]:
-        total += dr.sum(dr.square(dr.gather(mi.Float, v, j) - v))
-    return total
-
-
-def unseen_fill(grid, free, periodic=False):
-    """One Jacobi step of the harmonic fill of the entries ``free`` (a Bool per entry) of a
-    (Z, Y, X, C) grid tensor: each free entry takes the mean of its six neighbours (see
-    :func:`_neighbours`), every other entry stays. That is ``g − ∇E/12`` on the free entries
-    (``E``: :func:`dirichlet_energy`), gradient descent on the grid's roughness where nothing
-    else pulls, with the constrained entries as the boundary; repeated, it converges to the
-    smooth (harmonic) continuation of the constrained cells into the free ones. Returns a new
-    tensor."""
-    n = _neighbours(grid.shape, periodic)
-    v = grid.array
-    mean = sum(dr.gather(mi.Float, v, j, free) for j in n) * (1.0 / 6.0)
-    return mi.TensorXf(dr.select(free, mean, v), grid.shape)
 
 
 def random_points(domain, u):
@@ -137,3 +31,49 @@ def random_points(domain, u):
         return [dr.fma(c, 2.0, -1.0) for c in u[:3]]
     d = mi.warp.square_to_uniform_sphere(mi.Point2f(u[0], u[1]))
     return [d.x, d.y, d.z, u[2]]
+
+
+def distortion(w, m, n):
+    """Distortion loss of mip-NeRF 360 (Barron et al. 2022, Eq. 15) per ray, in O(n).
+
+    ``Σ_ij w_i w_j |m_i − m_j| + ⅓ Σ_i w_i² δ_i`` over sorted sample positions ``m``
+    (normalized to [0, 1] along the volume) with ``δ_i = m_{i+1} − m_i``: small when
+    the weight of a ray is concentrated in one compact interval, so it removes
+    floaters and haze. The pairwise sum is ``2 Σ_i w_i (m_i Σ_{j<i} w_j − Σ_{j<i} w_j m_j)``.
+    """
+    n_rays = dr.width(w) // n
+    ray, k = flat_index(n_rays, n)
+    last = k == n - 1
+    m_next = dr.gather(mi.Float, m, ray * n + k + 1, ~last)
+    delta = dr.select(last, dr.maximum(1.0 - m, 0.0), m_next - m)
+    w_before = dr.block_prefix_sum(w, n, exclusive=True)
+    wm_before = dr.block_prefix_sum(w * m, n, exclusive=True)
+    per_sample = 2.0 * w * (m * w_before - wm_before) + (1.0 / 3.0) * dr.square(w) * delta
+    return dr.block_sum(per_sample, n)
+
+
+def ray_distortion(res):
+    """Distortion loss of whole rays (Float per ray): both volumes' fine samples on one axis,
+    the foreground chord on ``[0, ½)`` and the background's ``v = 1 − s/s_max`` on
+    ``[½, 1)``, with weights ``w_fg`` and ``λ·w_bg`` (Eq. 4's share of each volume).
+
+    Unlike the loss of each volume on its own, it sees a ray whose weight is split between a
+    surface in the foreground and another in the background as spread out (mip-NeRF 360
+    applies it to the whole ray likewise), so it favours one volume owning a surface over a
+    half-transparent foreground in front of a background that paints the rest."""
+    fg, bg = res.fg, res.bg
+    if bg is None:
+        return distortion(fg.weights, fg.position, fg.n)
+    if bg.rays is not None:
+        raise ValueError('ray_distortion needs the background of every ray (no skip_occluded)')
+    n_rays = dr.width(fg.fine.opacity)
+    n = fg.n + bg.n
+    ray, k = flat_index(n_rays, n)
+    in_fg = k < fg.n
+    i_fg, i_bg = ray * fg.n + k, ray * bg.n + (k - fg.n)
+    lam = dr.gather(mi.Float, 1.0 - fg.fine.opacity, ray)
+    w = dr.select(in_fg, dr.gather(mi.Float, fg.weights, i_fg, in_fg),
+                  lam * dr.gather(mi.Float, bg.weights, i_bg, ~in_fg))
+    m = dr.select(in_fg, 0.5 * dr.gather(mi.Float, fg.position, i_fg, in_fg),
+                  dr.fma(0.5, dr.gather(mi.Float, bg.position, i_bg, ~in_fg), 0.5))
+    return distortion(w, m, n)

@@ -42,7 +42,7 @@ from mi_nerfpp.core.arrays import llvm_backend, owned
 from mi_nerfpp.core.frame import reframe_cameras
 from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.core.profiling import stage
-from mi_nerfpp.core.render import distortion, ray_distortion, render_rays
+from mi_nerfpp.core.render import render_rays
 from mi_nerfpp.core.coverage import CoverageFill
 from mi_nerfpp.data import masks
 from mi_nerfpp.data.storage import MAX_STORED_BYTES
@@ -51,7 +51,7 @@ from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
                                         migration_notes, read_version, save_checkpoint)
 from mi_nerfpp.training import optim, priors
-from mi_nerfpp.training.config import TrainConfig, default_minutes, per_volume
+from mi_nerfpp.training.config import RETIRED_AFTER, TrainConfig, default_minutes, per_volume
 from mi_nerfpp.training.error_map import ErrorMap
 from mi_nerfpp.training.signs import CaptureSigns
 from mi_nerfpp.training.metrics import psnr_from_mse
@@ -327,6 +327,13 @@ class Trainer:
         if resume and os.path.exists(self.checkpoint_path):
             self.model, meta, state = load_checkpoint(self.checkpoint_path)
             stored = meta.get('config', {})
+            retired = config.retired_in(stored, self.model.config)
+            if retired:
+                raise TrainingError(
+                    f'{self.checkpoint_path} was trained with {", ".join(retired)}, which this '
+                    f'version no longer has (measured and not kept: docs/experiments.md): resume '
+                    f'it with mi-nerfpp at commit {RETIRED_AFTER} or before, or evaluate and '
+                    f'render it as it is')
             model_conflicts = config.resume_conflicts(stored, self.model.config)
             conflicts = model_conflicts + data_conflicts(meta.get('data', {}),
                                                          self.data_summary())
@@ -347,7 +354,7 @@ class Trainer:
             self.model = NeRFPPModel.create(
                 background=m.kind == 'nerfpp', seed=config.schedule.seed,
                 normalization=normalization,
-                color_space=dataset.color_space, composite=m.composite,
+                color_space=dataset.color_space,
                 appearance_images=len(self.train) if m.appearance else 0,
                 embedding_images=len(self.train) if m.appearance_embedding else 0,
                 pose_images=len(self.train) if m.refine_poses else 0,
@@ -371,8 +378,7 @@ class Trainer:
             self.rng.bit_generator.state = meta['rng']
 
         o = config.optimizer
-        self.opt = optim.adam(self.model.parameters(), o.lr_mlp, lazy=o.lazy_adam,
-                              beta_2=o.adam_beta2)
+        self.opt = optim.adam(self.model.parameters(), o.lr_mlp, beta_2=o.adam_beta2)
         self._restore_optimizer(state)
         # One step's kernels, recorded on the first call and replayed after (drjit.freeze):
         # tracing the step in Python took ~18 of ~76 ms (README, "Measured performance").
@@ -452,17 +458,10 @@ class Trainer:
 
     def _step(self):
         o = self.cfg.optimizer
-        self._coarse_to_fine()
         optim.set_learning_rates(self.opt, self.progress(), o.lr_grid, o.lr_mlp, o.lr_final,
                                  {'appearance': o.lr_appearance, 'embedding': o.lr_appearance,
                                   'poses': o.lr_poses})
         refresh = self.iteration % self.cfg.sampling.occupancy_every == 0
-        # Not with coarse-to-fine grids: a resampled level's moments start anew, so that zero
-        # moments no longer tell which cells were seen.
-        if (self.cfg.losses.unseen_fill and refresh and self.iteration > 0
-                and not self.cfg.schedule.coarse_to_fine):
-            with stage('unseen fill'):
-                self._unseen_fill()
         if self.model.occupancy and refresh:
             with stage('occupancy refresh'):
                 self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
@@ -533,7 +532,6 @@ class Trainer:
                   for field, weight, start in zip((self.model.fg, self.model.bg),
                                                   per_volume(cfg.sparsity),
                                                   per_volume(cfg.sparsity_start))]
-        grids = [k for k in self.opt.keys() if optim.is_grid_level(k)] if cfg.tv > 0 else []
         if self.error_map is not None:
             index, self._tiles = self.error_map.draw(self.rng, n, rays.factor)
             index = mi.UInt32(index)
@@ -544,12 +542,9 @@ class Trainer:
             'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
             'sparsity': [[gen.random(mi.Float, n) for _ in range(4)] if on else None
                          for on in sparse],
-            'tv': {k: gen.integers(mi.UInt32, min(cfg.tv_cells, self._cells(k)), 0,
-                                   self._cells(k)) for k in grids},
         }
         dr.eval(draws)
         phase = dict(refine=self.model.poses is not None and p >= self.cfg.optimizer.poses_start,
-                     entropy=cfg.opacity_entropy > 0 and p >= cfg.entropy_start,
                      shapes=tuple(tuple(self.opt[k].shape) for k in self.opt.keys()))
         return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': rays.arrays(),
                 'occupancy': {k: g.density for k, g in self.model.occupancy.items()},
@@ -567,10 +562,6 @@ class Trainer:
         if factor == 1:
             return self.rays
         return self.rays.level(min(factor, self.rays.max_factor()))
-
-    def _cells(self, key):
-        shape = self.opt[key].shape
-        return shape[0] * shape[1] * shape[2]
 
     def _forward_backward(self, inputs):
         """Loss, gradients and the Adam update of one step from :meth:`_step_inputs` alone
@@ -624,22 +615,9 @@ class Trainer:
             loss += cfg.appearance_prior * app.prior(opt['appearance'])
         if model.embedding is not None and cfg.appearance_prior > 0:
             loss += cfg.appearance_prior * app.prior(opt['embedding'])
-        if cfg.distortion > 0 and cfg.distortion_scope == 'ray':
-            loss += cfg.distortion * dr.mean(ray_distortion(res))
-        elif cfg.distortion > 0:
-            for vol in (res.fg, res.bg):
-                if vol is not None:
-                    loss += cfg.distortion * dr.mean(distortion(vol.weights, vol.position, vol.n))
-        if phase['entropy']:
-            loss += cfg.opacity_entropy * priors.opacity_entropy(res.fg.fine.opacity)
+        if cfg.distortion > 0:
+            loss += cfg.distortion * dr.mean(priors.ray_distortion(res))
         loss += self._sparsity_loss(draws['sparsity'])
-        if cfg.tv > 0:
-            loss += cfg.tv * sum((priors.grid_tv(opt[k], idx) for k, idx in draws['tv'].items()),
-                                 mi.Float(0.0))
-        if cfg.far_smoothness > 0 and model.bg is not None and model.bg.kind == 'grid':
-            loss += cfg.far_smoothness * sum(
-                (priors.far_field_smoothness(opt[k]) for k in opt.keys()
-                 if k.startswith('bg.') and optim.is_grid_level(k)), mi.Float(0.0))
         with stage('losses and reverse pass'):
             dr.backward(loss)
         with stage('adam'):
@@ -647,21 +625,6 @@ class Trainer:
             flag_non_finite(opt, inputs['non_finite'])
             dr.eval()
         return loss, fine, per_ray
-
-    def _coarse_to_fine(self):
-        """Double the grids' resolution at each ``coarse_to_fine`` fraction of the run passed."""
-        stages = self.cfg.schedule.coarse_to_fine
-        due = sum(self.progress() >= f for f in stages)
-        for volume, field in (('fg', self.model.fg), ('bg', self.model.bg)):
-            if field is None or field.kind != 'grid':
-                continue
-            for level, final in enumerate(self.cfg.model.levels(field.domain)):
-                target = max(final >> (len(stages) - due), 4)
-                if field.resolutions[level] < target:
-                    key = f'{volume}.grid{level}'
-                    field.set_parameters({f'grid{level}': dr.detach(self.opt[key])})
-                    field.upsample(level, target)
-                    self.opt[key] = field.params[f'grid{level}']   # new shape: fresh Adam moments
 
     def _sparse_levels(self):
         """``(volume, field, level)`` of every sparse grid level of the model."""
@@ -693,18 +656,6 @@ class Trainer:
                                      'bricks': int(chosen.size), 'of': brick.n_blocks,
                                      'occupied': int(mask.sum()),
                                      'entries': int(np.prod(brick.pool_shape()))})
-
-    def _unseen_fill(self):
-        """One step of :func:`~mi_nerfpp.training.priors.unseen_fill` on every grid level: its entries
-        that no sample has reached yet (Adam's second moment still zero) take their neighbours'
-        mean."""
-        with dr.suspend_grad():
-            for key in [k for k in self.opt.keys() if optim.is_grid_level(k)]:
-                field = self.model.fg if key.startswith('fg.') else self.model.bg
-                moment = self.opt.state[key][3][2]    # (t, m, v, v_max): see _optimizer_state
-                self.opt[key] = priors.unseen_fill(self.opt[key], moment == 0,
-                                                   periodic=field.domain == 'inverted_sphere')
-        dr.eval()
 
     def _sparsity_loss(self, points):
         """Cauchy sparsity of each volume's density at ``batch_rays`` random points, weighted

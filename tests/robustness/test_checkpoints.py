@@ -19,9 +19,9 @@ def _train(capsys, capture, out, *extra):
     return run_cli(capsys, 'optimize', capture, '--out', out, *TINY, *extra)
 
 
-@pytest.mark.parametrize('prior', ['--tv', '--distortion'])
+@pytest.mark.parametrize('prior', ['--distortion'])
 def test_a_prior_that_blows_the_grids_up_stops_before_saving(capsys, capture, tmp_path, prior):
-    """--tv 1e30 saved NaN grids over the checkpoint, then segfaulted: the loss of the step
+    """--tv 1e30 (a prior since removed) saved NaN grids over the checkpoint, then segfaulted: the loss of the step
     was finite, its update was not. Now the step's guard stops the run at once."""
     out = tmp_path / 'run'
     status, _, err = _train(capsys, capture, out, prior, '1e30', '--checkpoint-every', '1')
@@ -50,12 +50,12 @@ def test_resuming_a_good_run_with_a_blowing_prior_keeps_its_checkpoint(capsys, c
     out = tmp_path / 'run'
     assert _train(capsys, capture, out)[0] == 0
     good = (out / 'model.npz').read_bytes()
-    status, _, err = _train(capsys, capture, out, '--resume', '--iterations', '4', '--tv',
-                            '1e30', '--checkpoint-every', '1')
+    status, _, err = _train(capsys, capture, out, '--resume', '--iterations', '4',
+                            '--distortion', '1e30', '--checkpoint-every', '1')
     assert status == 1 and error_line(err, 'optimize') == (
         f'the parameters became NaN or infinite (the loss was still finite) at iteration 3; '
         f'stopping before it is used or saved: the last good checkpoint '
-        f'({out / "model.npz"}, iteration 2) is kept. Most likely --tv 1e+30 (above the '
+        f'({out / "model.npz"}, iteration 2) is kept. Most likely --distortion 1e+30 (above the '
         f'default): lower it, then resume with --resume')
     assert (out / 'model.npz').read_bytes() == good
     assert load_checkpoint(out / 'model.npz')[1]['iteration'] == 2

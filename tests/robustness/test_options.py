@@ -336,7 +336,8 @@ def test_a_divergence_names_the_step_size_that_was_raised(name):
 
 
 def test_the_step_sizes_are_every_learning_rate_and_loss_weight():
-    assert {'lr_final', 'far_smoothness', 'lr_grid', 'tv'} <= set(TrainConfig.step_sizes())
+    assert {'lr_final', 'lr_grid', 'distortion', 'sparsity', 'mask_weight'} <= set(
+        TrainConfig.step_sizes())
     assert 'near_gradient' not in TrainConfig.step_sizes()       # a radius, not a step size
 
 

@@ -341,15 +341,14 @@ def test_random_model_options_are_what_a_checkpoint_of_them_says(tmp_path):
                     grid_planes=tuple(rng.sample([8, 16, 32], rng.randint(0, 2))),
                     bg_grid_planes=rng.choice([None, (), (16,)]),
                     fg_warp=rng.choice([0.0, 0.5]), density_bias=rng.choice([0.0, -1.0]),
-                    appearance=rng.random() < 0.5, refine_poses=rng.random() < 0.5,
-                    composite=rng.choice(['linear', 'srgb']))
+                    appearance=rng.random() < 0.5, refine_poses=rng.random() < 0.5)
 
     def weights(config):
         m = config.model
         return {'fg': config.field_config(m.field, 'ball'),
                 'bg': (config.field_config(m.bg_field, 'inverted_sphere')
                        if m.kind == 'nerfpp' else None),
-                'color_space': 'srgb', 'composite': m.composite,
+                'color_space': 'srgb', 'composite': 'linear',
                 'appearance_images': 3 if m.appearance else 0,
                 'pose_images': 3 if m.refine_poses else 0}
 

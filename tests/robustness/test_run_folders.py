@@ -197,32 +197,22 @@ def test_stray_temporary_checkpoints_are_removed(capsys, capture, tmp_path):
     assert not stray.exists() and (out / 'model.npz').exists()
 
 
-def test_resume_with_another_compositing_space_is_refused(capsys, capture, tmp_path):
-    out = tmp_path / 'run'
-    assert _train(capsys, capture, out, '--composite', 'srgb')[0] == 0
-    assert load_checkpoint(out / 'model.npz')[0].composite == 'srgb'
-    status, _, err = _train(capsys, capture, out, '--resume')
-    line = one_clear_line(err)
-    assert status == 1 and "--composite: the checkpoint's weights have 'srgb', this run asks for " \
-        "'linear'" in line
-    assert _train(capsys, capture, out, '--resume', '--composite', 'srgb',
-                  '--iterations', '3')[0] == 0
-
-
 def test_resume_of_a_checkpoint_from_before_linear_compositing(capsys, capture, tmp_path):
-    """A pre-issue-11 sRGB checkpoint (no 'composite' entry) resumes only as 'srgb'."""
+    """A pre-issue-11 sRGB checkpoint (no 'composite' entry: it summed encoded colours) is not
+    resumed: that compositing was removed (docs/experiments.md)."""
     out = tmp_path / 'run'
-    assert _train(capsys, capture, out, '--composite', 'srgb')[0] == 0
+    assert _train(capsys, capture, out)[0] == 0
     path = out / 'model.npz'
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
     config = json.loads(str(arrays['config']))
-    del config['composite'], config['meta']['config']['model']['composite']
+    del config['composite']
     arrays['config'] = np.array(json.dumps(config))
     np.savez(path, **arrays)
     status, _, err = _train(capsys, capture, out, '--resume')
     line = one_clear_line(err)
-    assert status == 1 and "--composite: the checkpoint's weights have 'srgb'" in line
+    assert status == 1 and 'was trained with --composite srgb, which this version no ' \
+        'longer has' in line
 
 
 @pytest.mark.parametrize('held', [True, False])

@@ -46,10 +46,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CPU, GPU = 'llvm_ad_rgb', 'cuda_ad_rgb'
 # The backend-agnostic subset of the test suite: the integrator, rendering, fields, the variant
 # choice, and two trainings (frozen steps against traced ones, PSNR well above untrained).
-TESTS = ['tests/test_variant.py', 'tests/test_integrator.py', 'tests/test_render.py',
-         'tests/test_fields.py', 'tests/commands/test_render.py',
-         'tests/test_train.py::test_frozen_step_replays_the_traced_step',
-         'tests/test_train.py::test_training_raises_held_out_psnr_well_above_untrained']
+TESTS = ['tests/test_variant.py', 'tests/integrator/test_integrator.py',
+         'tests/core/test_render.py', 'tests/core/test_fields.py', 'tests/commands/test_render.py',
+         'tests/training/test_train.py::test_frozen_step_replays_the_traced_step',
+         'tests/training/test_train.py::test_training_raises_held_out_psnr_well_above_untrained']
 
 
 def log(text):

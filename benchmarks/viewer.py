@@ -55,7 +55,7 @@ from mi_nerfpp.jobs.viewer import (ViewerObserver, open_viewer,  # noqa: E402
                                    render_widths)
 from mi_nerfpp.output.camera_path import path_cameras, read_path  # noqa: E402
 from mi_nerfpp.training.config import TrainConfig  # noqa: E402
-from tests.test_viewer import Page, free_port, wait_for  # noqa: E402
+from tests.jobs.test_viewer import Page, free_port, wait_for  # noqa: E402
 
 
 def browser(width, height):

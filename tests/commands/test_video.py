@@ -71,7 +71,7 @@ def test_video_renders_a_training_images_appearance_on_request(tiny_run, tmp_pat
     video's); a model without an appearance per training image refuses it in one line."""
     from mi_nerfpp.files.checkpoint import save_checkpoint
     from mi_nerfpp.jobs.cluster import FrameWorker
-    from tests.test_appearance import embedded_model
+    from tests.core.test_appearance import embedded_model
     path = str(tmp_path / 'embedded.npz')
     save_checkpoint(path, embedded_model())
     worker = FrameWorker(path, look={'appearance_image': 2}).load()

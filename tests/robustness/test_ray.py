@@ -3,7 +3,8 @@ line, before any work, instead of Ray's client retrying for ever. Real Ray: a re
 port that accepts and says nothing, a server of another protocol, and a gRPC server that is
 no Ray cluster (which Ray's client would wait on for ever: the command gives up after
 MI_NERFPP_RAY_TIMEOUT seconds). The commands run in child processes with a timeout, so a hang
-fails the test instead of stalling the suite. The working cluster is tests/test_cluster.py's."""
+fails the test instead of stalling the suite. The working cluster is
+tests/jobs/test_cluster.py's."""
 import os
 import socket
 import subprocess

@@ -162,7 +162,7 @@ def test_optimize_with_appearance_scores_nerf_w_style_and_keeps_the_neutral_scor
                                                                                   tmp_path):
     import subprocess
     import sys
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     out = tmp_path / 'run'
     r = subprocess.run([sys.executable, os.path.join(root, 'optimize.py'), exposed[0],
                         '--appearance', '--out', str(out), '--iterations', '3',

@@ -9,7 +9,7 @@ import pytest
 from mi_nerfpp.core.render import Sampling, render_rays
 from mi_nerfpp.integrator.nerfpp import VolumesOnly
 from tests.helpers import AnalyticField
-from tests.test_render import F, constant_field, npf, rays
+from tests.core.test_render import F, constant_field, npf, rays
 
 
 # ----------------------------------------------------------------------------- render_rays(far=)

@@ -34,7 +34,7 @@ from mi_nerfpp.output.camera_path import (CameraPath, CameraPathError, Pose,
                                           sample_frames, write_path)
 from mi_nerfpp.output.views import ViewRenderer
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CHROMIUM = shutil.which('chromium') or shutil.which('chromium-browser')
 CHROMEDRIVER = shutil.which('chromedriver')
 NO_BROWSER = os.environ.get('MI_NERFPP_NO_BROWSER', '').strip() not in ('', '0')

@@ -13,7 +13,7 @@ from mi_nerfpp.files import exr
 from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.output.views import render_to_files
 from tests.helpers import AnalyticField, scene_dict, tiny_model
-from tests.test_compositing import _oiiotool, sphere_field
+from tests.output.test_compositing import _oiiotool, sphere_field
 
 
 def _rgb(layers):
@@ -106,7 +106,7 @@ def test_deep_render_with_objects_and_a_shadow_catcher(tmp_path):
     oiiotool gives the beauty of the same rays within 2e-3, and the mirror's sample is opaque
     at its surface."""
     tool = _oiiotool()
-    from tests.test_scene_objects import CATCHER, ground_fields
+    from tests.integrator.test_scene_objects import CATCHER, ground_fields
     fg, bg = ground_fields()
     desc = scene_dict(width=20, height=15, origin=(0.0, 0.35, 0.75), target=(0, -0.3, 0),
                       spp=1, jitter=False, fg_samples=64, bg_samples=16, fine_samples=16,

@@ -19,7 +19,7 @@ from mi_nerfpp.training.error_map import ErrorMap
 from mi_nerfpp.training.train import Trainer, TrainingError
 from tests.helpers import one_thread, straight_and_resumed
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SMALL = dict(batch_rays=512, fg_samples=16, bg_samples=16, fine_samples=16,
              checkpoint_every=0, preview_every=0)
 

@@ -13,7 +13,7 @@ from mi_nerfpp.training.config import (DEFAULT_JOB_MINUTES, DEFAULT_MINUTES_RANG
                                        default_minutes)
 from mi_nerfpp.data import DatasetError, load_dataset
 from mi_nerfpp.core.model import NeRFPPModel
-from tests.test_run import Recorder
+from tests.jobs.test_run import Recorder
 
 
 def test_the_default_capture_keeps_its_minutes_and_larger_ones_get_more_within_bounds():

@@ -336,7 +336,8 @@ def test_trajectory_data_ships_with_licence():
 def test_scenes_are_a_top_level_folder_and_the_cache_is_per_user(monkeypatch, tmp_path):
     # The scenes a user opens are in the repository's scenes/, found from the checkout (an
     # installed wheel carries them as package data: tests/test_wheel.py).
-    folder = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'scenes')
+    folder = os.path.join(
+        os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), 'scenes')
     for name in ('gt_garden.xml', 'gt_plaza.xml', 'gt_bounded.xml', 'render_random.xml',
                  'insert_objects.xml', 'envmaps/forest_slope_1k.hdr', 'textures/paving.png'):
         assert os.path.isfile(os.path.join(folder, name)), name

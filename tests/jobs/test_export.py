@@ -332,8 +332,8 @@ def test_blenders_usd_importer_keeps_one_named_camera_per_image(exported, tmp_pa
     """Blender 4.2's USD importer (pip bpy: Debian's Blender has none) flattens the prim
     hierarchy; the cameras arrived as _00000, _00000.001, ... (issue 49, item 3). Each
     arrives as <split>_<image stem>, one per image, with the USD lens."""
-    python = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                          '.venv-bpy', 'bin', 'python')
+    python = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(
+        __file__)))), '.venv-bpy', 'bin', 'python')
     if not os.path.exists(python):
         pytest.fail('bpy 4.2 is not installed: run scripts/setup.sh --test (it makes .venv-bpy)')
     run, out = exported

@@ -253,7 +253,7 @@ def _edge_scene(spp, rfilter, **integrator):
     """Hard edges everywhere: an opaque reconstructed sphere in front of a background that
     varies with direction, a diffuse ball and a camera-facing card inserted, and a shadow
     catcher under them; camera samples jittered over the pixel."""
-    from tests.test_scene_objects import CATCHER, sky
+    from tests.integrator.test_scene_objects import CATCHER, sky
     fg = sphere_field(0.15, (0.9, 0.3, 0.2))
     bg = AnalyticField(1.0, sky)
     z_card = -0.25
@@ -306,7 +306,7 @@ def test_layers_add_up_at_16_spp_with_objects(tmp_path, rfilter):
 
 
 def _sky():
-    from tests.test_scene_objects import sky
+    from tests.integrator.test_scene_objects import sky
     return sky
 
 

@@ -395,7 +395,7 @@ def test_the_sample_count_defaults_have_one_home():
     in mi_nerfpp.core.render; the options, the integrator and old checkpoints read them."""
     from mi_nerfpp.core.render import SKIPPING, Sampling
     from mi_nerfpp.training.config import SamplingOptions
-    root = pathlib.Path(__file__).resolve().parent.parent / 'mi_nerfpp'
+    root = pathlib.Path(__file__).resolve().parent.parent.parent / 'mi_nerfpp'
     places = {file for file, _ in sample_count_literals(root)}
     assert places == {'mi_nerfpp/core/render.py'}, places
     options = SamplingOptions()

@@ -12,7 +12,7 @@ from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
 from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.core.fields import GridField, make_field
 from mi_nerfpp.core.model import NeRFPPModel
-from mi_nerfpp.training.optim import is_grid, is_grid_level
+from mi_nerfpp.training.optim import is_grid
 from tests.helpers import TINY_GRID, field_inputs
 
 AXES = {'xy': (0, 1), 'xz': (0, 2), 'yz': (1, 2)}
@@ -166,8 +166,8 @@ def test_plane_options_reach_the_fields_and_the_learning_rates():
     field = make_field(cfg.field_config('grid', 'inverted_sphere'))
     entries = sum(np.prod(v.shape) for k, v in field.params.items() if k.startswith('plane'))
     assert entries == budget.grid_plane_entries(cfg, 'inverted_sphere')[0]
-    assert is_grid('fg.plane0xy') and not is_grid_level('fg.plane0xy')
-    assert is_grid('bg.grid1') and is_grid_level('bg.grid1') and not is_grid('fg.color.rest.0')
+    assert is_grid('fg.plane0xy') and is_grid('bg.grid1') and is_grid('fg.sparse0')
+    assert not is_grid('fg.color.rest.0')
     with pytest.raises(Exception, match='grid_planes|grid-planes'):
         TrainConfig.from_options(grid_planes=(1,))
 

@@ -140,7 +140,7 @@ class OccupiedVolume:
         if self.bins % 32:
             raise ValueError(f'occupancy bins per ray must be a multiple of 32, got {bins}')
         self.infinite_last, self.open = volume.infinite_last, volume.open
-        self.d, self.footprint = volume.d, volume.footprint
+        self.d, self.footprint, self.seed = volume.d, volume.footprint, volume.seed
         self.words = occupied_words(volume, grid, self.bins)
         # Occupied bins before each word (before[0] = 0).
         self.before = [dr.zeros(mi.UInt32, dr.width(volume.lo))]

@@ -65,6 +65,7 @@ import mitsuba as mi
 from mi_nerfpp.core import geometry as geo
 from mi_nerfpp.core.occupancy import DEFAULT_BINS, OccupiedVolume
 from mi_nerfpp.core.profiling import settle, stage
+from mi_nerfpp.core.rays import Rays
 from mi_nerfpp.core.sampling import (FineSampler, flat_index, gather_merged,
                                      merge_order, per_ray, split_merged,
                                      stratified_sample, uniforms)
@@ -129,6 +130,7 @@ class Volume:
     infinite_last = False
     open = None
     footprint = None      # per ray: the pixel's width per unit distance, or None
+    seed = None           # per ray: the jitter of the samples (None: strata midpoints)
 
     def parameter(self, ray, v):
         """The ray parameter of sample coordinate ``v`` (the identity here)."""
@@ -141,11 +143,13 @@ class Volume:
 
 
 class Foreground(Volume):
-    """The unit-sphere volume, parametrized by ray distance ``t``; ``far`` (per ray, or None)
-    ends the segment there (the ray hit a surface), ``inf`` leaves it whole."""
+    """The unit-sphere volume of ``rays`` (:class:`~.rays.Rays`) from distance ``near`` on,
+    parametrized by ray distance ``t``; the rays' ``far`` (or None) ends the segment there (the
+    ray hit a surface), ``inf`` leaves it whole."""
 
-    def __init__(self, o, d, near=0.0, far=None, footprint=None):
-        self.o, self.d, self.footprint = o, d, footprint
+    def __init__(self, rays: Rays, near=0.0):
+        o, d, far = rays.o, rays.d, rays.far
+        self.o, self.d, self.footprint, self.seed = o, d, rays.footprint, rays.seed
         # The samples' distances t are constants of the ray parameters (as nerfstudio's):
         # gradients reach o and d through p = o + t·d only.
         self.lo, self.hi = geo.foreground_interval(dr.detach(o), dr.detach(d), near)
@@ -178,9 +182,10 @@ class Foreground(Volume):
 
 
 class Background(Volume):
-    """The inverted-sphere volume, parametrized by ``v = 1 - s/s_max`` (see module docs).
+    """The inverted-sphere volume of ``rays`` (:class:`~.rays.Rays`), parametrized by
+    ``v = 1 - s/s_max`` (see module docs).
 
-    ``far`` (per ray, or None) ends the segment at that ray distance: ``v`` then stops at
+    The rays' ``far`` (or None) ends the segment at that ray distance: ``v`` then stops at
     ``v_far = 1 - s(far)/s_max`` and the last interval is finite (the volume is no longer
     opaque); a ``far`` before the start of the outgoing part gives an empty segment, and
     ``far = inf`` leaves the ray as without ``far``. ``open`` (None without ``far``) says per
@@ -188,8 +193,9 @@ class Background(Volume):
 
     infinite_last = True
 
-    def __init__(self, o, d, far=None, footprint=None):
-        self.d, self.footprint = d, footprint
+    def __init__(self, rays: Rays):
+        o, d, far = rays.o, rays.d, rays.far
+        self.d, self.footprint, self.seed = d, rays.footprint, rays.seed
         self.t_b, self.p_m, self.b = geo.closest_approach(o, d)
         self.s_max = geo.background_s_max(dr.detach(o), dr.detach(d))   # constant, as t
         self.lo = dr.zeros(mi.Float, dr.width(d))
@@ -354,8 +360,7 @@ def field_lookup(field, visible_only: bool):
     return KeptFeatures(field) if hasattr(field, 'sample_color') else DensityOnly(field)
 
 
-def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_only=False,
-                  near_gradient=0.0, fused=False, level=SURFACE_LEVEL):
+def render_volume(volume, field, n_coarse, n_fine, options=None, stream=0, level=SURFACE_LEVEL):
     """Hierarchical sampling and quadrature of one volume (see module docs).
 
     The coarse pass places ``n_coarse`` stratified samples and evaluates the field there; its
@@ -364,7 +369,11 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
     is of the field's features (:func:`composite_features`) and the colour network runs once per
     ray; otherwise the field's colour is composited sample by sample.
 
-    ``visible_only`` (primal rendering of a field with per-sample colour, with fine samples):
+    The samples are jittered by the volume's ``seed`` (its rays', see :class:`Foreground`),
+    from random stream ``stream``; the ``options`` (:class:`RenderOptions`, None: the defaults)
+    say how:
+
+    ``skip_occluded`` (primal rendering of a field with per-sample colour, with fine samples):
     colour is evaluated at the merged samples that can show (:func:`_shade_visible`): a grid
     field's passes keep its features (they come with its density) and only its colour network
     runs there; other fields' passes take densities only, and the field is evaluated again. A
@@ -374,11 +383,13 @@ def render_volume(volume, field, n_coarse, n_fine, seed=None, stream=0, visible_
     ``fused`` (primal rendering): the merge and the quadrature in one kernel per ray
     (:func:`_fused_quadrature`), without per-sample arrays in the result; its ``surface`` is
     taken at accumulated weight ``level`` (a number or one per ray)."""
+    options = options or RenderOptions()
+    near_gradient, seed = options.near_gradient, volume.seed
     deferred = getattr(field, 'deferred', False)
-    lookup = field_lookup(field, visible_only and n_fine > 0)
+    lookup = field_lookup(field, options.skip_occluded and n_fine > 0)
     lazy = lookup.shades_later
     keep = isinstance(lookup, KeptFeatures)
-    fused = fused and n_fine > 0 and not lazy
+    fused = options.fused and n_fine > 0 and not lazy
     n_rays = dr.width(volume.lo)
 
     def evaluate(ray, t):
@@ -620,10 +631,41 @@ class Sampling:
 SKIPPING = Sampling(fg_samples=16, bg_samples=16, fine_samples=8)
 
 
-def _render_visible_background(o, d, fg, render, seed, far=None, footprint=None, level=None):
+@dataclass(frozen=True)
+class RenderOptions:
+    """How :func:`render_rays` renders a batch (besides its rays, fields and samples).
+
+    ``occupancy`` (dict ``'fg'``/``'bg'`` -> :class:`~.occupancy.OccupancyGrid`, either may be
+    missing): samples are placed in occupied space only (:class:`~.occupancy.OccupiedVolume`).
+    ``skip_occluded`` (primal rendering only) terminates rays early: the background is
+    rendered only for rays whose foreground transmittance ``λ`` exceeds
+    :data:`OCCLUDED_TRANSMITTANCE` (elsewhere its layers are zero), and within a volume whose
+    field has per-sample colour, colour is evaluated only at the samples that can show
+    (:func:`_shade_visible`: densities of both passes first, then colour where the
+    transmittance and the weight exceed :data:`HIDDEN_WEIGHT`); a grid field's features are
+    kept from both passes for it, other fields are asked for ``density(x)`` too.
+    ``fused`` (primal rendering only): each volume's merge and quadrature in one kernel per
+    ray (:func:`_fused_quadrature`); the result then has no per-sample arrays (what the
+    regularizers and deep output read) but the surfaces that :func:`surface_distance` needs.
+    ``ray_gradients``: let gradients flow to the rays' ``o`` and ``d`` (pose refinement,
+    :mod:`.poses`) through the sample positions; the samples' distances along the ray stay
+    constants. Otherwise the rays are detached.
+    ``near_gradient`` (training; 0: off): the gradients of samples within this distance of the
+    ray's origin are scaled down by :func:`near_gradient_scale`; values are unchanged.
+    ``coverage`` (:class:`~.coverage.CoverageFill`, rendering only): paint the background's
+    colour where the training views did not see the rays' directions, on rays that no ``far``
+    ends (``fine`` of the background only; its samples are kept as they are)."""
+    occupancy: dict | None = None
+    skip_occluded: bool = False
+    fused: bool = False
+    ray_gradients: bool = False
+    near_gradient: float = 0.0
+    coverage: object = None
+
+
+def _render_visible_background(rays, fg, render):
     """The background of the rays that the foreground does not occlude, zero elsewhere
-    (``render(o, d, seed, far, footprint, level)`` of those rays; per-ray arguments may be
-    None)."""
+    (``render(rays)`` of those rays)."""
     n_rays = dr.width(fg.fine.opacity)
     dr.eval(fg.fine.opacity)
     visible = dr.compress(1.0 - fg.fine.opacity > OCCLUDED_TRANSMITTANCE)
@@ -638,55 +680,34 @@ def _render_visible_background(o, d, fg, render, seed, far=None, footprint=None,
 
     if dr.width(visible) == 0:
         return VolumeRender(expand(None), None, None, 0)
-    def part(x, tp):
-        return None if x is None else dr.gather(tp, x, visible)
-    sub = render(part(o, mi.Point3f), part(d, mi.Vector3f), part(seed, mi.UInt32),
-                 part(far, mi.Float), part(footprint, mi.Float), part(level, mi.Float))
+    sub = render(rays.gather(visible), visible)
     return dataclasses.replace(sub, fine=expand(sub.fine), rays=visible)
 
 
-def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
-                skip_occluded=False, ray_gradients=False, far=None, near_gradient=0.0,
-                footprint=None, fused=False, coverage=None):
-    """Render rays ``o + t·d`` (``|d| = 1``) through the foreground and background volumes.
+def render_rays(rays: Rays, fg_field, bg_field, sampling, options: RenderOptions = None):
+    """Render ``rays`` (:class:`~.rays.Rays`: origins, unit directions and what each ray
+    carries) through the foreground and background volumes: hierarchical sampling and
+    quadrature in each (:func:`render_volume`), then Eq. 4.
 
-    ``bg_field=None`` renders the foreground volume alone (a bounded NeRF).
-    ``seed`` (UInt32 per ray) jitters sample placement; None places samples
-    deterministically at strata midpoints. ``occupancy`` (dict ``'fg'``/``'bg'`` ->
-    :class:`~.occupancy.OccupancyGrid`, either may be missing) places samples in
-    occupied space only (:class:`~.occupancy.OccupiedVolume`). ``skip_occluded`` (primal
-    rendering only) terminates rays early: the background is rendered only for rays whose
-    foreground transmittance ``λ`` exceeds :data:`OCCLUDED_TRANSMITTANCE` (elsewhere its
-    layers are zero), and within a volume whose field has per-sample colour, colour is
-    evaluated only at the samples that can show (:func:`_shade_visible`: densities of both
-    passes first, then colour where the transmittance and the weight exceed
-    :data:`HIDDEN_WEIGHT`); a grid field's features are kept from both passes for it, other
-    fields are asked for ``density(x)`` too.
-    ``ray_gradients``: let gradients flow to ``o`` and ``d`` (pose refinement, :mod:`.poses`)
-    through the sample positions; the samples' distances along the ray stay constants.
-    Otherwise the rays are detached.
-    ``far`` (Float per ray, or None) ends every ray at that distance, where it meets a
-    surface: both volumes are integrated on ``[near, far]`` only, the background is then not
-    opaque (``fine.opacity < 1``: ``1 - fine.opacity`` is the light that reaches the
-    surface), and a ray with ``far = inf`` renders exactly as without ``far``.
-    ``near_gradient`` (training): see :func:`render_volume`.
-    ``footprint`` (Float per ray, or None): each ray's pixel width per unit distance, for
-    fields that filter their lookups by it (module docs, "Pixel footprints").
-    ``fused`` (primal rendering only): each volume's merge and quadrature in one kernel per
-    ray (:func:`_fused_quadrature`); the result then has no per-sample arrays (what the
-    regularizers and deep output read) but the surfaces that :func:`surface_distance` needs.
-    ``coverage`` (:class:`~.coverage.CoverageFill`, rendering only): paint the background's colour
-    where the training views did not see the rays' directions, on rays that no ``far`` ends
-    (``fine`` of the background only; its samples are kept as they are).
+    ``bg_field=None`` renders the foreground volume alone (a bounded NeRF). ``sampling``
+    (:class:`Sampling`) gives the samples per ray and where camera rays start. The rays'
+    ``seed`` jitters sample placement (None: strata midpoints); their ``far`` ends every ray
+    at that distance, where it meets a surface: both volumes are integrated on ``[near, far]``
+    only, the background is then not opaque (``fine.opacity < 1``: ``1 - fine.opacity`` is
+    the light that reaches the surface), and a ray with ``far = inf`` renders exactly as
+    without it; their ``footprint`` filters the lookups of fields that filter (module docs,
+    "Pixel footprints"). ``options`` (:class:`RenderOptions`; None: the defaults): empty-space
+    skipping, early termination, fused quadrature, gradients to the rays, the coverage fill.
     """
-    o, d = mi.Point3f(o), mi.Vector3f(d)
-    if not ray_gradients:
+    options = options or RenderOptions()
+    o, d = mi.Point3f(rays.o), mi.Vector3f(rays.d)
+    if not options.ray_gradients:
         o, d = dr.detach(o), dr.detach(d)
-    if far is not None:
-        far = dr.detach(mi.Float(far))
-    if footprint is not None:
-        footprint = dr.detach(mi.Float(footprint))
-    occupancy = occupancy or {}
+    rays = rays.replace(o=o, d=d,
+                        far=None if rays.far is None else dr.detach(mi.Float(rays.far)),
+                        footprint=(None if rays.footprint is None
+                                   else dr.detach(mi.Float(rays.footprint))))
+    occupancy = options.occupancy or {}
 
     def volume(v, key):
         grid = occupancy.get(key)
@@ -695,23 +716,22 @@ def render_rays(o, d, fg_field, bg_field, sampling, seed=None, occupancy=None,
         with stage('occupancy sampling'):
             return OccupiedVolume(v, grid, DEFAULT_BINS[grid.domain])
 
-    fg = render_volume(volume(Foreground(o, d, sampling.near, far, footprint), 'fg'), fg_field,
-                       sampling.fg_samples, sampling.fine_samples, seed, stream=0,
-                       visible_only=skip_occluded, near_gradient=near_gradient, fused=fused)
+    fused = options.fused
+    fg = render_volume(volume(Foreground(rays, sampling.near), 'fg'), fg_field,
+                       sampling.fg_samples, sampling.fine_samples, options, stream=0)
     bg = None
     # Fused: the background's share of the surface level, in its own accumulated weight.
     level = _background_level(fg.fine.opacity, SURFACE_LEVEL) if fused else SURFACE_LEVEL
-    if bg_field is not None and skip_occluded:
-        bg = _render_visible_background(o, d, fg, lambda o, d, seed, far, fp, level: render_volume(
-            volume(Background(o, d, far, fp), 'bg'), bg_field, sampling.bg_samples,
-            sampling.fine_samples, seed, stream=2, visible_only=True, fused=fused,
-            level=level), seed, far, footprint, level if fused else None)
+    if bg_field is not None and options.skip_occluded:
+        bg = _render_visible_background(rays, fg, lambda sub, visible: render_volume(
+            volume(Background(sub), 'bg'), bg_field, sampling.bg_samples,
+            sampling.fine_samples, options, stream=2,
+            level=dr.gather(mi.Float, level, visible) if fused else SURFACE_LEVEL))
     elif bg_field is not None:
-        bg = render_volume(volume(Background(o, d, far, footprint), 'bg'), bg_field,
-                           sampling.bg_samples, sampling.fine_samples, seed, stream=2,
-                           near_gradient=near_gradient, fused=fused, level=level)
-    if bg is not None and coverage is not None:
-        bg = dataclasses.replace(bg, fine=coverage.blend(d, bg.fine, far))
+        bg = render_volume(volume(Background(rays), 'bg'), bg_field, sampling.bg_samples,
+                           sampling.fine_samples, options, stream=2, level=level)
+    if bg is not None and options.coverage is not None:
+        bg = dataclasses.replace(bg, fine=options.coverage.blend(d, bg.fine, rays.far))
     return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None))
 
 

@@ -19,6 +19,7 @@ from mi_nerfpp.core.geometry import pixel_footprint
 from mi_nerfpp.core.layers import AOVS, aov_list, rst_table
 from mi_nerfpp.core.model import FIELD_KINDS, NeRFPPModel
 from mi_nerfpp.core.objects import split_scene
+from mi_nerfpp.core.rays import Rays
 from mi_nerfpp.core.render import Sampling
 from mi_nerfpp.integrator.loading import check_appearance, load_model
 from mi_nerfpp.integrator.parameters import (MAX_FILM_SAMPLES, ParameterReader,
@@ -339,42 +340,48 @@ class NeRFPPIntegrator(ADIntegrator):
             return VolumesOnly(self)
         return VolumesAndShapes(self, parts)
 
-    def render_rays(self, frame, o, d, seed=None, path_seed=None, footprint=None,
-                    primal=True, record=None):
-        """Beauty and AOVs (``{channel: Float}``) of camera rays ``o + t·d`` in world space
-        through ``frame`` (:meth:`frame`), in chunks of ``chunk_rays`` when ``primal``.
-        ``seed``: per-ray jitter of the samples (None: strata midpoints); ``path_seed``: per
-        ray, the paths through the shapes; ``footprint``: the pixels' footprints
-        (:func:`~mi_nerfpp.core.geometry.pixel_footprint`). ``record`` (a dict; one chunk of
-        rays, ``primal`` only) receives the render's per-sample arrays (deep output)."""
-        n = dr.width(o)
-        if frame.traces_paths and path_seed is None:
-            path_seed = dr.arange(mi.UInt32, n)
+    def render_rays(self, frame, rays: Rays, primal=True, record=None):
+        """Beauty and AOVs (``{channel: Float}``) of camera ``rays``
+        (:class:`~mi_nerfpp.core.rays.Rays` in world space: their ``seed`` jitters the samples,
+        None: strata midpoints; their ``path_seed`` picks the paths through the shapes, None:
+        the rays' indices; their ``footprint``, the pixels') through ``frame`` (:meth:`frame`),
+        in chunks of ``chunk_rays`` when ``primal``. ``record`` (a dict; one chunk of rays,
+        ``primal`` only) receives the render's per-sample arrays (deep output)."""
+        if frame.traces_paths and rays.path_seed is None:
+            rays = rays.replace(path_seed=dr.arange(mi.UInt32, rays.width))
         if not primal or record is not None:
-            return frame.render(o, d, seed, path_seed, footprint, primal, record)
-        return in_chunks(lambda o, d, seed, path_seed, footprint: frame.render(
-            o, d, seed, path_seed, footprint, True), [o, d, seed, path_seed, footprint], n,
-            self.chunk_rays, progress=self.show_progress)
+            return frame.render(rays, primal, record)
+        return in_chunks(lambda chunk: frame.render(chunk, True), rays, self.chunk_rays,
+                         progress=self.show_progress)
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
         """One camera sample per ray (Mitsuba's entry point): both volumes sampled and
         integrated by quadrature, composited by Eq. 4, developed into the layers
         (:meth:`~.volumes.VolumeRenderer.layers`), through the scene's shapes where it has
         some (:meth:`~.shapes.ShapeRenderer.render`)."""
-        o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
-        n = dr.width(o)
-        footprint = pixel_footprint(ray)
-        seed = mi.UInt32(sampler.next_1d() * 4294967040.0) if self.stratified else None
-        primal = mode == dr.ADMode.Primal
-        frame = self.frame(scene)
-        path_seed = None
+        # --------------------------- Variables declared up front --------------------------
+        primal = mode == dr.ADMode.Primal      # a render, not a gradient pass
+        frame = self.frame(scene)              # volumes alone, or volumes and shapes
+        n = dr.width(ray.o)                    # camera samples in this wavefront
+
+        # ------------------------------- The camera rays ----------------------------------
+        # Origins and unit directions in world space, each ray's pixel footprint (for grids
+        # that filter by it), the jitter of its samples along the ray (None: strata midpoints)
+        # and, where the scene has shapes, the seed of its paths: the sample's index hashed
+        # with the sampler (which carries the render's seed), so that no two samples share a
+        # path even where the sampler repeats.
+        rays = Rays(mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d)),
+                    footprint=pixel_footprint(ray))
+        if self.stratified:
+            rays.seed = mi.UInt32(sampler.next_1d() * 4294967040.0)
         if frame.traces_paths:
-            # One path seed per camera sample: its index hashed with the sampler (which
-            # carries the render's seed), so no two samples share a path even where the
-            # sampler repeats.
-            path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n),
-                                            mi.UInt32(sampler.next_1d() * 4294967040.0))
-        L, aovs = self.render_rays(frame, o, d, seed, path_seed, footprint, primal)
+            rays.path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n), mi.UInt32(
+                sampler.next_1d() * 4294967040.0))
+
+        # ---------- Samples, quadrature and Eq. 4, developed into the layers --------------
+        # (Section 4 of the paper: both volumes sampled and integrated, then composited;
+        # through the scene's shapes where it has some.)
+        L, aovs = self.render_rays(frame, rays, primal)
         return L, mi.Bool(True), aov_list(aovs, lambda: dr.zeros(mi.Float, n)), None
 
 
@@ -386,8 +393,8 @@ class VolumesOnly:
     def __init__(self, integrator):
         self.volumes = integrator.volumes
 
-    def render(self, o, d, seed, path_seed, footprint, primal, record=None):
-        L, aovs, _ = self.volumes.layers(o, d, seed, primal, footprint=footprint, record=record)
+    def render(self, rays, primal, record=None):
+        L, aovs, _ = self.volumes.layers(rays, primal, record=record)
         return L, aovs
 
 
@@ -404,9 +411,8 @@ class VolumesAndShapes:
             with dr.suspend_grad():
                 self.environment = integrator.shapes.catcher_environment(parts)
 
-    def render(self, o, d, seed, path_seed, footprint, primal, record=None):
-        return self.shapes.render(self.parts, o, d, seed, path_seed, primal, self.environment,
-                                  footprint, record)
+    def render(self, rays, primal, record=None):
+        return self.shapes.render(self.parts, rays, primal, self.environment, record)
 
 
 def _ids(text):

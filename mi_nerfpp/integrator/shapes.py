@@ -8,6 +8,7 @@ import mitsuba as mi
 
 from mi_nerfpp.core.layers import layer_channels
 from mi_nerfpp.core.objects import combine, path_rng, trace_paths
+from mi_nerfpp.core.rays import Rays
 from mi_nerfpp.integrator.loading import appearance_transform
 from mi_nerfpp.integrator.volumes import VolumeRenderer
 
@@ -21,9 +22,9 @@ class ShapeRenderer:
     def __init__(self, integrator, volumes: VolumeRenderer):
         self.integrator, self.volumes = integrator, volumes
 
-    def render(self, parts, o, d, seed, path_seed, primal, environment=None, footprint=None,
-               record=None):
-        """Beauty and AOVs of camera rays through a scene with shapes (see
+    def render(self, parts, rays: Rays, primal, environment=None, record=None):
+        """Beauty and AOVs of camera ``rays`` (:class:`~mi_nerfpp.core.rays.Rays`, with their
+        ``path_seed``) through a scene with shapes (see
         :mod:`mi_nerfpp.core.objects`): the volumes up to the first surface, the surfaces path
         traced with the volumes as their light, the shadow catchers' differential shading
         (with the ``environment`` of :meth:`catcher_environment`, where the scene has
@@ -31,16 +32,16 @@ class ShapeRenderer:
         :meth:`~.volumes.VolumeRenderer.layers`) and the surfaces' ``far``, ``hit``, ``L0``,
         ``surfaces`` and ``shadow``."""
         ig = self.integrator
-        n = dr.width(o)
+        o, d, n = rays.o, rays.d, rays.width
         hit = dr.zeros(mi.Bool, n)
         far0 = None
         if parts.objects is not None:
-            paths = trace_paths(parts.objects, mi.Ray3f(o, d), path_seed, ig.max_depth,
+            paths = trace_paths(parts.objects, mi.Ray3f(o, d), rays.path_seed, ig.max_depth,
                                 ig.rr_depth)
             far0 = dr.gather(mi.Float, paths.far, paths.segment(0))
             hit = ~dr.isinf(far0)
-        L0, volumes, opacity0 = self.volumes.layers(o, d, seed, primal, far0, footprint,
-                                                    record=record)
+        rays = rays.replace(far=far0)       # the camera segment ends at the first surface
+        L0, volumes, opacity0 = self.volumes.layers(rays, primal, record=record)
         surfaces = dr.zeros(mi.Color3f, n)
         if parts.objects is not None:
             # Every segment's volumes: the camera segment's from above, the others here.
@@ -50,9 +51,8 @@ class ShapeRenderer:
                 later = dr.compress(paths.valid & (dr.arange(mi.UInt32, dr.width(paths.valid))
                                                    >= n))
                 if dr.width(later):
-                    L_k, T_k = self.volumes.segments(dr.gather(mi.Point3f, paths.o, later),
-                                                  dr.gather(mi.Vector3f, paths.d, later),
-                                                  dr.gather(mi.Float, paths.far, later), primal)
+                    L_k, T_k = self.volumes.segments(
+                        Rays(paths.o, paths.d, far=paths.far).gather(later), primal)
                     dr.scatter(L_seg, L_k, later)
                     dr.scatter(T_seg, T_k, later)
             dr.scatter(T_seg, 1.0 - opacity0, paths.segment(0))
@@ -63,7 +63,7 @@ class ShapeRenderer:
                 surfaces = appearance_transform(ig.model, ig.appearance_image)[0] * surfaces
         shadow = dr.zeros(mi.Color3f, n)
         if environment is not None and parts.objects is not None:
-            shadow = self.shadow(parts, o, d, far0, L0, path_seed, environment)
+            shadow = self.shadow(parts, rays, L0, environment)
         t_hit = dr.select(hit, far0, 0.0) if far0 is not None else dr.zeros(mi.Float, n)
         z_hit = ig.camera_depth(o, d, t_hit)
         # The surface is the depth where the volumes in front of it stay below half opacity.
@@ -89,9 +89,8 @@ class ShapeRenderer:
         rays = dr.compress(paths.shadow_far > 0.0)
         if dr.width(rays) == 0:
             return paths.vertex
-        _, T = self.volumes.segments(dr.gather(mi.Point3f, paths.shadow_o, rays),
-                                  dr.gather(mi.Vector3f, paths.shadow_d, rays),
-                                  dr.gather(mi.Float, paths.shadow_far, rays), primal)
+        _, T = self.volumes.segments(
+            Rays(paths.shadow_o, paths.shadow_d, far=paths.shadow_far).gather(rays), primal)
         vertex = mi.Color3f(paths.vertex)
         dr.scatter(vertex, dr.gather(mi.Color3f, vertex, rays)
                    - (1.0 - T) * dr.gather(mi.Color3f, paths.nee, rays), rays)
@@ -110,15 +109,17 @@ class ShapeRenderer:
         centre = parts.catchers.bbox().center()
         o = mi.Point3f(*[dr.full(mi.Float, float(c), n) for c in centre])
         with dr.suspend_grad():
-            L, _ = self.volumes.segments(o, d, dr.full(mi.Float, dr.inf, n), primal=True)
+            L, _ = self.volumes.segments(Rays(o, d, far=dr.full(mi.Float, dr.inf, n)),
+                                         primal=True)
             texels = dr.ravel(dr.detach(L))
             dr.eval(texels)
         return mi.Texture2f(mi.TensorXf(texels, (height, width, 3)),
                             filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
 
-    def shadow(self, parts, o, d, far0, L0, path_seed, environment):
+    def shadow(self, parts, rays, L0, environment):
         """Differential rendering on the shadow catchers (Debevec 1998), the occlusion part:
-        where a camera ray meets a catcher before any object, the radiance ``L0`` of the
+        where a camera ray of ``rays`` (their ``far``: the first object, their ``path_seed``)
+        meets a catcher before any object, the radiance ``L0`` of the
         volumes along it is scaled by ``E_with / E_without``, the catcher's irradiance with
         and without the objects, estimated from the same ``catcher_samples``
         cosine-distributed directions over its hemisphere that faces the camera, each carrying
@@ -128,7 +129,8 @@ class ShapeRenderer:
         objects reflect onto the catcher is left out (no colour bleeding), and the
         environment is seen from one point (the catchers' centre), whose parallax mostly
         cancels in the ratio."""
-        n, K = dr.width(o), self.integrator.catcher_samples
+        o, d, far0, path_seed = rays.o, rays.d, rays.far, rays.path_seed
+        n, K = rays.width, self.integrator.catcher_samples
         ray = mi.Ray3f(o, d)
         if far0 is not None:
             ray.maxt = dr.select(dr.isinf(far0), dr.largest(mi.Float), far0)

@@ -10,7 +10,8 @@ from tqdm import tqdm
 
 from mi_nerfpp.core.color import srgb_to_linear
 from mi_nerfpp.core.layers import BACKGROUND_WEIGHT_FLOOR, layer_channels
-from mi_nerfpp.core.render import render_rays, surface_distance
+from mi_nerfpp.core.rays import Rays
+from mi_nerfpp.core.render import RenderOptions, render_rays, surface_distance
 from mi_nerfpp.core.appearance import image_code
 from mi_nerfpp.integrator.loading import appearance_transform
 
@@ -23,17 +24,17 @@ class VolumeRenderer:
     def __init__(self, integrator):
         self.integrator = integrator
 
-    def layers(self, o, d, seed, primal=False, far=None, footprint=None, transform=True,
-               camera=True, record=None):
-        """Beauty, volume AOVs and composite opacity of world-space rays:
-        ``(L: Color3f, aovs: {channel: Float}, opacity: Float)``.
+    def layers(self, rays: Rays, primal=False, transform=True, camera=True, record=None):
+        """Beauty, volume AOVs and composite opacity of world-space ``rays``
+        (:class:`~mi_nerfpp.core.rays.Rays`): ``(L: Color3f, aovs: {channel: Float}, opacity:
+        Float)``.
 
         The paper's steps: both volumes are sampled and integrated by quadrature, and
         composited by Eq. 4 (:func:`~mi_nerfpp.core.render.render_rays`); the composite is
         developed into the layers (``fg``, ``bg``, ``depth``, ``distance``, ``A``).
 
-        ``far``: where the volumes end (world units per ray, ``inf``: no end; None: all);
-        ``footprint``: the rays' pixel widths per unit distance
+        The rays' ``far``: where the volumes end (world units per ray, ``inf``: no end; None:
+        all); their ``footprint``: pixel widths per unit distance
         (:func:`~mi_nerfpp.core.geometry.pixel_footprint`), or None; ``transform=False``
         leaves out the appearance transform; ``camera=False`` (rays that leave a surface)
         starts the samples at the ray origin, not at ``near``; ``record`` (a dict, camera
@@ -52,14 +53,17 @@ class VolumeRenderer:
         model.set_appearance(image_code(model.embedding, ig.appearance_image) if chosen
                              else None)
         # 1-3. Sample both volumes, quadrature, Eq. 4 (a recorded render keeps its samples).
-        res = render_rays(*norm.to_model_rays(o, d), fg_field,
-                          bg_field if ig.background else None, sampling, seed,
-                          occupancy=model.occupancy if ig.skip_empty else None,
+        o, d = rays.o, rays.d
+        model_o, model_d = norm.to_model_rays(o, d)
+        res = render_rays(
+            rays.replace(o=model_o, d=model_d,
+                         far=None if rays.far is None else norm.to_model_distance(rays.far),
+                         footprint=rays.footprint if model.antialias else None),
+            fg_field, bg_field if ig.background else None, sampling,
+            RenderOptions(occupancy=model.occupancy if ig.skip_empty else None,
                           skip_occluded=primal and not ig.occluded_background,
-                          far=None if far is None else norm.to_model_distance(far),
-                          footprint=footprint if model.antialias else None,
                           fused=primal and not keep_samples,
-                          coverage=model.coverage if ig.fill_unseen else None)
+                          coverage=model.coverage if ig.fill_unseen else None))
         model.set_appearance(None)
         # 4. The layers.
         fg = res.fg.fine
@@ -91,27 +95,27 @@ class VolumeRenderer:
             record.update(res=res, aovs=aovs)
         return L, aovs, res.fine.opacity
 
-    def segments(self, o, d, far, primal):
-        """Radiance and transmittance of the volumes along rays that end at ``far`` (the
-        segments that leave surfaces; neutral colour, in chunks when primal)."""
-        def render(o, d, far):
-            L, _, opacity = self.layers(o, d, None, primal, far, transform=False, camera=False)
+    def segments(self, rays: Rays, primal):
+        """Radiance and transmittance of the volumes along ``rays`` that end at their ``far``
+        (the segments that leave surfaces; neutral colour, in chunks when primal)."""
+        def render(rays):
+            L, _, opacity = self.layers(rays, primal, transform=False, camera=False)
             return L, {'T': 1.0 - opacity}
         if primal:
-            L, values = in_chunks(render, [o, d, far], dr.width(o), self.integrator.chunk_rays)
+            L, values = in_chunks(render, rays, self.integrator.chunk_rays)
         else:
-            L, values = render(o, d, far)
+            L, values = render(rays)
         return L, values['T']
 
 
-def in_chunks(render, args, n, chunk, progress=False):
-    """Primal rendering of ``n`` rays, ``chunk`` at a time (bounded memory): ``render(*args)``
-    on each chunk of the per-ray ``args`` (None stays None) returns ``(L, values)``,
-    ``values`` a dict of per-ray Floats (AOV channels); returns the same for all ``n`` rays.
-    ``progress``: show a bar."""
+def in_chunks(render, rays: Rays, chunk, progress=False):
+    """Primal rendering of ``rays``, ``chunk`` at a time (bounded memory): ``render(rays)``
+    of each chunk returns ``(L, values)``, ``values`` a dict of per-ray Floats (AOV
+    channels); returns the same for all the rays. ``progress``: show a bar."""
+    n = rays.width
     if n <= chunk:
-        return render(*args)
-    dr.eval(*[a for a in args if a is not None])
+        return render(rays)
+    dr.eval(rays)
     L_out, out = [dr.zeros(mi.Float, n) for _ in range(3)], None
     starts = range(0, n, chunk)
     if progress:
@@ -121,7 +125,7 @@ def in_chunks(render, args, n, chunk, progress=False):
         i = dr.arange(mi.UInt32, chunk) + dr.opaque(mi.UInt32, start)
         valid = i < n
         j = dr.minimum(i, n - 1)
-        L, values = render(*[None if a is None else dr.gather(type(a), a, j) for a in args])
+        L, values = render(rays.gather(j))
         if out is None:
             out = {name: dr.zeros(mi.Float, n) for name in values}
         for buf, value in zip(L_out + list(out.values()),

@@ -37,6 +37,7 @@ import OpenEXR
 from tqdm import tqdm
 
 from mi_nerfpp.core.geometry import pixel_footprint
+from mi_nerfpp.core.rays import Rays
 from mi_nerfpp.core.render import flat_index
 from mi_nerfpp.files.atomic import atomic_write_path, readable_path
 from mi_nerfpp.files.exr import COMPRESSIONS
@@ -78,7 +79,8 @@ def _events(integrator, frame, o, d, seed, footprint=None):
     path_seed = None
     if frame.traces_paths:
         path_seed, _ = mi.sample_tea_32(dr.arange(mi.UInt32, n), mi.UInt32(seed))
-    L, _ = integrator.render_rays(frame, o, d, None, path_seed, footprint, record=deep)
+    L, _ = integrator.render_rays(frame, Rays(o, d, footprint=footprint, path_seed=path_seed),
+                                  record=deep)
     res, aovs = deep['res'], deep['aovs']
     norm = integrator.model.normalization
     center, axis = integrator.camera

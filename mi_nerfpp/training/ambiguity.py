@@ -99,10 +99,10 @@ def fit_radiance(sphere, rays, iterations, batch_rays=4096, lr_mlp=optim.LR_MLP,
         steps = progress(steps, desc='fit radiance', unit='it')
     for it in steps:
         optim.set_learning_rates(opt, it / max(iterations, 1), lr_grid, lr_mlp, lr_final)
-        o, d, gt = rays.batch(rng.integers(0, rays.size, batch_rays))
+        batch, gt = rays.batch(rng.integers(0, rays.size, batch_rays))
         for k in opt.keys():
             field.params[k] = opt[k]
-        rgb = sphere.render(o, d)
+        rgb = sphere.render(batch.o, batch.d)
         loss = optim.mse(rgb, gt)
         dr.backward(loss)
         opt.step()

@@ -42,7 +42,8 @@ from mi_nerfpp.core.arrays import llvm_backend, owned
 from mi_nerfpp.core.frame import reframe_cameras
 from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.core.profiling import stage
-from mi_nerfpp.core.render import render_rays
+from mi_nerfpp.core.rays import Rays
+from mi_nerfpp.core.render import RenderOptions, render_rays
 from mi_nerfpp.core.coverage import CoverageFill
 from mi_nerfpp.data import masks
 from mi_nerfpp.data.storage import MAX_STORED_BYTES
@@ -184,8 +185,9 @@ class RayBank:
         u = (_Float64(x) * f + 0.5 * f - k(1) * v - k(2)) / k(0)
         return u, v, k
 
-    def batch(self, index):
-        """``(origin, direction, colour)`` of the rays ``index``."""
+    def batch(self, index, footprint: bool = False):
+        """``(rays, colour)`` of the rays ``index``: :class:`~mi_nerfpp.core.rays.Rays` with their
+        training ``image`` (and their :meth:`footprint` when asked), and the pixels' colour."""
         i = mi.UInt32(index)
         image, x, y = self._pixel(i)
         u, v, _ = self._camera_plane(image, x, y)
@@ -195,9 +197,10 @@ class RayBank:
              + dr.gather(_Float64, R, image * 9 + 3 * a + 2) for a in range(3)]
         norm = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         o = [dr.gather(_Float64, center, image * 3 + a) for a in range(3)]
-        return (mi.Point3f(*[mi.Float(c) for c in o]),
-                mi.Vector3f(*[mi.Float(c / norm) for c in d]),
-                mi.Color3f(*self._colour(image, x, y)))
+        rays = Rays(mi.Point3f(*[mi.Float(c) for c in o]),
+                    mi.Vector3f(*[mi.Float(c / norm) for c in d]), image=image,
+                    footprint=self.footprint(index) if footprint else None)
+        return rays, mi.Color3f(*self._colour(image, x, y))
 
     def footprint(self, index):
         """The pixel footprint of the rays ``index``: the width of their pixel at this level
@@ -569,13 +572,13 @@ class Trainer:
         MSE)`` as Dr.Jit arrays."""
         cfg, model = self.cfg.losses, self.model
         opt, draws, phase = inputs['opt'], inputs['draws'], inputs['phase']
-        rays = RayBank.from_arrays(inputs['rays'])
+        bank = RayBank.from_arrays(inputs['rays'])
         index = draws['index']
-        o, d, gt = rays.batch(index)
-        # The pixels' footprints, for fields that filter their lookups by them.
-        footprint = rays.footprint(index) if model.antialias else None
-        if footprint is not None and inputs['blur'] is not None:
-            footprint = dr.maximum(footprint, inputs['blur'])
+        # The rays and their pixels; their footprints for fields that filter lookups by them.
+        rays, gt = bank.batch(index, footprint=model.antialias)
+        rays.seed = draws['seed']
+        if rays.footprint is not None and inputs['blur'] is not None:
+            rays.footprint = dr.maximum(rays.footprint, inputs['blur'])
         occupancy = {}
         for k, grid in model.occupancy.items():       # the model's grids are left untouched
             occupancy[k] = copy.copy(grid)
@@ -586,21 +589,21 @@ class Trainer:
         refine = phase['refine']
         if model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
             params = opt['poses'] if refine else dr.detach(opt['poses'])
-            o, d = poses.correct_rays(params, rays.images(index), o, d)
+            rays.o, rays.d = poses.correct_rays(params, rays.image, rays.o, rays.d)
         if model.embedding is not None:     # each ray's photo's code (:mod:`.appearance`)
-            model.set_appearance(app.codes(opt['embedding'], rays.images(index)))
-        res = render_rays(o, d, *model.radiance_fields(), model.sampling, seed=draws['seed'],
-                          occupancy=occupancy, ray_gradients=refine,
-                          near_gradient=self.near_gradient, footprint=footprint)
+            model.set_appearance(app.codes(opt['embedding'], rays.image))
+        res = render_rays(rays, *model.radiance_fields(), model.sampling,
+                          RenderOptions(occupancy=occupancy, ray_gradients=refine,
+                                        near_gradient=self.near_gradient))
         # Radiance is linear; the loss compares it in the encoding of the images, after the
         # image's colour transform when appearance is learned.
         encode = model.loss_encoding
         if model.appearance is not None:
-            image, params = rays.images(index), opt['appearance']
+            image, params = rays.image, opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
         pred = encode(res.fine.rgb)
         # Masks: the pixels kept in the colour loss (ignore), or the object's silhouette.
-        mask = (rays.mask(index, least=self.masks == 'ignore') if self.masks != 'none'
+        mask = (bank.mask(index, least=self.masks == 'ignore') if self.masks != 'none'
                 else None)
         kept = mask if self.masks == 'ignore' else None
         loss = optim.COLOR_LOSS_WEIGHT * optim.COLOR_LOSSES[cfg.color_loss](pred, gt, kept)

@@ -10,7 +10,8 @@ from tests.helpers import orbit_camera, tiny_model
 from mi_nerfpp.core.color import srgb_eotf
 from mi_nerfpp.core.coverage import (CoverageFill, fill_holes, texel_directions, texel_of,
                                      views_seeing)
-from mi_nerfpp.core.render import Sampling, render_rays
+from mi_nerfpp.core.rays import Rays
+from mi_nerfpp.core.render import RenderOptions, Sampling, render_rays
 from mi_nerfpp.data.cameras import direction_coverage
 from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
 from mi_nerfpp.output.views import ViewRenderer, encoded_rgb, rgb
@@ -113,8 +114,8 @@ def test_a_render_paints_the_fill_where_no_view_saw_and_the_volume_where_two_did
     o, d = _rays([[1, 0, 0], [0, 0, 1], [0, 1, 0], [0.05, -1, 0]])
     fg, bg = model.radiance_fields()
     sampling = Sampling(16, 16, 0)
-    plain = render_rays(o, d, fg, bg, sampling)
-    filled = render_rays(o, d, fg, bg, sampling, coverage=fill)
+    plain = render_rays(Rays(o, d), fg, bg, sampling)
+    filled = render_rays(Rays(o, d), fg, bg, sampling, RenderOptions(coverage=fill))
     lam = 1.0 - plain.fg.fine.opacity
     for k in range(2):                         # the horizon: seen, the volume unchanged
         assert np.asarray(filled.fine.rgb)[:, k] == pytest.approx(np.asarray(plain.fine.rgb)[:, k])
@@ -126,8 +127,8 @@ def test_a_render_paints_the_fill_where_no_view_saw_and_the_volume_where_two_did
                                    rtol=1e-5)
     # a ray that ends at a surface (a finite far) is not painted
     far = mi.Float([np.inf, np.inf, 0.5, np.inf])
-    ended = render_rays(o, d, fg, bg, sampling, coverage=fill, far=far)
-    unended = render_rays(o, d, fg, bg, sampling, far=far)
+    ended = render_rays(Rays(o, d, far=far), fg, bg, sampling, RenderOptions(coverage=fill))
+    unended = render_rays(Rays(o, d, far=far), fg, bg, sampling)
     np.testing.assert_allclose(np.asarray(ended.fine.rgb)[:, 2],
                                np.asarray(unended.fine.rgb)[:, 2], rtol=1e-6)
 

@@ -13,7 +13,9 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_nerfpp.core.occupancy import EMPTY_WEIGHT, OccupancyGrid, OccupiedVolume
-from mi_nerfpp.core.render import Foreground, Sampling, render_rays, render_volume
+from mi_nerfpp.core.rays import Rays
+from mi_nerfpp.core.render import (Foreground, RenderOptions, Sampling, render_rays,
+                                   render_volume)
 from mi_nerfpp.core.sampling import stratified
 from tests.helpers import AnalyticField, tiny_model
 
@@ -62,7 +64,7 @@ def random_volume(domain, n, rng):
     D = mi.Vector3f(*[F(d[:, i]) for i in range(3)])
     grid = OccupancyGrid(domain, 32)
     grid.density = F((rng.uniform(size=dr.width(grid.density)) < 0.3) * 10.0)
-    return (Foreground(O, D) if domain == 'ball' else Background(O, D)), grid
+    return (Foreground(Rays(O, D)) if domain == 'ball' else Background(Rays(O, D))), grid
 
 
 @pytest.mark.parametrize('domain', ['ball', 'inverted_sphere'])
@@ -94,7 +96,7 @@ def lambda_field(sigma):
 
 def test_samples_skip_the_empty_region():
     o, d, _ = axis_rays()
-    vol = OccupiedVolume(Foreground(o, d), half_space_grid(), bins=128)
+    vol = OccupiedVolume(Foreground(Rays(o, d)), half_space_grid(), bins=128)
     n = 16
     u = stratified(vol.lo, vol.hi, n)
     ray, = _ray_index(16, n)
@@ -114,7 +116,7 @@ def _ray_index(n_rays, n):
 def test_occupied_quadrature_matches_the_closed_form():
     """Midpoint samples in occupied length: opacity = 1 - exp(-σ (L_occ + ε L_empty)(1 - 1/2n))."""
     o, d, yz = axis_rays()
-    fg = Foreground(o, d)
+    fg = Foreground(Rays(o, d))
     vol = OccupiedVolume(fg, half_space_grid(), bins=128)
     n = 32
     shading = render_volume(vol, half_space_field(), n, 0).fine
@@ -132,10 +134,11 @@ def test_occupancy_converges_with_far_fewer_samples():
     over three times as accurate as the same budget spread over the whole chord."""
     o, d, _ = axis_rays()
     field = half_space_field()
-    ref = render_rays(o, d, field, None, Sampling(4096, 1, 0)).fine.opacity
+    ref = render_rays(Rays(o, d), field, None, Sampling(4096, 1, 0)).fine.opacity
     grid = half_space_grid(64)
-    occ = render_rays(o, d, field, None, Sampling(16, 1, 16), occupancy={'fg': grid}).fine.opacity
-    plain = render_rays(o, d, field, None, Sampling(16, 1, 16)).fine.opacity
+    occ = render_rays(Rays(o, d), field, None, Sampling(16, 1, 16),
+                      RenderOptions(occupancy={'fg': grid})).fine.opacity
+    plain = render_rays(Rays(o, d), field, None, Sampling(16, 1, 16)).fine.opacity
     err_occ = np.abs(npf(occ) - npf(ref)).max()
     err_plain = np.abs(npf(plain) - npf(ref)).max()
     assert err_occ < 3e-3 and 3 * err_occ < err_plain
@@ -145,7 +148,8 @@ def test_empty_grid_renders_nothing_in_the_foreground():
     o, d, _ = axis_rays()
     grid = OccupancyGrid('ball', 8)
     grid.update(lambda_field(0.0), seed=0)
-    res = render_rays(o, d, AnalyticField(50.0, (1.0, 1.0, 1.0)), None, Sampling(16, 1, 16), occupancy={'fg': grid})
+    res = render_rays(Rays(o, d), AnalyticField(50.0, (1.0, 1.0, 1.0)), None, Sampling(16, 1, 16),
+                      RenderOptions(occupancy={'fg': grid}))
     # The field is dense everywhere, but every cell is marked empty: only ε of it is seen.
     assert npf(res.fine.opacity).max() < 1.0 - np.exp(-50.0 * EMPTY_WEIGHT * 2.0) + 1e-6
 
@@ -165,8 +169,10 @@ def test_checkpoint_keeps_the_occupancy(tmp_path):
         assert loaded.occupancy[k].config == grid.config
         np.testing.assert_array_equal(loaded.occupancy[k].numpy(), grid.numpy())
     o, d, _ = axis_rays()
-    a = render_rays(o, d, model.fg, model.bg, Sampling(8, 8, 8), occupancy=model.occupancy)
-    b = render_rays(o, d, loaded.fg, loaded.bg, Sampling(8, 8, 8), occupancy=loaded.occupancy)
+    a = render_rays(Rays(o, d), model.fg, model.bg, Sampling(8, 8, 8),
+                    RenderOptions(occupancy=model.occupancy))
+    b = render_rays(Rays(o, d), loaded.fg, loaded.bg, Sampling(8, 8, 8),
+                    RenderOptions(occupancy=loaded.occupancy))
     np.testing.assert_allclose(npf(a.fine.rgb, 16), npf(b.fine.rgb, 16), atol=1e-6)
 
 

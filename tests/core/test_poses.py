@@ -12,7 +12,8 @@ import pytest
 from mi_nerfpp.training import optim
 from mi_nerfpp.core import poses
 from mi_nerfpp.data import load_dataset
-from mi_nerfpp.core.render import Sampling, render_rays
+from mi_nerfpp.core.rays import Rays
+from mi_nerfpp.core.render import RenderOptions, Sampling, render_rays
 from mi_nerfpp.data.synth import POSES_FILE, perturb_poses
 from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.training.train import Trainer
@@ -81,7 +82,8 @@ def test_loss_gradient_wrt_the_pose_corrections_matches_finite_differences():
         if grad:
             dr.enable_grad(params)
         o, d = poses.correct_rays(params, image, o0, d0)
-        rgb = render_rays(o, d, _blob, _sky, sampling, ray_gradients=grad).fine.rgb
+        rgb = render_rays(Rays(o, d), _blob, _sky, sampling,
+                          RenderOptions(ray_gradients=grad)).fine.rgb
         if grad:
             dr.backward(dr.sum(weights[0] * rgb.x + weights[1] * rgb.y + weights[2] * rgb.z))
             return np.array(dr.grad(params))

@@ -8,6 +8,8 @@ first sample sits at ``lo`` (tested with ξ = 0) and short of it by ``σ·(v_0 -
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -17,9 +19,10 @@ import mitsuba as mi
 
 from mi_nerfpp.core import geometry as geo
 from mi_nerfpp.core import sampling
+from mi_nerfpp.core.rays import Rays
 from mi_nerfpp.core.render import (INFINITE_DELTA, MAX_DEPTH_RADIUS, Background, Foreground,
-                                   Sampling, Shading, composite, quadrature, render_rays,
-                                   render_volume)
+                                   RenderOptions, Sampling, Shading, composite, quadrature,
+                                   render_rays, render_volume)
 from mi_nerfpp.core.sampling import PDF_EPSILON, flat_index, stratified
 from tests.helpers import AnalyticField
 
@@ -81,7 +84,7 @@ N_RAYS = 64
 @pytest.fixture(scope='module')
 def fg():
     o, d = rays(N_RAYS)
-    return Foreground(o, d)
+    return Foreground(Rays(o, d))
 
 
 @pytest.mark.parametrize('n', [1, 2, 7, 64])
@@ -169,7 +172,7 @@ def test_empty_foreground_contributes_nothing():
     # Outside origin moving away: t1 == t0, all intervals have zero length.
     o = mi.Point3f(F([2.0]), F([0.0]), F([0.0]))
     d = mi.Vector3f(F([1.0]), F([0.0]), F([0.0]))
-    vol = Foreground(o, d)
+    vol = Foreground(Rays(o, d))
     out = render_volume(vol, constant_field(50.0, (1, 1, 1)), 8, 8)
     for sh in (out.fine,):
         assert npf(sh.opacity)[0] == 0 and np.all(npf(sh.rgb) == 0) and npf(sh.depth)[0] == 0
@@ -180,7 +183,7 @@ def test_empty_foreground_contributes_nothing():
 @pytest.fixture(scope='module')
 def bg_inside():
     o, d = rays(N_RAYS, seed=1)
-    return Background(o, d), o, d
+    return Background(Rays(o, d)), o, d
 
 
 @pytest.mark.parametrize('sigma', [1e-3, 0.5, 20.0])
@@ -210,7 +213,7 @@ def test_background_weights_scale_with_s_max_for_outside_origins():
     d = o / np.linalg.norm(o, axis=1, keepdims=True)
     P = mi.Point3f(*[F(o[:, i]) for i in range(3)])
     D = mi.Vector3f(*[F(d[:, i]) for i in range(3)])
-    bg = Background(P, D)
+    bg = Background(Rays(P, D))
     s_max = npf(bg.s_max)
     np.testing.assert_allclose(s_max, 1.0 / np.linalg.norm(o, axis=1), rtol=2e-6)
     n, sigma = 12, 4.0
@@ -269,7 +272,7 @@ def test_render_rays_constant_fields_composite():
     """Constant foreground (σ, c_fg) and opaque background c_bg: C = α c_fg + (1-α) c_bg."""
     o, d = rays(40, seed=11)
     c_fg, c_bg = np.array([0.9, 0.1, 0.2]), np.array([0.1, 0.4, 0.8])
-    res = render_rays(o, d, constant_field(2.0, c_fg), constant_field(0.7, c_bg),
+    res = render_rays(Rays(o, d), constant_field(2.0, c_fg), constant_field(0.7, c_bg),
                       Sampling(fg_samples=16, bg_samples=16, fine_samples=32))
     fg, full = res.fg.fine, res.fine
     alpha = npf(fg.opacity)
@@ -304,9 +307,9 @@ def test_render_volume_fine_pass_constant_density(seeded):
     n_rays, n_c, n_f, sigma = 24, 16, 32, 3.0
     c = (0.4, 0.7, 0.2)
     o, d = rays(n_rays, seed=12)
-    vol = Foreground(o, d)
     seed = mi.UInt32(np.arange(n_rays, dtype=np.uint32) * 31 + 5) if seeded else None
-    out = render_volume(vol, constant_field(sigma, c), n_c, n_f, seed=seed, stream=0)
+    vol = Foreground(Rays(o, d, seed=seed))
+    out = render_volume(vol, constant_field(sigma, c), n_c, n_f, stream=0)
     lo, hi = npf(vol.lo), npf(vol.hi)
     xi_c = npf(sampling.uniforms(seed, n_c, 0), n_c) if seeded else [None] * n_rays
     xi_f = npf(sampling.uniforms(seed, n_f, 1), n_f) if seeded else [None] * n_rays
@@ -335,7 +338,7 @@ def test_render_volume_fine_pass_varying_density():
         sigma = dr.select((r2 > 0.09) & (r2 < 0.36), 8.0, 0.0)
         return sigma, mi.Color3f(dr.sqrt(r2), 0.5, 1.0 - dr.sqrt(r2))
 
-    vol = Foreground(o, d)
+    vol = Foreground(Rays(o, d))
     out = render_volume(vol, shell, n_c, n_f)
     lo, hi = npf(vol.lo), npf(vol.hi)
     on, dn = npf(o, n_rays).T, npf(d, n_rays).T
@@ -421,7 +424,8 @@ def test_ray_distortion_gradient_matches_finite_differences():
     def loss(theta):
         fg = AnalyticField(lambda x: theta * dr.exp(-4.0 * (dr.square(x[0]) + dr.square(x[1]))),
                            (1.0, 0.5, 0.0))
-        return dr.mean(ray_distortion(render_rays(o, d, fg, bg, Sampling(16, 16, 16), seed)))
+        return dr.mean(ray_distortion(render_rays(Rays(o, d, seed=seed), fg, bg,
+                                                  Sampling(16, 16, 16))))
 
     theta = mi.Float(1.5)
     dr.enable_grad(theta)
@@ -446,8 +450,9 @@ def test_skipping_the_occluded_background_changes_the_composite_by_at_most_its_t
     o, d = rays(256, seed=3)
     sampling = Sampling(32, 16, 16)
     bg_field = constant_field(0.7, (0.1, 0.9, 1.0))
-    full = render_rays(o, d, half_opaque, bg_field, sampling)
-    skip = render_rays(o, d, half_opaque, bg_field, sampling, skip_occluded=True)
+    full = render_rays(Rays(o, d), half_opaque, bg_field, sampling)
+    skip = render_rays(Rays(o, d), half_opaque, bg_field, sampling,
+                       RenderOptions(skip_occluded=True))
     lam = 1.0 - npf(full.fg.fine.opacity)
     occluded = lam <= OCCLUDED_TRANSMITTANCE
     assert 0.1 < occluded.mean() < 0.9
@@ -457,7 +462,8 @@ def test_skipping_the_occluded_background_changes_the_composite_by_at_most_its_t
                                npf(full.bg.fine.rgb, 256)[:, ~occluded], atol=1e-6)
     # All rays occluded: no background is rendered at all.
     o_in = mi.Point3f(0.5, 0.0, 0.0)
-    none = render_rays(o_in, mi.Vector3f(1, 0, 0), half_opaque, bg_field, sampling, skip_occluded=True)
+    none = render_rays(Rays(o_in, mi.Vector3f(1, 0, 0)), half_opaque, bg_field, sampling,
+                       RenderOptions(skip_occluded=True))
     assert npf(none.bg.fine.opacity)[0] == 0.0
 
 
@@ -477,9 +483,10 @@ def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_
     o = mi.Point3f(dr.full(mi.Float, -0.95, n_rays), F(np.linspace(-0.3, 0.3, n_rays)), 0.0)
     d = mi.Vector3f(1.0, 0.0, 0.0)
     seed = mi.UInt32(np.arange(n_rays, dtype=np.uint32))
-    full = render_volume(Foreground(o, d), field, n_c, n_f, seed)
+    full = render_volume(Foreground(Rays(o, d, seed=seed)), field, n_c, n_f)
     field.shaded, field.shaded_x = 0, []
-    lazy = render_volume(Foreground(o, d), field, n_c, n_f, seed, visible_only=True)
+    lazy = render_volume(Foreground(Rays(o, d, seed=seed)), field, n_c, n_f,
+                         RenderOptions(skip_occluded=True))
     # Nothing behind the front half of the slab is shaded (the transmittance there is below
     # exp(-300·0.1)); about half of all samples lie behind it.
     assert np.concatenate(field.shaded_x).max() < 0.0
@@ -495,8 +502,9 @@ def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_
     from mi_nerfpp.core.render import OCCLUDED_TRANSMITTANCE
     bg = constant_field(0.7, (0.1, 0.9, 1.0))
     o2, d2 = rays(256, seed=4)
-    a = render_rays(o2, d2, field, bg, Sampling(32, 16, 16))
-    b = render_rays(o2, d2, field, bg, Sampling(32, 16, 16), skip_occluded=True)
+    a = render_rays(Rays(o2, d2), field, bg, Sampling(32, 16, 16))
+    b = render_rays(Rays(o2, d2), field, bg, Sampling(32, 16, 16),
+                    RenderOptions(skip_occluded=True))
     np.testing.assert_allclose(npf(b.fine.rgb, 256), npf(a.fine.rgb, 256), rtol=0,
                                atol=2 * HIDDEN_WEIGHT + OCCLUDED_TRANSMITTANCE)
 
@@ -504,7 +512,7 @@ def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_
 @pytest.mark.parametrize('domain', ['ball', 'inverted_sphere'])
 def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(domain):
     """A grid field with per-sample colour looks its grids up once per sample in a primal
-    render (``visible_only``): the features come with the densities of both passes, and the
+    render (``skip_occluded``): the features come with the densities of both passes, and the
     shown samples only run the colour network on them. The composite is the full render's
     within HIDDEN_WEIGHT, opacity and depth exactly, and the field takes exactly two lookups
     (the coarse and the fine pass), not a third at the shown samples."""
@@ -517,11 +525,14 @@ def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(
     field._lookup = lambda x, width=None: (lookups.append(dr.width(x[0])), lookup(x, width))[1]
     n_rays, n_c, n_f = 256, 16, 8
     o, d = rays(n_rays, seed=5)
-    volume = (lambda: Foreground(o, d)) if domain == 'ball' else (lambda: Background(o, d))
     seed = mi.UInt32(np.arange(n_rays, dtype=np.uint32))
-    full = render_volume(volume(), field, n_c, n_f, seed)
+    ray_batch = Rays(o, d, seed=seed)
+    volume = ((lambda: Foreground(ray_batch)) if domain == 'ball'
+              else (lambda: Background(ray_batch)))
+    skip = RenderOptions(skip_occluded=True)
+    full = render_volume(volume(), field, n_c, n_f)
     lookups.clear()
-    lazy = render_volume(volume(), field, n_c, n_f, seed, visible_only=True)
+    lazy = render_volume(volume(), field, n_c, n_f, skip)
     assert lookups == [n_rays * n_c, n_rays * n_f]
     assert npf(full.fine.opacity).max() > 0.5       # a field that shows
     np.testing.assert_allclose(npf(lazy.fine.rgb, n_rays), npf(full.fine.rgb, n_rays),
@@ -531,7 +542,7 @@ def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(
     # The same through the linear-radiance wrapper of an sRGB model (how renders see it).
     from mi_nerfpp.core.model import LinearRadiance
     lookups.clear()
-    linear = render_volume(volume(), LinearRadiance(field), n_c, n_f, seed, visible_only=True)
+    linear = render_volume(volume(), LinearRadiance(field), n_c, n_f, skip)
     assert lookups == [n_rays * n_c, n_rays * n_f]
     np.testing.assert_allclose(npf(linear.fine.opacity), npf(full.fine.opacity), rtol=1e-6)
 
@@ -557,7 +568,8 @@ def test_near_gradient_scales_each_sample_by_its_squared_distance():
     def render(theta, radius):
         fg = AnalyticField(lambda x: theta * (1.0 + dr.square(x[0])),
                            lambda x: mi.Color3f(theta * (0.2 + 0.1 * x[0]), 0.5 + 0.1 * x[1], theta * x[2]))
-        return render_rays(o, d, fg, None, Sampling(8, 8, 8), seed=None, near_gradient=radius)
+        return render_rays(Rays(o, d), fg, None, Sampling(8, 8, 8),
+                           RenderOptions(near_gradient=radius))
 
     grads, images = [], []
     for radius in (0.0, 1e-4, 4.0, 8.0):
@@ -616,8 +628,8 @@ def test_deferred_and_per_sample_colour_agree_for_an_affine_colour_network():
     seed = mi.UInt32(np.arange(64, dtype=np.uint32) * 7 + 3)
     out = {}
     for deferred in (False, True):
-        out[deferred] = render_rays(o, d, AffineColourField(deferred), AffineColourField(deferred),
-                                    Sampling(12, 12, 12), seed=seed)
+        out[deferred] = render_rays(Rays(o, d, seed=seed), AffineColourField(deferred),
+                                    AffineColourField(deferred), Sampling(12, 12, 12))
     for name in ('fg', 'bg'):
         a, b = getattr(out[False], name).fine, getattr(out[True], name).fine
         assert npf(a.opacity).min() > 0.05
@@ -637,7 +649,7 @@ def test_deferred_grid_field_colours_the_composited_features_once_per_ray():
     assert field.deferred
     n_rays, n_c, n_f = 32, 8, 8
     o, d = rays(n_rays, seed=22)
-    vol = Foreground(o, d)
+    vol = Foreground(Rays(o, d))
     out = render_volume(vol, field, n_c, n_f)
     n = n_c + n_f
     ray, _ = flat_index(n_rays, n)
@@ -669,7 +681,7 @@ def test_gradients_through_the_merged_samples_match_finite_differences(deferred)
     def loss(theta):
         field = Scaled(deferred)
         field.theta = theta
-        res = render_rays(o, d, field, field, Sampling(10, 10, 10), seed=seed)
+        res = render_rays(Rays(o, d, seed=seed), field, field, Sampling(10, 10, 10))
         return dr.sum(w * (res.fine.rgb.x + 2.0 * res.fine.rgb.y - res.fine.rgb.z))
 
     theta = mi.Float(0.8)
@@ -683,11 +695,12 @@ def test_gradients_through_the_merged_samples_match_finite_differences(deferred)
     assert grad == pytest.approx(fd, rel=2e-3)
 
 
-def _fused_and_wavefront(o, d, fg_field, bg_field, sampling, **kwargs):
+def _fused_and_wavefront(rays, fg_field, bg_field, sampling, options=RenderOptions()):
     from mi_nerfpp.core.render import surface_distance
     out = []
     for fused in (False, True):
-        res = render_rays(o, d, fg_field, bg_field, sampling, fused=fused, **kwargs)
+        res = render_rays(rays, fg_field, bg_field, sampling,
+                          dataclasses.replace(options, fused=fused))
         n = dr.width(res.fine.opacity)
         out.append({'rgb': npf(res.fine.rgb, n), 'opacity': npf(res.fine.opacity),
                     'depth': npf(res.fine.depth), 'fg': npf(res.fg.fine.rgb, n),
@@ -709,12 +722,12 @@ def test_fused_quadrature_matches_the_wavefront_quadrature(far):
                              lambda x: [0.3 + 0.2 * c for c in x[:3]])
     n = 200
     o, d = rays(n, seed=11)
-    kwargs = {}
+    ray_batch = Rays(o, d)
     if far:
         t = np.random.default_rng(2).uniform(0.2, 5.0, n)
         t[::3] = np.inf
-        kwargs['far'] = F(t)
-    wave, fused = _fused_and_wavefront(o, d, opaque, bg_field, Sampling(16, 16, 8), **kwargs)
+        ray_batch.far = F(t)
+    wave, fused = _fused_and_wavefront(ray_batch, opaque, bg_field, Sampling(16, 16, 8))
     assert 0.2 < (wave['fg_opacity'] > 0.99).mean() < 0.9
     _agree(fused, wave)
 
@@ -734,6 +747,7 @@ def test_fused_quadrature_matches_on_a_trained_model(tiny_run):
     from mi_nerfpp.files.checkpoint import load_checkpoint
     model, _, _ = load_checkpoint(f'{tiny_run}/model.npz')
     o, d = rays(500, seed=5)
-    wave, fused = _fused_and_wavefront(o, d, *model.radiance_fields(), Sampling(16, 16, 8),
-                                       occupancy=model.occupancy, skip_occluded=True)
+    wave, fused = _fused_and_wavefront(Rays(o, d), *model.radiance_fields(), Sampling(16, 16, 8),
+                                       RenderOptions(occupancy=model.occupancy,
+                                                     skip_occluded=True))
     _agree(fused, wave)

@@ -13,6 +13,7 @@ import mitsuba as mi
 
 from mi_nerfpp.core import geometry as geo
 from mi_nerfpp.core import sampling
+from mi_nerfpp.core.rays import Rays
 from mi_nerfpp.core.render import Background, quadrature
 from mi_nerfpp.core.sampling import (PDF_EPSILON, bin_edges, gather_merged, inverse_cdf,
                                      merge_order, split_merged, stratified)
@@ -256,7 +257,7 @@ def test_background_fine_samples_go_where_the_far_density_is():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     o = mi.Point3f(*[F(o[:, i]) for i in range(3)])
     d = mi.Vector3f(*[F(d[:, i]) for i in range(3)])
-    bg = Background(o, d)
+    bg = Background(Rays(o, d))
     v_c = stratified(bg.lo, bg.hi, n_c)
     ray, _ = sampling.flat_index(50, n_c)
     s_c = bg.s(ray, v_c)

@@ -175,7 +175,7 @@ def test_renders_pass_each_pixels_footprint_to_the_fields():
     from mi_nerfpp.data import Split
     from mi_nerfpp.data.storage import StoredImages
     from mi_nerfpp.core.model import NeRFPPModel
-    from mi_nerfpp.core.render import render_rays
+    from mi_nerfpp.core.render import RenderOptions, render_rays
     from mi_nerfpp.training.train import RayBank
     from mi_nerfpp.output.views import ViewRenderer, rgb
     from tests.helpers import orbit_camera
@@ -190,11 +190,11 @@ def test_renders_pass_each_pixels_footprint_to_the_fields():
     bank = RayBank(Split([camera], ['x.png'], StoredImages([np.zeros((9, 12, 3), np.uint8)],
                                                            255.0)))
     index = np.arange(bank.size, dtype=np.uint32)
-    o, d, _ = bank.batch(index)
+    rays, _ = bank.batch(index)
     expected = {}
     for footprint in (bank.footprint(index), None):
-        res = render_rays(o, d, *model.radiance_fields(), model.sampling, occupancy=None,
-                          skip_occluded=True, footprint=footprint)
+        res = render_rays(rays.replace(footprint=footprint), *model.radiance_fields(),
+                          model.sampling, RenderOptions(skip_occluded=True))
         expected[footprint is None] = np.array(res.fine.rgb).T.reshape(9, 12, 3)
     np.testing.assert_allclose(image, expected[False], atol=2e-3)
     assert np.abs(image - expected[True]).mean() > 5e-3     # the footprints did change it

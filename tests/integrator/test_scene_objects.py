@@ -6,7 +6,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.core.render import Sampling, render_rays
+from mi_nerfpp.core.rays import Rays
+from mi_nerfpp.core.render import RenderOptions, Sampling, render_rays
 from mi_nerfpp.integrator.nerfpp import VolumesOnly
 from tests.helpers import AnalyticField
 from tests.core.test_render import F, constant_field, npf, rays
@@ -24,10 +25,10 @@ def test_far_at_infinity_renders_bit_identically():
             model.enable_occupancy(8, 0.3)
             model.update_occupancy(seed=1)
         for skip in (False, True):
-            a = render_rays(o, d, model.fg, model.bg, sampling, occupancy=model.occupancy,
-                            skip_occluded=skip)
-            b = render_rays(o, d, model.fg, model.bg, sampling, occupancy=model.occupancy,
-                            skip_occluded=skip, far=dr.full(mi.Float, dr.inf, 64))
+            options = RenderOptions(occupancy=model.occupancy, skip_occluded=skip)
+            a = render_rays(Rays(o, d), model.fg, model.bg, sampling, options)
+            b = render_rays(Rays(o, d, far=dr.full(mi.Float, dr.inf, 64)), model.fg, model.bg,
+                            sampling, options)
             for x, y in ((a.fine.rgb, b.fine.rgb), (a.fine.opacity, b.fine.opacity),
                          (a.fine.depth, b.fine.depth), (a.fg.fine.rgb, b.fg.fine.rgb),
                          (a.bg.fine.rgb, b.bg.fine.rgb)):
@@ -38,8 +39,8 @@ def test_far_ends_the_foreground_at_the_hit():
     """Constant density σ from the centre: opacity 1 - exp(-σ·far), nothing behind the hit."""
     sigma, far = 3.0, 0.4
     o, d = mi.Point3f(0.0, 0.0, 0.0), mi.Vector3f(0.0, 0.6, 0.8)
-    res = render_rays(o, d, constant_field(sigma, (1, 0.5, 0.2)), constant_field(5.0, (0, 1, 0)),
-                      Sampling(4096, 16, 0), far=F([far]))
+    res = render_rays(Rays(o, d, far=F([far])), constant_field(sigma, (1, 0.5, 0.2)),
+                      constant_field(5.0, (0, 1, 0)), Sampling(4096, 16, 0))
     expected = 1 - np.exp(-sigma * far)
     assert npf(res.fg.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
     assert npf(res.bg.fine.opacity)[0] == 0.0
@@ -53,15 +54,15 @@ def test_far_ends_the_background_at_the_hit(far):
     the opacity is 1 - exp(-σ (1 - 1/far)): not opaque any more."""
     sigma = 0.8
     o, d = mi.Point3f(0.0, 0.0, 0.0), mi.Vector3f(1.0, 0.0, 0.0)
-    res = render_rays(o, d, constant_field(0.0, (0, 0, 0)), constant_field(sigma, (0.3, 0.6, 0.9)),
-                      Sampling(4, 4096, 0), far=F([far]))
+    res = render_rays(Rays(o, d, far=F([far])), constant_field(0.0, (0, 0, 0)),
+                      constant_field(sigma, (0.3, 0.6, 0.9)), Sampling(4, 4096, 0))
     expected = 1 - np.exp(-sigma * (1 - 1 / far))
     assert npf(res.bg.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
     assert npf(res.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
     # An origin outside the sphere, ray pointing away: the background starts at the origin.
     o2 = mi.Point3f(2.0, 0.0, 0.0)
-    res = render_rays(o2, d, constant_field(0.0, (0, 0, 0)), constant_field(sigma, (1, 1, 1)),
-                      Sampling(4, 4096, 0), far=F([far]))
+    res = render_rays(Rays(o2, d, far=F([far])), constant_field(0.0, (0, 0, 0)),
+                      constant_field(sigma, (1, 1, 1)), Sampling(4, 4096, 0))
     expected = 1 - np.exp(-sigma * (0.5 - 1 / (2 + far)))
     assert npf(res.bg.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
 
@@ -190,8 +191,8 @@ def test_mirror_sphere_reflects_the_reconstruction_from_the_hit_point(near):
     r = d - 2 * np.sum(d * n, axis=-1, keepdims=True) * n
     integ = scene.integrator()
     ys, xs = np.nonzero(hit)
-    res = render_rays(mi.Point3f(*[F(p[ys, xs, i]) for i in range(3)]),
-                      mi.Vector3f(*[F(r[ys, xs, i]) for i in range(3)]), fg, bg,
+    res = render_rays(Rays(mi.Point3f(*[F(p[ys, xs, i]) for i in range(3)]),
+                           mi.Vector3f(*[F(r[ys, xs, i]) for i in range(3)])), fg, bg,
                       dataclasses.replace(integ.sampling, near=0.0))
     expected = npf(res.fine.rgb, len(ys)).T
     # The camera segment sees the empty lower foreground only: all of it is the reflection.
@@ -494,8 +495,8 @@ def test_scene_without_shapes_renders_the_volumes_alone():
     integrator = scene.integrator()
     frame = integrator.frame(scene)
     assert isinstance(frame, VolumesOnly)
-    L, _ = integrator.render_rays(frame, mi.Point3f(*[F(o[..., i]) for i in range(3)]),
-                                  mi.Vector3f(*[F(d[..., i]) for i in range(3)]))
+    L, _ = integrator.render_rays(frame, Rays(mi.Point3f(*[F(o[..., i]) for i in range(3)]),
+                                              mi.Vector3f(*[F(d[..., i]) for i in range(3)])))
     np.testing.assert_allclose(np.stack([c[ch] for ch in 'RGB'], -1).reshape(-1, 3),
                                npf(L, dr.width(L)).T, rtol=1e-6, atol=1e-7)
 

@@ -7,6 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from mi_nerfpp.core.rays import Rays
 from mi_nerfpp.training import train
 from mi_nerfpp.core.arrays import owned
 from mi_nerfpp.training.config import TrainConfig
@@ -48,10 +49,10 @@ class PrecomputedRayBank:
         bank.size = dr.width(bank.rgb)
         return bank
 
-    def batch(self, index):
+    def batch(self, index, footprint=False):       # (antialias off: no footprints)
         i = mi.UInt32(index)
-        return (dr.gather(mi.Point3f, self.o, i), dr.gather(mi.Vector3f, self.d, i),
-                dr.gather(mi.Color3f, self.rgb, i))
+        return (Rays(dr.gather(mi.Point3f, self.o, i), dr.gather(mi.Vector3f, self.d, i),
+                     image=self.images(index)), dr.gather(mi.Color3f, self.rgb, i))
 
     def images(self, index):
         return dr.gather(mi.UInt32, self.image, mi.UInt32(index))
@@ -81,9 +82,15 @@ def split_of(raw, factor=1):
 def assert_same_rays(bank, reference):
     index = np.arange(reference.size, dtype=np.uint32)
     assert bank.size == reference.size
-    for ours, theirs in zip(bank.batch(index), reference.batch(index)):
+    for ours, theirs in zip(parts(bank, index), parts(reference, index)):
         np.testing.assert_array_equal(np.array(ours), np.array(theirs))
     np.testing.assert_array_equal(np.array(bank.images(index)), np.array(reference.images(index)))
+
+
+def parts(bank, index):
+    """``(o, d, colour, image)`` of a batch of rays."""
+    rays, rgb = bank.batch(index)
+    return rays.o, rays.d, rgb, rays.image
 
 
 def random_levels(n, dtype, shape=(30, 40, 3), seed=0):
@@ -116,7 +123,7 @@ def test_a_batch_in_any_order_is_the_same_rays():
     split = STORES['8-bit']()
     bank, reference = RayBank(split), PrecomputedRayBank(split)
     index = np.random.default_rng(0).integers(0, bank.size, 5000).astype(np.uint32)
-    for ours, theirs in zip(bank.batch(index), reference.batch(index)):
+    for ours, theirs in zip(parts(bank, index), parts(reference, index)):
         np.testing.assert_array_equal(np.array(ours), np.array(theirs))
 
 
@@ -130,7 +137,7 @@ def test_the_step_converts_every_stored_value_as_the_split_does():
         pixels = np.resize(stored, 3 * 2 * ((len(values) + 5) // 6)).reshape(2, -1, 3)
         split = Split([Camera(np.eye(3), np.eye(4), pixels.shape[1], 2)], ['x.png'],
                       StoredImages([pixels], scale))
-        _, _, rgb = RayBank(split).batch(np.arange(pixels.shape[0] * pixels.shape[1]))
+        _, rgb = RayBank(split).batch(np.arange(pixels.shape[0] * pixels.shape[1]))
         np.testing.assert_array_equal(np.array(rgb).T.reshape(pixels.shape),
                                       to_float(pixels, scale))
 
@@ -193,7 +200,7 @@ def test_a_pyramid_level_is_the_box_filtered_downsample(name, factor):
     h, w = split.images.stored[0].shape[:2]
     assert bank.size == reference.size == len(split) * (h // factor) * (w // factor)
     index = np.arange(reference.size, dtype=np.uint32)
-    (o, d, rgb), (o_ref, d_ref, rgb_ref) = bank.batch(index), reference.batch(index)
+    (o, d, rgb, _), (o_ref, d_ref, rgb_ref, _) = parts(bank, index), parts(reference, index)
     np.testing.assert_array_equal(np.array(o), np.array(o_ref))
     np.testing.assert_allclose(np.array(d), np.array(d_ref), atol=2e-7)
     np.testing.assert_allclose(np.array(rgb), np.array(rgb_ref), rtol=1e-6, atol=1e-7)

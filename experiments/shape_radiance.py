@@ -46,7 +46,7 @@ def main():
     from mi_nerfpp.core.fields import make_field
     from mi_nerfpp.core.model import default_field_config
     from mi_nerfpp.training.config import TrainConfig
-    from mi_nerfpp.training.train import RayBank
+    from mi_nerfpp.training.raybank import RayBank
 
     data = common.capture(a.data_cache, 'hemisphere', views=a.views, res=a.res, fov=25.0, spp=a.spp,
                           trajectory='hemisphere', seed=0)

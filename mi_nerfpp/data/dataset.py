@@ -25,7 +25,7 @@ from mi_nerfpp.data.storage import (MAX_STORED_BYTES, StoredImages,
 SPLITS = ('train', 'validation', 'test')
 
 # The automatic downscale counts the training images twice: as loaded, and in the store that
-# the training step gathers its pixels from (:class:`mi_nerfpp.training.train.RayBank`).
+# the training step gathers its pixels from (:class:`mi_nerfpp.training.raybank.RayBank`).
 TRAIN_COPIES = 2
 # Camera positions a capture may have. Beyond this distance from the origin (world units) the
 # centres cannot be normalized in floating point (their spread is lost to rounding, squares

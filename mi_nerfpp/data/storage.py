@@ -1,7 +1,7 @@
 """How a split keeps its images in memory: compactly, at the precision of the files.
 
 A training pixel costs what its file stored, not tens of bytes of float rays
-(:class:`mi_nerfpp.training.train.RayBank` builds the rays of a batch from the cameras). Each split keeps
+(:class:`mi_nerfpp.training.raybank.RayBank` builds the rays of a batch from the cameras). Each split keeps
 one kind of storage for all its images (:class:`StoredImages`), with the float value of a
 stored value ``v``:
 

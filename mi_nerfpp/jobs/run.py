@@ -39,10 +39,8 @@ from dataclasses import dataclass, field
 
 import matplotlib
 import matplotlib.pyplot as plt
-import numpy as np
 
 from mi_nerfpp.core import budget
-from mi_nerfpp.data import masks
 from mi_nerfpp.data import (AutoDownscale, DatasetError, detect_format,
                             load_dataset)
 from mi_nerfpp.data.sfm import is_photo_folder, run_sfm
@@ -52,15 +50,14 @@ from mi_nerfpp.files.atomic import (LOCK_NAME, check_not_a_file,
 from mi_nerfpp.files.checkpoint import load_checkpoint, read_meta
 from mi_nerfpp.files.preview import write_linear_png
 from mi_nerfpp.output.views import ViewRenderer, rgb
-from mi_nerfpp.training.config import (DEFAULT_JOB_EVAL_AT,
-                                       DEFAULT_JOB_MINUTES, TrainConfig,
-                                       default_minutes)
+from mi_nerfpp.training import choices
+from mi_nerfpp.training.config import DEFAULT_JOB_EVAL_AT, DEFAULT_JOB_MINUTES, TrainConfig
 from mi_nerfpp.training.evaluate import (choose_coverage_fill, evaluate_split, finish_run,
                                          matte_warning)
 from mi_nerfpp.training.optim import COLOR_LOSS_NAMES
 from mi_nerfpp.training.signs import sign_lines
-from mi_nerfpp.training.train import (Trainer, TrainingError, in_model_frame,
-                                      samples_per_second)
+from mi_nerfpp.training.errors import TrainingError
+from mi_nerfpp.training.train import Trainer, in_model_frame, samples_per_second
 
 
 class RunObserver:
@@ -182,65 +179,6 @@ def default_job(options: dict, progress: bool = False) -> tuple[str, dict]:
     return default_capture(progress=progress), options
 
 
-def centre_footprint(cameras) -> float:
-    """The median width of a training pixel at the scene's centre, in the dataset's frame (the
-    unit ball's units): each camera's distance to the origin over its focal length in pixels."""
-    return float(np.median([np.linalg.norm(c.center) / c.K[0, 0] for c in cameras]))
-
-
-def choose_sparse_level(config: TrainConfig, dataset, stored: dict, observer) -> TrainConfig:
-    """``config`` with its sparse foreground level chosen (``--grid-sparse`` not given): a
-    resumed run's own, else :func:`~mi_nerfpp.core.budget.sparse_resolution` of the capture's
-    :func:`centre_footprint`, announced."""
-    if stored:
-        return config.replace(grid_sparse=tuple(
-            TrainConfig.stored_options(stored).get('grid_sparse') or ()))
-    m = config.model
-    if m.field != 'grid' or not config.sampling.occupancy:
-        return config.replace(grid_sparse=())
-    footprint = centre_footprint(dataset.train.cameras)
-    finest = max(m.levels('ball'))
-    r = budget.sparse_resolution(footprint, finest, config.sampling.occupancy_res)
-    cells = f'{2 / finest / footprint:.1f} pixels per cell of --grid-levels {finest}'
-    if r is None:
-        observer.notice(f'no sparse foreground level: a training pixel is {footprint:.4f} of '
-                        f'the unit ball wide at the centre ({cells}); --grid-sparse RES to add '
-                        f'one')
-        return config.replace(grid_sparse=())
-    config = config.replace(grid_sparse=(r,))
-    entries = sum(budget.sparse_level_entries(config, 'ball'))
-    observer.notice(f'sparse foreground level {r}³ (a training pixel is {footprint:.4f} of the '
-                    f'unit ball wide at the centre: {cells}), at most {entries / 1e6:.1f} M '
-                    f'entries in bricks where the surfaces are; --grid-sparse to change, '
-                    f'--grid-sparse alone for none')
-    return config
-
-
-def choose_masks(config: TrainConfig, dataset, stored: dict, observer) -> TrainConfig:
-    """``config`` with the meaning of the photos' masks (:mod:`mi_nerfpp.data.masks`) chosen
-    when ``--masks`` is not given (a resumed run's own; ``ignore`` when the training photos
-    have masks) and announced; ``--masks ignore|object`` without masks is refused."""
-    found = dataset.train.masks
-    meaning = config.losses.masks
-    if meaning is None:
-        meaning = (TrainConfig.stored_options(stored).get('masks') if stored else None) or (
-            masks.DEFAULT_MEANING if found is not None else 'none')
-    if meaning != 'none' and found is None:
-        raise DatasetError(f'{dataset.root}: --masks {meaning}, but no training photo has a '
-                           f'mask (looked for masks/ beside images/, mask/ in each split '
-                           f'folder, "mask_path" in transforms.json: docs/data.md, "Masks")')
-    if found is not None:
-        with_mask = sum(m is not None for m in found)
-        what = {'ignore': 'their black pixels are left out of the colour loss',
-                'object': 'their white pixels are the object\'s silhouette, which the '
-                          'foreground\'s opacity is fitted to',
-                'none': 'not used'}[meaning]
-        observer.notice(f'masks: {with_mask} of {len(found)} training photos have one; '
-                        f'--masks {meaning}: {what} (--masks ignore|object|none to change)')
-        return config.replace(masks=meaning)
-    return config
-
-
 def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool = False,
             overwrite: bool = False, observer: RunObserver | None = None,
             plan: budget.Plan | None = None) -> RunInputs:
@@ -306,23 +244,7 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
             config = dataclasses.replace(config, data=dataclasses.replace(
                 config.data, downscale=dataset.downscale))
             observer.notice(resolution_line(dataset, downscale, plan))
-        if config.model.grid_sparse is None:
-            config = choose_sparse_level(config, dataset, stored, observer)
-        schedule = config.schedule
-        if schedule.error_rays is None and stored:
-            # A resumed run draws as it did (runs from before the error map: uniformly).
-            config = config.replace(error_rays=TrainConfig.stored_options(stored)['error_rays']
-                                    or 0.0)
-        elif schedule.error_rays is None:
-            config = config.replace(error_rays=0.0)     # uniform (training.error_map)
-        config = choose_masks(config, dataset, stored, observer)
-        if schedule.iterations is None and schedule.minutes is None:
-            cam = dataset.train.cameras[0]
-            minutes = default_minutes(len(dataset.train) * cam.width * cam.height)
-            config = config.replace(minutes=minutes)
-            observer.notice(f'training for {minutes:g} minutes (chosen from '
-                            f'{len(dataset.train)} views of {cam.width}x{cam.height}; '
-                            f'--minutes to change)')
+        config = choices.from_capture(config, dataset, stored, observer.notice)
         if overwrite:
             replace_run(out)
     except BaseException:
@@ -552,7 +474,7 @@ def plot_training(history, metrics, color_loss, path):
 
     if not history:
         return
-    it, t, loss, psnr = zip(*history)
+    it, t, loss, psnr = zip(*[row[:4] for row in history])     # (row[4]: the loss's terms)
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     ax[0].semilogy(t, loss)
     ax[0].set(xlabel='seconds of training',

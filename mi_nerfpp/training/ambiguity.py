@@ -15,7 +15,7 @@ field sees the hit in the sphere's own unit coordinates, ``(x_hit - center) / ra
 on the unit sphere, as in the paper; any :mod:`mi_nerfpp.core.fields` field ('nerf', 'vanilla',
 'grid') supplies ``c``. Its density output is ignored, so density parameters get no gradient.
 
-Data flow as in training: rays of the training split (:class:`mi_nerfpp.training.train.RayBank`) ->
+Data flow as in training: rays of the training split (:class:`mi_nerfpp.training.raybank.RayBank`) ->
 sphere hit -> field colour -> squared error -> Adam, with training's optimizer set-up,
 learning-rate schedule and loss (:mod:`mi_nerfpp.training.optim`).
 """
@@ -84,7 +84,7 @@ class OpaqueSphere:
 
 def fit_radiance(sphere, rays, iterations, batch_rays=4096, lr_mlp=optim.LR_MLP,
                  lr_grid=optim.LR_GRID, lr_final=optim.LR_FINAL, seed=0, progress=None):
-    """Fit the sphere's radiance field to a :class:`~mi_nerfpp.training.train.RayBank` by Adam on the
+    """Fit the sphere's radiance field to a :class:`~mi_nerfpp.training.raybank.RayBank` by Adam on the
     squared error (learning rates decay exponentially to ``lr_final`` of their start).
 
     ``progress``: optional ``tqdm``-like wrapper of the iteration range.

@@ -488,11 +488,6 @@ class ScheduleOptions(_Options):
             if not all(_finite(f) and 0 < f < 1 for f in getattr(self, name)):
                 self._bad(name, 'fractions between 0 and 1')
 
-    def pyramid_factor(self, progress):
-        """The image pyramid's factor at ``progress`` (fraction of the run): 2^(fractions of
-        ``pyramid`` not reached yet)."""
-        return 1 << sum(progress < f for f in self.pyramid)
-
 
 @dataclass
 class OutputOptions(_Options):

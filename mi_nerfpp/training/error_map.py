@@ -49,7 +49,7 @@ RATE = 0.3
 
 class ErrorMap:
     """Per-tile moving average of the training error of ``n`` images of ``height x width``
-    pixels; draws ray indices of a :class:`~mi_nerfpp.training.train.RayBank` level."""
+    pixels; draws ray indices of a :class:`~mi_nerfpp.training.raybank.RayBank` level."""
 
     def __init__(self, n: int, height: int, width: int, tile: int, share: float):
         if tile < 1:

@@ -5,6 +5,10 @@ parameter kind decaying exponentially over the run, and the colour losses.
 from __future__ import annotations
 
 import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_nerfpp.core.arrays import owned
 
 LR_GRID = 0.1      # learning rate of feature grids
 LR_MLP = 5e-3      # learning rate of everything else (MLP weights and biases)
@@ -80,6 +84,38 @@ def adam(params: dict, lr: float = LR_MLP, beta_2: float = ADAM_BETA2):
     for k, v in params.items():
         opt[k] = v
     return opt
+
+
+def write_back(opt, model, detach: bool = True):
+    """The one place where the parameters that ``opt`` owns reach the ``model``'s fields:
+    detached for renders, refreshes and checkpoints; attached (``detach=False``) inside a
+    step, so that the loss differentiates them."""
+    model.set_parameters({k: dr.detach(opt[k]) if detach else opt[k] for k in opt.keys()})
+
+
+def adam_state(opt) -> dict:
+    """The Adam state of ``opt`` as NumPy arrays (``adam.t/<name>``, ``adam.m/<name>``,
+    ``adam.v/<name>``), for a checkpoint."""
+    state = {}
+    for k, (_, _, _, (t, m, v, _)) in opt.state.items():
+        state[f'adam.t/{k}'] = np.array(t, dtype=np.uint32)
+        state[f'adam.m/{k}'] = np.array(m, dtype=np.float32)
+        state[f'adam.v/{k}'] = np.array(v, dtype=np.float32)
+    return state
+
+
+def restore_adam(opt, state: dict):
+    """Give ``opt`` the Adam state of :func:`adam_state` for each parameter that has one."""
+    # drjit.opt.Adam keeps (value, promoted, lr, (t, m, v, v_max)) per key (drjit 1.5).
+    for k in list(opt.keys()):
+        if f'adam.m/{k}' not in state:
+            continue
+        value, promoted, lr, _ = opt.state[k]
+        # Owned copies: the first frozen step releases them (see :mod:`..core.arrays`).
+        opt.state[k] = (value, promoted, lr,
+                        (dr.opaque(mi.UInt32, int(np.ravel(state[f'adam.t/{k}'])[0])),
+                         owned(state[f'adam.m/{k}'], mi.Float),
+                         owned(state[f'adam.v/{k}'], mi.Float), None))
 
 
 def set_learning_rates(opt, progress: float, lr_grid: float = LR_GRID, lr_mlp: float = LR_MLP,

@@ -33,6 +33,36 @@ def random_points(domain, u):
     return [d.x, d.y, d.z, u[2]]
 
 
+class Sparsity:
+    """The sparsity prior of both volumes: :func:`cauchy_sparsity` of each volume's density at
+    random points, with a weight and a start (fraction of the run after which it applies) per
+    volume, ``(foreground, background)``. It says which volumes it applies to at a point of
+    the run (:meth:`active`); a step draws 4 uniform Floats per point of those
+    (:meth:`draw`), and the loss reads only what was drawn (:meth:`loss`)."""
+
+    def __init__(self, weights, starts):
+        self.weights, self.starts = tuple(weights), tuple(starts)
+
+    def active(self, fields, progress: float) -> list[bool]:
+        """Per volume: whether the prior applies at ``progress`` (a field, a weight, started)."""
+        return [field is not None and weight > 0 and progress >= start
+                for field, weight, start in zip(fields, self.weights, self.starts)]
+
+    def draw(self, gen, n: int, fields, progress: float):
+        """Per volume, ``n`` random points as 4 uniform Floats from ``gen`` (a Dr.Jit
+        generator), or None where the prior does not apply."""
+        return [[gen.random(mi.Float, n) for _ in range(4)] if on else None
+                for on in self.active(fields, progress)]
+
+    def loss(self, fields, points):
+        """The weighted prior of the volumes that have ``points`` (:meth:`draw`)."""
+        total = mi.Float(0.0)
+        for field, weight, u in zip(fields, self.weights, points):
+            if u is not None:
+                total += weight * cauchy_sparsity(field.density(random_points(field.domain, u)))
+        return total
+
+
 def distortion(w, m, n):
     """Distortion loss of mip-NeRF 360 (Barron et al. 2022, Eq. 15) per ray, in O(n).
 

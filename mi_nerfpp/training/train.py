@@ -1,11 +1,11 @@
 """Fitting the foreground and background volumes to posed images (Dr.Jit AD, CPU or GPU).
 
-One training step: draw a batch of random rays across all training images, render
-them with :func:`mi_nerfpp.core.render.render_rays` (the same code the integrator uses),
-take the colour loss (Charbonnier by default, or the squared error) of the coarse and the
-fine composite against the pixels (radiance is
-composited in linear light; for sRGB photos the composite is sRGB-encoded before the loss,
-see :meth:`~mi_nerfpp.core.model.NeRFPPModel.radiance_fields`),
+One training step: draw a batch of random rays across all training images
+(:mod:`.raybank`), render them with :func:`mi_nerfpp.core.render.render_rays` (the same code
+the integrator uses), take the loss as named terms - the colour loss of the composite against
+the pixels (Charbonnier by default, or the squared error; radiance is composited in linear
+light, and for sRGB photos the composite is sRGB-encoded before the loss, see
+:meth:`~mi_nerfpp.core.model.NeRFPPModel.radiance_fields`) and the priors (:mod:`.priors`) -,
 back-propagate with Dr.Jit and take an Adam step (``drjit.opt``). Learning rates
 decay exponentially to ``lr_final`` times their start over the run (:mod:`.optim`, shared
 with :mod:`.ambiguity`). With ``freeze`` (the default) the kernels of a step are recorded once
@@ -37,25 +37,26 @@ import mitsuba as mi
 import numpy as np
 
 from mi_nerfpp.core import appearance as app
-from mi_nerfpp.core import bricks, poses
-from mi_nerfpp.core.arrays import llvm_backend, owned
+from mi_nerfpp.core import poses
+from mi_nerfpp.core.arrays import llvm_backend
+from mi_nerfpp.core.coverage import CoverageFill
 from mi_nerfpp.core.frame import reframe_cameras
 from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.core.profiling import stage
-from mi_nerfpp.core.rays import Rays
 from mi_nerfpp.core.render import RenderOptions, render_rays
-from mi_nerfpp.core.coverage import CoverageFill
-from mi_nerfpp.data import masks
-from mi_nerfpp.data.storage import MAX_STORED_BYTES
 from mi_nerfpp.errors import interrupt_in
 from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
                                         migration_notes, read_version, save_checkpoint)
-from mi_nerfpp.training import optim, priors
-from mi_nerfpp.training.config import RETIRED_AFTER, TrainConfig, default_minutes, per_volume
+from mi_nerfpp.training import choices, optim, priors
+from mi_nerfpp.training.config import RETIRED_AFTER, TrainConfig, per_volume
 from mi_nerfpp.training.error_map import ErrorMap
-from mi_nerfpp.training.signs import CaptureSigns
+from mi_nerfpp.training.errors import TrainingError
 from mi_nerfpp.training.metrics import psnr_from_mse
+from mi_nerfpp.training.raybank import RayBank
+from mi_nerfpp.training.schedule import (ImagePyramid, OccupancyRefresh, SparseAllocation,
+                                         sparse_levels)
+from mi_nerfpp.training.signs import CaptureSigns
 
 # Gradients scattered into arrays of up to this many entries are summed in one copy per thread
 # and added up after the kernel (Dr.Jit's "expand" reduction) instead of by atomic adds, in steps
@@ -77,215 +78,6 @@ EXPAND_MIN_SAMPLES = 1 << 17
 GRADIENT_LOCAL_REDUCTION = False
 
 
-class TrainingError(RuntimeError):
-    """Training cannot go on (diverged, or a resume that does not match)."""
-
-
-class RayBank:
-    """The training pixels of a split as rays, built per batch from the cameras (Dr.Jit arrays).
-
-    Ray ``index = (image · H + y) · W + x`` of a split of images of H x W pixels starts at the
-    centre of camera ``image`` and goes through the centre of pixel (x, y), as
-    :func:`~mi_nerfpp.data.pixel_rays` computes it (in Float64, then rounded to float32); its
-    colour is the pixel's stored value (:mod:`mi_nerfpp.data.storage`) converted to float32
-    as :attr:`Split.images <mi_nerfpp.data.dataset.Split.images>` converts it. The bank holds
-    per image its camera (``fx, s, cx, fy, cy`` of K, the rotation and the centre, Float64)
-    and the stored pixels: a training pixel costs the bytes its file stored (3 for 8 bits).
-
-    Image pyramid (:meth:`level`): at ``factor`` F the images are H/F x W/F pixels (a
-    remainder cropped, as :func:`~mi_nerfpp.data.images.downscale_image`); ray ``(image,
-    y, x)`` goes through the centre of the F x F block of pixels at ``(F·x, F·y)``, as the
-    camera :meth:`downscaled <mi_nerfpp.data.Camera.downscaled>` by F sees it, and its colour
-    is the block's mean: a box-filtered downsample, read from the same stored pixels (no copy
-    per level). :meth:`footprint` gives each ray's pixel width per unit distance at its level.
-
-    Masks (``masks=True`` and a split with masks, :mod:`mi_nerfpp.data.masks`): one byte a
-    pixel, the mask's coverage (255 where a photo has no mask); :meth:`mask` gives each ray's
-    in [0, 1], at a pyramid level its block's mean or least.
-    """
-
-    def __init__(self, split, masks: bool = False):
-        if len(split) == 0:
-            raise TrainingError('the training split is empty')
-        images = split.images
-        if images.nbytes > MAX_STORED_BYTES:
-            raise TrainingError(f'the training images take {images.nbytes / 2 ** 30:.1f} GiB '
-                                f'as stored, more than the {MAX_STORED_BYTES / 2 ** 30:.0f} GiB '
-                                f'a training step can address: choose a --downscale')
-        h, w = images.stored[0].shape[:2]
-        n = len(split)
-        cams = split.cameras
-        K = np.array([[c.K[0, 0], c.K[0, 1], c.K[0, 2], c.K[1, 1], c.K[1, 2]] for c in cams])
-        R = np.array([c.c2w[:3, :3] for c in cams])
-        center = np.array([c.c2w[:3, 3] for c in cams])
-        # Owned copies (:mod:`.arrays`): a frozen step of another Trainer may outlive this one.
-        self.cameras = tuple(owned(a.ravel(), _Float64) for a in (K, R, center))
-        kind = images.dtype.name
-        stored = [a.astype('<u2').view(np.uint8) if kind == 'uint16' else a
-                  for a in images.stored]
-        self.pixels = _owned_concatenation(stored, _STORE_TYPES[kind])
-        self.masks = None
-        if masks and split.masks is not None:
-            full = np.full((h, w), 255, dtype=np.uint8)
-            self.masks = _owned_concatenation([full if m is None else m for m in split.masks],
-                                              _UInt8)
-        self.layout = (n, h, w, kind, images.scale)
-        self.factor = 1
-        self.size = n * h * w
-
-    def level(self, factor):
-        """The same bank at pyramid level ``factor`` (a power of two; 1: the images as
-        stored), sharing its arrays."""
-        return RayBank.from_arrays(dict(self.arrays(), factor=int(factor)))
-
-    def max_factor(self):
-        """The coarsest pyramid factor that leaves the images at least one pixel."""
-        h, w = self.layout[1:3]
-        return 1 << (min(h, w).bit_length() - 1)
-
-    def arrays(self):
-        """The bank's Dr.Jit arrays and its layout and level as Python values (a frozen step
-        takes them as inputs; another layout or level records the step anew)."""
-        return {'cameras': self.cameras, 'pixels': self.pixels, 'masks': self.masks,
-                'layout': self.layout, 'factor': self.factor}
-
-    @classmethod
-    def from_arrays(cls, arrays):
-        """A bank over what :meth:`arrays` returned."""
-        bank = cls.__new__(cls)
-        bank.cameras, bank.pixels, bank.layout = (arrays['cameras'], arrays['pixels'],
-                                                  arrays['layout'])
-        bank.masks = arrays.get('masks')
-        bank.factor = int(arrays.get('factor', 1))
-        n, h, w = bank.layout[:3]
-        if bank.factor < 1 or h // bank.factor < 1 or w // bank.factor < 1:
-            raise ValueError(f'pyramid factor {bank.factor} leaves no pixel of {w}x{h} images')
-        bank.size = n * (h // bank.factor) * (w // bank.factor)
-        return bank
-
-    def _pixel(self, i):
-        """``(image, x, y)`` of rays ``i`` at this level (UInt32)."""
-        f = self.factor
-        h, w = self.layout[1] // f, self.layout[2] // f
-        image = i // (h * w)
-        within = i - image * (h * w)                  # the pixel (x, y) in its image
-        y = within // w
-        return image, within - y * w, y
-
-    def _camera_plane(self, image, x, y):
-        """``K⁻¹ [u', v', 1] = (u, v, 1)`` at the centre ``(u', v')`` of this level's pixel
-        ``(x, y)`` (in the stored image's pixel units), by back substitution (K is upper
-        triangular), in Float64; and ``k(j)``, the gather of entry j of each ray's K."""
-        K = self.cameras[0]
-        f = self.factor
-
-        def k(j):
-            return dr.gather(_Float64, K, image * 5 + j)
-        v = (_Float64(y) * f + 0.5 * f - k(4)) / k(3)
-        u = (_Float64(x) * f + 0.5 * f - k(1) * v - k(2)) / k(0)
-        return u, v, k
-
-    def batch(self, index, footprint: bool = False):
-        """``(rays, colour)`` of the rays ``index``: :class:`~mi_nerfpp.core.rays.Rays` with their
-        training ``image`` (and their :meth:`footprint` when asked), and the pixels' colour."""
-        i = mi.UInt32(index)
-        image, x, y = self._pixel(i)
-        u, v, _ = self._camera_plane(image, x, y)
-        _, R, center = self.cameras
-        d = [dr.gather(_Float64, R, image * 9 + 3 * a) * u
-             + dr.gather(_Float64, R, image * 9 + 3 * a + 1) * v
-             + dr.gather(_Float64, R, image * 9 + 3 * a + 2) for a in range(3)]
-        norm = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-        o = [dr.gather(_Float64, center, image * 3 + a) for a in range(3)]
-        rays = Rays(mi.Point3f(*[mi.Float(c) for c in o]),
-                    mi.Vector3f(*[mi.Float(c / norm) for c in d]), image=image,
-                    footprint=self.footprint(index) if footprint else None)
-        return rays, mi.Color3f(*self._colour(image, x, y))
-
-    def footprint(self, index):
-        """The pixel footprint of the rays ``index``: the width of their pixel at this level
-        per unit distance, ``F·sqrt(cos³θ / (fx·fy))`` (the square root of the pixel's solid
-        angle, θ the ray's angle to the optical axis), as
-        :func:`~mi_nerfpp.core.geometry.pixel_footprint` measures it on a Mitsuba camera."""
-        image, x, y = self._pixel(mi.UInt32(index))
-        u, v, k = self._camera_plane(image, x, y)
-        cos = dr.rsqrt(u * u + v * v + 1.0)
-        return mi.Float(self.factor * dr.sqrt(cos * cos * cos / (k(0) * k(3))))
-
-    def images(self, index):
-        """The training-image index of the rays ``index`` (UInt32)."""
-        return self._pixel(mi.UInt32(index))[0]
-
-    def mask(self, index, least: bool = False):
-        """The mask coverage of the rays ``index`` in [0, 1] (Float; the bank has masks): the
-        mean over their pixel block at a pyramid level, or with ``least`` its least pixel's
-        (a block's colour holds what any of its pixels shows)."""
-        image, x, y = self._pixel(mi.UInt32(index))
-        n, h, w = self.layout[:3]
-        f = self.factor
-        first = image * (h * w) + (y * f) * w + x * f
-        total = None
-        for dy in range(f):
-            for dx in range(f):
-                value = mi.UInt32(dr.gather(_UInt8, self.masks, first + (dy * w + dx)))
-                total = value if total is None else (
-                    dr.minimum(total, value) if least else total + value)
-        return mi.Float(total) / (255.0 * (1 if least else f * f))
-
-    def _colour(self, image, x, y):
-        """The colour (three Floats) of this level's pixels ``(x, y)`` of ``image``: the mean
-        of the stored F x F block, summed in Float64 (integers exactly) and rounded once."""
-        n, h, w, kind, scale = self.layout
-        f = self.factor
-        first = image * (h * w) + (y * f) * w + x * f      # the block's top-left pixel
-        out = []
-        for c in range(3):
-            total = None
-            for dy in range(f):
-                for dx in range(f):
-                    value = self._stored(3 * (first + (dy * w + dx)) + c)
-                    total = value if total is None else total + value
-            if kind in ('uint8', 'uint16'):
-                # In Float64, then rounded: the float32 quotient value / scale, as NumPy's.
-                out.append(mi.Float(_Float64(total) / (scale * f * f)))
-            else:                                   # exact for F = 1
-                out.append(mi.Float(total / (f * f)))
-        return out
-
-    def _stored(self, at):
-        """The stored value at flat position ``at``: UInt32 for integer stores, Float64 for
-        float stores."""
-        kind = self.layout[3]
-        if kind == 'uint8':
-            return mi.UInt32(dr.gather(_UInt8, self.pixels, at))
-        if kind == 'uint16':                      # little-endian byte pairs
-            return (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at))
-                    | (mi.UInt32(dr.gather(_UInt8, self.pixels, 2 * at + 1)) << 8))
-        return _Float64(dr.gather(_STORE_TYPES[kind], self.pixels, at))
-
-
-_Float64 = dr.float64_array_t(mi.Float)
-_UInt8 = dr.uint8_array_t(mi.Float)
-# The Dr.Jit array a split's stored dtype is kept in (16-bit integers as their bytes).
-_STORE_TYPES = {'uint8': _UInt8, 'uint16': _UInt8, 'float16': dr.float16_array_t(mi.Float),
-                'float32': mi.Float}
-
-
-def _owned_concatenation(arrays, tp):
-    """The NumPy ``arrays`` one after the other in one Dr.Jit array of type ``tp`` that owns its
-    memory (:func:`~mi_nerfpp.core.arrays.owned`), copied one array at a time: no concatenated
-    copy of them all is ever made."""
-    out = dr.empty(tp, sum(a.size for a in arrays))
-    offset = 0
-    for a in arrays:
-        src = tp(np.ascontiguousarray(a).ravel())
-        dr.scatter(out, src, dr.arange(mi.UInt32, a.size) + dr.opaque(mi.UInt32, offset))
-        dr.eval(out)
-        dr.sync_thread()      # the copy is done before NumPy may move on
-        offset += a.size
-    return out
-
-
 def in_model_frame(dataset, normalization):
     """The dataset's splits with their cameras moved into the model frame of ``normalization``:
     ``{'train': Split, 'validation': Split, 'test': Split}``."""
@@ -296,13 +88,24 @@ def in_model_frame(dataset, normalization):
 
 
 class Trainer:
-    """Owns the model, the optimizer, the ray bank and the run directory."""
+    """Owns the model, the optimizer (which owns the parameters: :func:`.optim.write_back`
+    gives them to the model), the ray bank, the run directory, and the parts that act at
+    times of their own (:mod:`.schedule`: the occupancy refresh, the sparse levels' allocation,
+    the image pyramid; the priors' starts, :mod:`.priors`).
+
+    A step (:meth:`_step`): the learning rates of this point of the run, the parts that are due,
+    the step's inputs (:meth:`_step_inputs`), the loss and its gradients and the Adam update
+    (:meth:`_forward_backward`, recorded once and replayed), then what reads the step's errors
+    (the error map, the capture's signs). The loss is a dictionary of named terms
+    (:meth:`_loss_terms`), each kept in the run's history."""
 
     def __init__(self, dataset, out_dir, config: TrainConfig, resume=False):
-        self.dataset, self.out, self.cfg = dataset, out_dir, config
+        self.dataset, self.out = dataset, out_dir
         os.makedirs(out_dir, exist_ok=True)
         self.checkpoint_path = os.path.join(out_dir, 'model.npz')
         remove_stale_temporaries(out_dir, 'model.npz')    # left by a process killed mid-save
+        # What the options leave to the capture (jobs.run.prepare chose and announced it).
+        self.cfg = config = choices.from_capture(config, dataset, sparse=False)
         normalization = config.model_normalization(dataset.normalization)
         # --near-gradient is a length in the dataset's frame (NeRF++'s unit sphere); the NeRF
         # baseline's model frame is shrunk about it.
@@ -311,97 +114,97 @@ class Trainer:
         splits = in_model_frame(dataset, normalization)
         self.train, self.validation, self.test = (splits[k] for k in ('train', 'validation',
                                                                       'test'))
-        # What the photos' masks mean (:mod:`mi_nerfpp.data.masks`); not given: ignore when
-        # the photos have masks (:func:`mi_nerfpp.jobs.run.prepare` chooses and announces it).
-        self.masks = config.losses.masks or (masks.DEFAULT_MEANING if self.train.masks
-                                             is not None else 'none')
-        if self.masks != 'none' and self.train.masks is None:
-            raise TrainingError(f'--masks {self.masks}: no training photo has a mask (see '
-                                f'docs/data.md, "Masks", for where masks are looked for)')
-        if self.train.masks is not None:        # (a capture without masks stores none)
-            self.cfg = config = config.replace(masks=self.masks)
-        self.rays = RayBank(self.train, masks=True) if self.masks != 'none' else RayBank(self.train)
-        if config.schedule.iterations is None and config.schedule.minutes is None:
-            # No budget given (:func:`mi_nerfpp.jobs.run.prepare` chooses and announces it first).
-            self.cfg = config = config.replace(minutes=default_minutes(self.rays.size))
+        self.masks = config.losses.masks or 'none'      # (:mod:`mi_nerfpp.data.masks`)
+        self.rays = RayBank(self.train, masks=self.masks != 'none')
         self.iteration, self.elapsed, self.history = 0, 0.0, []
-
-        meta, state = {}, {}
-        if resume and os.path.exists(self.checkpoint_path):
-            self.model, meta, state = load_checkpoint(self.checkpoint_path)
-            stored = meta.get('config', {})
-            retired = config.retired_in(stored, self.model.config)
-            if retired:
-                raise TrainingError(
-                    f'{self.checkpoint_path} was trained with {", ".join(retired)}, which this '
-                    f'version no longer has (measured and not kept: docs/experiments.md): resume '
-                    f'it with mi-nerfpp at commit {RETIRED_AFTER} or before, or evaluate and '
-                    f'render it as it is')
-            model_conflicts = config.resume_conflicts(stored, self.model.config)
-            conflicts = model_conflicts + data_conflicts(meta.get('data', {}),
-                                                         self.data_summary())
-            if conflicts:       # why an older file's weights differ from today's defaults
-                version = read_version(self.checkpoint_path)
-                why = ''.join(f'; {note} (a version {version} checkpoint)'
-                              for note in migration_notes(version) if model_conflicts)
-                raise TrainingError(f'{self.checkpoint_path} cannot be resumed with other model '
-                                    f'options or data: ' + '; '.join(conflicts) + why)
-            self.iteration = int(meta['iteration'])
-            self.elapsed = float(meta['elapsed'])
-            self.history = meta.get('history', [])
-            self.model.sampling = config.render_sampling     # --samples may change
-        elif resume:
-            raise TrainingError(f'--resume: no checkpoint at {self.checkpoint_path}')
-        else:
-            m, s = config.model, config.sampling
-            self.model = NeRFPPModel.create(
-                background=m.kind == 'nerfpp', seed=config.schedule.seed,
-                normalization=normalization,
-                color_space=dataset.color_space,
-                appearance_images=len(self.train) if m.appearance else 0,
-                embedding_images=len(self.train) if m.appearance_embedding else 0,
-                pose_images=len(self.train) if m.refine_poses else 0,
-                fg_config=config.field_config(m.field, 'ball'),
-                bg_config=config.field_config(m.bg_field, 'inverted_sphere'),
-                sampling=config.render_sampling)
-            if s.occupancy:
-                self.model.enable_occupancy(s.occupancy_res, s.occupancy_threshold)
+        meta, state = self._open_model(resume, normalization)
+        self.saved_iteration = self.iteration if resume else None
         if self.model.bg is not None and self.model.coverage is None:
             with stage('coverage fill'):
                 self.model.coverage = CoverageFill.of_views(
                     self.train.cameras, self.train.images, dataset.color_space,
                     weights=self._background_weights())
-        self.saved_iteration = self.iteration if resume else None
-        # Sparse levels allocate at each ``sparse_at`` passed; a resumed run has those behind it.
-        self.allocations = []
-        self._brick_stage = sum(self.progress() >= f for f in config.schedule.sparse_at) \
-            if any(len(g) for g in self.model.allocated_bricks().values()) else 0
         self.rng = np.random.default_rng(config.schedule.seed)
         if 'rng' in meta:
             self.rng.bit_generator.state = meta['rng']
-
-        o = config.optimizer
+        o, s, losses = config.optimizer, config.schedule, config.losses
         self.opt = optim.adam(self.model.parameters(), o.lr_mlp, beta_2=o.adam_beta2)
-        self._restore_optimizer(state)
-        # One step's kernels, recorded on the first call and replayed after (drjit.freeze):
-        # tracing the step in Python took ~18 of ~76 ms (README, "Measured performance").
-        self._compute = (dr.freeze(self._forward_backward) if config.schedule.freeze
-                         else self._forward_backward)
-        self._recorded = None       # the Python values the frozen step was recorded for
-        # Where the rays go (:mod:`.error_map`); its state resumes with the run.
-        if config.schedule.error_rays is None:     # not given: uniform (:mod:`.error_map`)
-            self.cfg = config = config.replace(error_rays=0.0)
-        s = config.schedule
+        optim.restore_adam(self.opt, state)
+
+        # The parts that act at times of their own; a resumed run has their past behind it.
+        self.occupancy = (OccupancyRefresh(config.sampling.occupancy_every)
+                          if self.model.occupancy else None)
+        self.sparse = SparseAllocation(s.sparse_at, s.sparse_entries, self.model,
+                                       self.progress())
+        self.pyramid = ImagePyramid(self.rays, s.pyramid)
+        self.sparsity = priors.Sparsity(per_volume(losses.sparsity),
+                                        per_volume(losses.sparsity_start))
+        # Where the rays go (:mod:`.error_map`) and what the run tells about the capture
+        # (:mod:`.signs`, read at its end); both resume with the run.
         self.error_map = (ErrorMap(*self.rays.layout[:3], s.error_tile, s.error_rays)
                           if s.error_rays > 0 else None)
         if self.error_map is not None:
             self.error_map.restore(state)
         self._tiles = None          # the error map's tiles of this step's rays
-        # What the run can tell about the capture (:mod:`.signs`), read at its end.
         self.signs = CaptureSigns(len(self.train))
         self.signs.restore(state)
+
+        # One step's kernels, recorded on the first call and replayed after (drjit.freeze):
+        # tracing the step in Python took ~18 of ~76 ms (README, "Measured performance").
+        self._compute = dr.freeze(self._forward_backward) if s.freeze else self._forward_backward
+        self._recorded = None       # the Python values the frozen step was recorded for
+        self._non_finite = None     # the last step's guard (see parameters_finite)
+        self.terms = {}             # the last step's loss terms (Dr.Jit arrays)
         # The scatter-reduction settings measured on the CPU (see GRADIENT_*) apply on LLVM.
         self._llvm = llvm_backend()
+
+    def _open_model(self, resume, normalization):
+        """The model: the checkpoint's when resuming (refused where it does not match this run),
+        else a new one. Returns the checkpoint's ``(meta, state)`` (empty for a new model)."""
+        config = self.cfg
+        if resume and os.path.exists(self.checkpoint_path):
+            self.model, meta, state = load_checkpoint(self.checkpoint_path)
+            self._check_resumable(meta)
+            self.iteration = int(meta['iteration'])
+            self.elapsed = float(meta['elapsed'])
+            self.history = meta.get('history', [])
+            self.model.sampling = config.render_sampling     # --samples may change
+            return meta, state
+        if resume:
+            raise TrainingError(f'--resume: no checkpoint at {self.checkpoint_path}')
+        m, s, n = config.model, config.sampling, len(self.train)
+        self.model = NeRFPPModel.create(
+            background=m.kind == 'nerfpp', seed=config.schedule.seed,
+            normalization=normalization, color_space=self.dataset.color_space,
+            appearance_images=n if m.appearance else 0,
+            embedding_images=n if m.appearance_embedding else 0,
+            pose_images=n if m.refine_poses else 0,
+            fg_config=config.field_config(m.field, 'ball'),
+            bg_config=config.field_config(m.bg_field, 'inverted_sphere'),
+            sampling=config.render_sampling)
+        if s.occupancy:
+            self.model.enable_occupancy(s.occupancy_res, s.occupancy_threshold)
+        return {}, {}
+
+    def _check_resumable(self, meta):
+        """Refuse, in one line, a checkpoint that this run cannot continue: trained with an
+        option since removed, or with other model options or data."""
+        stored, weights = meta.get('config', {}), self.model.config
+        retired = self.cfg.retired_in(stored, weights)
+        if retired:
+            raise TrainingError(
+                f'{self.checkpoint_path} was trained with {", ".join(retired)}, which this '
+                f'version no longer has (measured and not kept: docs/experiments.md): resume '
+                f'it with mi-nerfpp at commit {RETIRED_AFTER} or before, or evaluate and '
+                f'render it as it is')
+        model_conflicts = self.cfg.resume_conflicts(stored, weights)
+        conflicts = model_conflicts + data_conflicts(meta.get('data', {}), self.data_summary())
+        if conflicts:       # why an older file's weights differ from today's defaults
+            version = read_version(self.checkpoint_path)
+            why = ''.join(f'; {note} (a version {version} checkpoint)'
+                          for note in migration_notes(version) if model_conflicts)
+            raise TrainingError(f'{self.checkpoint_path} cannot be resumed with other model '
+                                f'options or data: ' + '; '.join(conflicts) + why)
 
     def _background_weights(self):
         """Per training image how much each pixel shows of the background (for the coverage
@@ -412,26 +215,10 @@ class Trainer:
         return [None if m is None else (m / 255.0 if self.masks == 'ignore' else 1 - m / 255.0)
                 for m in self.train.masks]
 
-    # ------------------------------------------------------------------ optimizer state
-    def _optimizer_state(self):
-        state = {}
-        for k, (_, _, _, (t, m, v, _)) in self.opt.state.items():
-            state[f'adam.t/{k}'] = np.array(t, dtype=np.uint32)
-            state[f'adam.m/{k}'] = np.array(m, dtype=np.float32)
-            state[f'adam.v/{k}'] = np.array(v, dtype=np.float32)
-        return state
-
-    def _restore_optimizer(self, state):
-        # drjit.opt.Adam keeps (value, promoted, lr, (t, m, v, v_max)) per key (drjit 1.5).
-        for k in list(self.opt.keys()):
-            if f'adam.m/{k}' not in state:
-                continue
-            value, promoted, lr, _ = self.opt.state[k]
-            # Owned copies: the first frozen step releases them (see :mod:`.arrays`).
-            self.opt.state[k] = (value, promoted, lr,
-                                 (dr.opaque(mi.UInt32, int(np.ravel(state[f'adam.t/{k}'])[0])),
-                                  owned(state[f'adam.m/{k}'], mi.Float),
-                                  owned(state[f'adam.v/{k}'], mi.Float), None))
+    @property
+    def allocations(self) -> list[dict]:
+        """What the sparse levels allocated, one dict per level and allocation."""
+        return self.sparse.records
 
     # ------------------------------------------------------------------ training
     def progress(self):
@@ -460,53 +247,38 @@ class Trainer:
             raise interrupt from None
 
     def _step(self):
-        o = self.cfg.optimizer
-        optim.set_learning_rates(self.opt, self.progress(), o.lr_grid, o.lr_mlp, o.lr_final,
+        p, o = self.progress(), self.cfg.optimizer
+        optim.set_learning_rates(self.opt, p, o.lr_grid, o.lr_mlp, o.lr_final,
                                  {'appearance': o.lr_appearance, 'embedding': o.lr_appearance,
                                   'poses': o.lr_poses})
-        refresh = self.iteration % self.cfg.sampling.occupancy_every == 0
-        if self.model.occupancy and refresh:
-            with stage('occupancy refresh'):
-                self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
-                self.model.update_occupancy(int(self.rng.integers(0, 2 ** 31)))
-        self._allocate_bricks()
-        inputs = self._step_inputs()
+        if self.occupancy is not None and self.occupancy.due(self.iteration):
+            optim.write_back(self.opt, self.model)
+            self.occupancy(self.model, int(self.rng.integers(0, 2 ** 31)))
+        if self.sparse.due(p):
+            self.sparse(self.model, self.opt, self.iteration, p)
+        inputs = self._step_inputs(p)
         self._fresh_recording(inputs)
-        # No cyclic garbage collection while a step is recorded: releasing a collected
-        # array that maps NumPy memory cannot be recorded (:mod:`.arrays`).
-        collecting = gc.isenabled()
-        gc.disable()
-        llvm = self._llvm
-        if llvm:
-            threshold = dr.expand_threshold()
-            local = dr.flag(dr.JitFlag.ScatterReduceLocal)
-            dr.set_flag(dr.JitFlag.ScatterReduceLocal, GRADIENT_LOCAL_REDUCTION)
-            if self.cfg.schedule.batch_rays * self.cfg.samples_per_ray >= EXPAND_MIN_SAMPLES:
-                dr.set_expand_threshold(GRADIENT_EXPAND_THRESHOLD)
         try:
-            loss, fine, per_ray = self._compute(inputs)
+            big = self.cfg.schedule.batch_rays * self.cfg.samples_per_ray >= EXPAND_MIN_SAMPLES
+            with _step_settings(self._llvm, big):
+                loss, fine, self.terms, per_ray = self._compute(inputs)
         finally:
             self.model.set_appearance(None)     # renders outside the step: the neutral code
-            if llvm:
-                dr.set_expand_threshold(threshold)
-                dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
-            if collecting:
-                gc.enable()
         self._non_finite = inputs['non_finite']   # the step's guard (see parameters_finite)
-        # The model's fields read the parameters after the update (previews, evaluations);
-        # a replayed frozen step runs no Python, so the step itself cannot set them.
-        self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+        # A replayed frozen step runs no Python, so the step itself cannot give the model the
+        # updated parameters (previews and evaluations read them).
+        optim.write_back(self.opt, self.model)
         squared_error, predicted, photographed = (v.numpy() for v in per_ray)
         if self.error_map is not None:
             self.error_map.update(self._tiles, squared_error)
-        self.signs.update(self._view_of(inputs['draws']['index']), squared_error, predicted,
-                          photographed)
+        self.signs.update(self._view_of(inputs), squared_error, predicted, photographed)
         self.iteration += 1
         return float(loss.array[0]), float(fine.array[0])
 
-    def _view_of(self, index) -> np.ndarray:
-        """The training view of each ray ``index`` (UInt32) of this step's ray bank level."""
-        return self._level().images(index).numpy().astype(np.int64)
+    def _view_of(self, inputs) -> np.ndarray:
+        """The training view of each ray of a step's ``inputs``."""
+        bank = RayBank.from_arrays(inputs['rays'])
+        return bank.images(inputs['draws']['index']).numpy().astype(np.int64)
 
     def _fresh_recording(self, inputs):
         """A new frozen step whenever the Python values of the step's inputs change (the
@@ -522,155 +294,117 @@ class Trainer:
             self._compute = dr.freeze(self._forward_backward)
         self._recorded = key
 
-    def _step_inputs(self):
+    def _step_inputs(self, progress):
         """Everything a step reads, as :func:`drjit.freeze` traverses it: the optimizer (its
-        parameters, moments and learning rates), the occupancy grids, this step's random
-        draws (Dr.Jit arrays from a generator seeded by the run's RNG, so a resumed run
-        draws the same), and as Python values the phase of the run (which priors apply) and
-        the grids' shapes: a change of either records the step anew."""
-        cfg, n, p = self.cfg.losses, self.cfg.schedule.batch_rays, self.progress()
+        parameters, moments and learning rates), the occupancy grids, the ray bank at this
+        level of the image pyramid, this step's random draws (Dr.Jit arrays from a generator
+        seeded by the run's RNG, so a resumed run draws the same), and as Python values the
+        phase of the run (which priors apply) and the grids' shapes: a change of either
+        records the step anew."""
+        n = self.cfg.schedule.batch_rays
         gen = dr.rng(seed=int(self.rng.integers(0, 2 ** 63)))
-        rays = self._level()
-        sparse = [field is not None and weight > 0 and p >= start
-                  for field, weight, start in zip((self.model.fg, self.model.bg),
-                                                  per_volume(cfg.sparsity),
-                                                  per_volume(cfg.sparsity_start))]
+        rays = self.pyramid.level(progress)
+        fields = (self.model.fg, self.model.bg)
         if self.error_map is not None:
             index, self._tiles = self.error_map.draw(self.rng, n, rays.factor)
             index = mi.UInt32(index)
         else:
             index = gen.integers(mi.UInt32, n, 0, rays.size)
-        draws = {
-            'index': index,
-            'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
-            'sparsity': [[gen.random(mi.Float, n) for _ in range(4)] if on else None
-                         for on in sparse],
-        }
+        draws = {'index': index, 'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
+                 'sparsity': self.sparsity.draw(gen, n, fields, progress)}
         dr.eval(draws)
-        phase = dict(refine=self.model.poses is not None and p >= self.cfg.optimizer.poses_start,
+        refine = (self.model.poses is not None
+                  and progress >= self.cfg.optimizer.poses_start)
+        phase = dict(refine=refine,
                      shapes=tuple(tuple(self.opt[k].shape) for k in self.opt.keys()))
         return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': rays.arrays(),
                 'occupancy': {k: g.density for k, g in self.model.occupancy.items()},
-                'slots': [field.bricks[i].slots for _, field, i in self._sparse_levels()],
+                'slots': [field.bricks[i].slots for _, field, i in sparse_levels(self.model)],
                 'non_finite': dr.opaque(mi.UInt32, 0, 1),     # set by the step's guard
                 # Coarse to fine while poses are refined (:func:`~mi_nerfpp.core.poses.blur`):
                 # a value, not a Python number, so that the frozen step is not recorded anew.
-                'blur': dr.opaque(mi.Float, poses.blur(p, self.cfg.optimizer.poses_blur))
+                'blur': dr.opaque(mi.Float, poses.blur(progress, self.cfg.optimizer.poses_blur))
                 if self.model.poses is not None else None}
-
-    def _level(self):
-        """The ray bank at this point of the run's image pyramid (``--pyramid``), at most as
-        coarse as leaves the images a pixel."""
-        factor = self.cfg.schedule.pyramid_factor(self.progress())
-        if factor == 1:
-            return self.rays
-        return self.rays.level(min(factor, self.rays.max_factor()))
 
     def _forward_backward(self, inputs):
         """Loss, gradients and the Adam update of one step from :meth:`_step_inputs` alone
-        (recorded once and replayed when ``freeze`` is on). Returns ``(loss, fine-pass
-        MSE)`` as Dr.Jit arrays."""
-        cfg, model = self.cfg.losses, self.model
-        opt, draws, phase = inputs['opt'], inputs['draws'], inputs['phase']
+        (recorded once and replayed when ``freeze`` is on). Returns ``(loss, fine-pass MSE,
+        loss terms, per-ray errors)`` as Dr.Jit arrays."""
+        model, opt, draws = self.model, inputs['opt'], inputs['draws']
+        # -------- The rays of this step and their pixels (dataset -> rays)
         bank = RayBank.from_arrays(inputs['rays'])
         index = draws['index']
-        # The rays and their pixels; their footprints for fields that filter lookups by them.
         rays, gt = bank.batch(index, footprint=model.antialias)
         rays.seed = draws['seed']
         if rays.footprint is not None and inputs['blur'] is not None:
             rays.footprint = dr.maximum(rays.footprint, inputs['blur'])
+        # -------- The model as this step sees it: the optimizer's parameters, the occupancy
+        # grids and sparse bricks of the inputs (the model's own are left untouched)
         occupancy = {}
-        for k, grid in model.occupancy.items():       # the model's grids are left untouched
+        for k, grid in model.occupancy.items():
             occupancy[k] = copy.copy(grid)
             occupancy[k].density = inputs['occupancy'][k]
-        model.set_parameters({k: opt[k] for k in opt.keys()})
-        for (_, field, i), slots in zip(self._sparse_levels(), inputs['slots']):
-            field.bricks[i].slots = slots        # (an input of the frozen step, as the grids)
-        refine = phase['refine']
+        optim.write_back(opt, model, detach=False)
+        for (_, field, i), slots in zip(sparse_levels(model), inputs['slots']):
+            field.bricks[i].slots = slots
+        refine = inputs['phase']['refine']
         if model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
             params = opt['poses'] if refine else dr.detach(opt['poses'])
             rays.o, rays.d = poses.correct_rays(params, rays.image, rays.o, rays.d)
         if model.embedding is not None:     # each ray's photo's code (:mod:`.appearance`)
             model.set_appearance(app.codes(opt['embedding'], rays.image))
+        # -------- Samples, fields, quadrature and Eq. 4 (the integrator's code)
         res = render_rays(rays, *model.radiance_fields(), model.sampling,
                           RenderOptions(occupancy=occupancy, ray_gradients=refine,
                                         near_gradient=self.near_gradient))
-        # Radiance is linear; the loss compares it in the encoding of the images, after the
-        # image's colour transform when appearance is learned.
-        encode = model.loss_encoding
-        if model.appearance is not None:
-            image, params = rays.image, opt['appearance']
-            encode = lambda c, e=encode: e(app.transform_rays(params, image, c))  # noqa: E731
-        pred = encode(res.fine.rgb)
-        # Masks: the pixels kept in the colour loss (ignore), or the object's silhouette.
-        mask = (bank.mask(index, least=self.masks == 'ignore') if self.masks != 'none'
-                else None)
-        kept = mask if self.masks == 'ignore' else None
-        loss = optim.COLOR_LOSS_WEIGHT * optim.COLOR_LOSSES[cfg.color_loss](pred, gt, kept)
-        fine = dr.detach(optim.mse(pred, gt, kept))     # for the PSNR shown while training
-        if self.masks == 'object':
-            loss += cfg.mask_weight * optim.silhouette_loss(res.fg.fine.opacity, mask)
-        # Per ray, for the error map and the capture's signs (:mod:`.signs`).
-        error = optim.squared_error(pred, gt)
-        per_ray = (dr.detach(error if kept is None else error * kept),
-                   dr.detach(optim.luminance(pred)), dr.detach(optim.luminance(gt)))
-        if model.appearance is not None and cfg.appearance_prior > 0:
-            loss += cfg.appearance_prior * app.prior(opt['appearance'])
-        if model.embedding is not None and cfg.appearance_prior > 0:
-            loss += cfg.appearance_prior * app.prior(opt['embedding'])
-        if cfg.distortion > 0:
-            loss += cfg.distortion * dr.mean(priors.ray_distortion(res))
-        loss += self._sparsity_loss(draws['sparsity'])
+        # -------- The loss: named terms, summed
+        terms, fine, per_ray = self._loss_terms(res, rays, gt, bank.mask(
+            index, least=self.masks == 'ignore') if self.masks != 'none' else None, inputs)
+        loss = None
+        for term in terms.values():
+            loss = term if loss is None else loss + term
         with stage('losses and reverse pass'):
             dr.backward(loss)
         with stage('adam'):
             opt.step(eval=False)
             flag_non_finite(opt, inputs['non_finite'])
             dr.eval()
-        return loss, fine, per_ray
+        return loss, fine, terms, per_ray
 
-    def _sparse_levels(self):
-        """``(volume, field, level)`` of every sparse grid level of the model."""
-        return [(volume, field, i) for volume, field in (('fg', self.model.fg), ('bg', self.model.bg))
-                if field is not None for i in range(len(getattr(field, 'bricks', ())))]
-
-    def _allocate_bricks(self):
-        """At each ``sparse_at`` fraction of the run passed, allocate the sparse levels'
-        bricks where the occupancy grid is occupied (grown by :data:`~mi_nerfpp.core.bricks.
-        DILATION`), at most ``sparse_entries`` entries a level, the densest first."""
-        due = sum(self.progress() >= f for f in self.cfg.schedule.sparse_at)
-        if due <= self._brick_stage:
-            return
-        self._brick_stage = due
-        for volume, field, i in self._sparse_levels():
-            grid, brick = self.model.occupancy[volume], field.bricks[i]
-            density = grid.numpy()
-            occupied = bricks.block_mask(density > grid.threshold, brick.blocks)
-            mask = bricks.dilate(occupied, bricks.DILATION[field.domain],
-                                 periodic_x=field.domain == 'inverted_sphere')
-            score = bricks.block_max(density, brick.blocks)
-            limit = self.cfg.schedule.sparse_entries // (brick.texels_per_brick * brick.channels)
-            chosen = bricks.choose(mask, score, max(limit, 1))
-            key = f'{volume}.sparse{i}'
-            field.set_parameters({f'sparse{i}': dr.detach(self.opt[key])})
-            field.set_bricks({f'sparse{i}': chosen})
-            self.opt[key] = field.params[f'sparse{i}']     # new shape: fresh Adam moments
-            self.allocations.append({'iteration': self.iteration, 'level': key,
-                                     'bricks': int(chosen.size), 'of': brick.n_blocks,
-                                     'occupied': int(mask.sum()),
-                                     'entries': int(np.prod(brick.pool_shape()))})
-
-    def _sparsity_loss(self, points):
-        """Cauchy sparsity of each volume's density at ``batch_rays`` random points, weighted
-        by the volume's ``sparsity`` (``points``: 4 uniform Floats per volume, None where the
-        volume is absent, its weight is 0 or the run has not reached its ``sparsity_start``)."""
-        total = mi.Float(0.0)
-        for field, weight, u in zip((self.model.fg, self.model.bg),
-                                    per_volume(self.cfg.losses.sparsity), points):
-            if u is not None:
-                total += weight * priors.cauchy_sparsity(
-                    field.density(priors.random_points(field.domain, u)))
-        return total
+    def _loss_terms(self, res, rays, gt, mask, inputs):
+        """The step's loss as named, weighted terms (``colour``, and where they apply
+        ``silhouette``, ``appearance``, ``embedding``, ``distortion``, ``sparsity``), the
+        fine pass's MSE (for the PSNR shown while training) and per ray the squared error and
+        the luminances (for the error map and the capture's signs)."""
+        cfg, model, opt = self.cfg.losses, self.model, inputs['opt']
+        # Radiance is linear; the loss compares it in the encoding of the images, after the
+        # image's colour transform when appearance is learned.
+        encode = model.loss_encoding
+        if model.appearance is not None:
+            params = opt['appearance']
+            encode = lambda c, e=encode: e(app.transform_rays(params, rays.image, c))  # noqa: E731
+        pred = encode(res.fine.rgb)
+        # Masks: the pixels kept in the colour loss (ignore), or the object's silhouette.
+        kept = mask if self.masks == 'ignore' else None
+        terms = {'colour': optim.COLOR_LOSS_WEIGHT
+                 * optim.COLOR_LOSSES[cfg.color_loss](pred, gt, kept)}
+        if self.masks == 'object':
+            terms['silhouette'] = cfg.mask_weight * optim.silhouette_loss(res.fg.fine.opacity,
+                                                                          mask)
+        if model.appearance is not None and cfg.appearance_prior > 0:
+            terms['appearance'] = cfg.appearance_prior * app.prior(opt['appearance'])
+        if model.embedding is not None and cfg.appearance_prior > 0:
+            terms['embedding'] = cfg.appearance_prior * app.prior(opt['embedding'])
+        if cfg.distortion > 0:
+            terms['distortion'] = cfg.distortion * dr.mean(priors.ray_distortion(res))
+        points = inputs['draws']['sparsity']
+        if any(u is not None for u in points):
+            terms['sparsity'] = self.sparsity.loss((model.fg, model.bg), points)
+        fine = dr.detach(optim.mse(pred, gt, kept))
+        error = optim.squared_error(pred, gt)
+        per_ray = (dr.detach(error if kept is None else error * kept),
+                   dr.detach(optim.luminance(pred)), dr.detach(optim.luminance(gt)))
+        return terms, fine, per_ray
 
     def data_summary(self):
         """What a checkpoint records of its training data, to refuse resuming on other data."""
@@ -681,7 +415,7 @@ class Trainer:
         """Whether every parameter (and its Adam moments) stayed finite in the last step: a
         flag the step sets in the kernel of its Adam update (:func:`flag_non_finite`), so the
         guard costs no pass over the parameters."""
-        flag = getattr(self, '_non_finite', None)
+        flag = self._non_finite
         return flag is None or int(flag.array[0]) == 0
 
     def _kept(self):
@@ -704,13 +438,13 @@ class Trainer:
         :class:`TrainingError` at once, and so does state that is not finite (NaN or inf
         parameters or optimizer moments, which :func:`save_checkpoint` refuses): the previous
         checkpoint stays as it was."""
-        self.model.set_parameters({k: dr.detach(self.opt[k]) for k in self.opt.keys()})
+        optim.write_back(self.opt, self.model)
         meta = {'iteration': self.iteration, 'elapsed': self.elapsed,
                 'rng': self.rng.bit_generator.state, 'history': self.history,
                 'config': self.cfg.to_dict(), 'dataset': self.dataset.root,
                 'data': self.data_summary()}
         try:
-            state = self._optimizer_state()
+            state = optim.adam_state(self.opt)
             if self.error_map is not None:
                 state.update(self.error_map.state())
             state.update(self.signs.state())
@@ -757,7 +491,9 @@ class Trainer:
                                          'was still finite)')
                 p = psnr_from_mse(fine)
                 if self.iteration % 10 == 0 or self.iteration == 1:
-                    self.history.append([self.iteration, round(self.elapsed, 3), loss, p])
+                    # (iteration, seconds, loss, PSNR of the batch, the loss's terms)
+                    self.history.append([self.iteration, round(self.elapsed, 3), loss, p,
+                                         {k: float(v.array[0]) for k, v in self.terms.items()}])
                 if on_step:
                     on_step(self, loss, p)
                 output = self.cfg.output
@@ -780,6 +516,30 @@ class Trainer:
     def samples_per_second(self):
         """Field evaluations per second of training so far (coarse + fine, both volumes)."""
         return samples_per_second(self.cfg, self.iteration, self.elapsed)
+
+
+@contextlib.contextmanager
+def _step_settings(llvm: bool, big: bool):
+    """Dr.Jit's settings while a step runs (and is recorded): no cyclic garbage collection
+    (releasing a collected array that maps NumPy memory cannot be recorded, :mod:`.arrays`);
+    on LLVM the scatter reductions measured there (:data:`GRADIENT_LOCAL_REDUCTION`, and with
+    ``big`` steps :data:`GRADIENT_EXPAND_THRESHOLD`). All restored after."""
+    collecting = gc.isenabled()
+    gc.disable()
+    if llvm:
+        threshold = dr.expand_threshold()
+        local = dr.flag(dr.JitFlag.ScatterReduceLocal)
+        dr.set_flag(dr.JitFlag.ScatterReduceLocal, GRADIENT_LOCAL_REDUCTION)
+        if big:
+            dr.set_expand_threshold(GRADIENT_EXPAND_THRESHOLD)
+    try:
+        yield
+    finally:
+        if llvm:
+            dr.set_expand_threshold(threshold)
+            dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
+        if collecting:
+            gc.enable()
 
 
 def _in_main_thread():

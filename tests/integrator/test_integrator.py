@@ -176,7 +176,7 @@ def test_renders_pass_each_pixels_footprint_to_the_fields():
     from mi_nerfpp.data.storage import StoredImages
     from mi_nerfpp.core.model import NeRFPPModel
     from mi_nerfpp.core.render import RenderOptions, render_rays
-    from mi_nerfpp.training.train import RayBank
+    from mi_nerfpp.training.raybank import RayBank
     from mi_nerfpp.output.views import ViewRenderer, rgb
     from tests.helpers import orbit_camera
     grid = dict(kind='grid', resolutions=[8, 64], channels=3, hidden=8, antialias=True)

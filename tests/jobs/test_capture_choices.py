@@ -9,6 +9,7 @@ import pytest
 from mi_nerfpp.core import budget
 from mi_nerfpp.core.arrays import llvm_backend
 from mi_nerfpp.jobs import run
+from mi_nerfpp.training import choices
 from mi_nerfpp.training.config import (DEFAULT_JOB_MINUTES, DEFAULT_MINUTES_RANGE, TrainConfig,
                                        default_minutes)
 from mi_nerfpp.data import DatasetError, load_dataset
@@ -50,7 +51,7 @@ def test_the_sparse_resolution_follows_the_pixel_footprint():
 
 
 def test_the_sparse_level_is_chosen_from_the_capture_and_announced(capture, tmp_path):
-    footprint = run.centre_footprint(load_dataset(capture).train.cameras)
+    footprint = choices.centre_footprint(load_dataset(capture).train.cameras)
     cameras = load_dataset(capture).train.cameras
     assert footprint == pytest.approx(np.median(
         [np.linalg.norm(c.c2w[:3, 3]) / c.K[0, 0] for c in cameras]))

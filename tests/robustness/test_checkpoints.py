@@ -81,7 +81,8 @@ def test_save_refuses_non_finite_state_and_leaves_the_file(tmp_path):
 
 def test_a_failed_save_says_so_and_keeps_the_previous_checkpoint(capture, tmp_path, monkeypatch):
     from mi_nerfpp.files import checkpoint
-    from mi_nerfpp.training.train import Trainer, TrainingError
+    from mi_nerfpp.training.errors import TrainingError
+    from mi_nerfpp.training.train import Trainer
     cfg = TrainConfig.from_options(iterations=4, batch_rays=32, fg_samples=4, bg_samples=4, fine_samples=4,
                       grid_levels=(4, 8), checkpoint_every=2, preview_every=0)
     trainer = Trainer(load_dataset(capture), str(tmp_path), cfg)

@@ -9,7 +9,7 @@ from mi_nerfpp.training.ambiguity import OpaqueSphere, fit_radiance, sphere_hit
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.core.fields import MLPField
 from mi_nerfpp.training.metrics import psnr
-from mi_nerfpp.training.train import RayBank
+from mi_nerfpp.training.raybank import RayBank
 
 
 def _rays(n, seed, spread):

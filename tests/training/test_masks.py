@@ -11,14 +11,15 @@ import numpy as np
 import pytest
 
 from mi_nerfpp.commands.cli import main
-from mi_nerfpp.data import load_dataset
+from mi_nerfpp.data import DatasetError, load_dataset
 from mi_nerfpp.data.storage import StoredImages
 from mi_nerfpp.data.synth import scene_file, synthesize
 from mi_nerfpp.data.synth.capture import write_object_masks
 from mi_nerfpp.training import optim
 from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.training.evaluate import matte_iou
-from mi_nerfpp.training.train import RayBank, Trainer, TrainingError
+from mi_nerfpp.training.raybank import RayBank
+from mi_nerfpp.training.train import Trainer
 from tests.helpers import TINY_RUN, one_thread
 
 FAST = dict(batch_rays=512, fg_samples=8, bg_samples=8, fine_samples=8, checkpoint_every=0,
@@ -111,7 +112,7 @@ def test_ignored_pixels_do_not_reach_the_model(capture, tmp_path):
 
 
 def test_masks_need_masks(capture, tmp_path, capsys):
-    with pytest.raises(TrainingError, match='--masks object: no training photo has a mask'):
+    with pytest.raises(DatasetError, match='--masks object, but no training photo has a mask'):
         Trainer(load_dataset(capture), str(tmp_path / 't'),
                 TrainConfig.from_options(iterations=1, masks='object', **FAST))
     assert main(['optimize', capture, '--out', str(tmp_path / 'r'), '--masks', 'ignore',

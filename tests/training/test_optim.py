@@ -69,18 +69,15 @@ def test_unknown_color_loss_is_rejected():
     assert TrainConfig().losses.color_loss == 'charbonnier'
 
 
-@pytest.mark.parametrize('lazy', [False, True])
-def test_adam_matches_drjit_adam_and_fuses_the_updates(lazy):
+def test_adam_matches_drjit_adam_and_fuses_the_updates():
     """optim.Adam takes the steps of drjit.opt.Adam (learning rates as opaque arrays, as in
-    training; a lazy optimizer leaves the entries whose gradient is zero in a step alone), and
-    evaluates the updates of all parameters of one size in one kernel."""
+    training), and evaluates the updates of all parameters of one size in one kernel."""
     rng = np.random.default_rng(0)
     start = {'grid': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
              'grid2': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
              'w': rng.normal(size=96).astype(np.float32)}
-    ours = optim.adam({k: mi.TensorXf(v) if v.ndim > 1 else mi.Float(v) for k, v in start.items()},
-                      lazy=lazy)
-    theirs = dr.opt.Adam(lr=optim.LR_MLP, mask_updates=lazy, beta_2=optim.ADAM_BETA2)
+    ours = optim.adam({k: mi.TensorXf(v) if v.ndim > 1 else mi.Float(v) for k, v in start.items()})
+    theirs = dr.opt.Adam(lr=optim.LR_MLP, beta_2=optim.ADAM_BETA2)
     for k, v in start.items():
         theirs[k] = mi.TensorXf(v) if v.ndim > 1 else mi.Float(v)
     assert type(ours) is optim.Adam and isinstance(ours, dr.opt.Adam)
@@ -105,21 +102,3 @@ def test_adam_matches_drjit_adam_and_fuses_the_updates(lazy):
         for k in start:
             np.testing.assert_allclose(np.array(ours[k]), np.array(theirs[k]), rtol=1e-5,
                                        atol=1e-6)
-
-
-def test_the_lazy_optimizer_matches_dense_adam_when_every_entry_is_touched():
-    """``lazy`` only leaves alone the entries whose gradient is zero: where every entry has a
-    gradient every step (a sparse level's bricks that every batch reaches), it is dense Adam."""
-    rng = np.random.default_rng(1)
-    start = rng.normal(size=(8, 2, 2, 2, 4)).astype(np.float32)     # a sparse level's pool
-    runs = {}
-    for lazy in (False, True):
-        opt = optim.adam({'fg.sparse0': mi.TensorXf(start)}, lazy=lazy)
-        for it in range(6):
-            optim.set_learning_rates(opt, it / 6)
-            x = opt['fg.sparse0'].array
-            dr.backward(dr.sum(dr.square(x - 0.2) + 0.1 * dr.exp(x)))    # nowhere zero
-            opt.step()
-        runs[lazy] = np.array(opt['fg.sparse0'])
-    assert not np.allclose(runs[False], start)
-    np.testing.assert_array_equal(runs[True], runs[False])

@@ -1,4 +1,4 @@
-"""The training ray bank (mi_nerfpp.training.train.RayBank): rays built per batch from the cameras and
+"""The training ray bank (mi_nerfpp.training.raybank.RayBank): rays built per batch from the cameras and
 the compact image store equal the rays precomputed for every pixel before issue 34, exactly -
 origins, directions, colours and image indices - and training on them takes the same steps,
 with pose refinement on and off."""
@@ -13,7 +13,8 @@ from mi_nerfpp.core.arrays import owned
 from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.data import Camera, Split, load_dataset, pixel_rays
 from mi_nerfpp.data.storage import StoredImages, store, to_float
-from mi_nerfpp.training.train import RayBank, Trainer
+from mi_nerfpp.training.raybank import RayBank
+from mi_nerfpp.training.train import Trainer
 from tests.helpers import one_thread, orbit_camera
 
 
@@ -22,7 +23,7 @@ class PrecomputedRayBank:
     :func:`pixel_rays`, then float32), its colour (float32) and its image index, precomputed.
     The interface is today's (``arrays``/``from_arrays`` of a dict), so a Trainer runs on it."""
 
-    def __init__(self, split):
+    def __init__(self, split, masks=False):       # (the capture has no masks)
         o, d, c, image = [], [], [], []
         for k, (cam, img) in enumerate(zip(split.cameras, split.images)):
             h, w = img.shape[:2]
@@ -253,10 +254,10 @@ def test_training_follows_the_image_pyramid(capture, tmp_path):
     trainer = Trainer(dataset, str(tmp_path / 'run'), config)
     factors = []
     while not trainer.done():
-        factors.append(trainer._level().factor)
+        factors.append(trainer.pyramid.level(trainer.progress()).factor)
         trainer.step()
     assert factors == [4, 4, 2, 2, 1, 1, 1, 1]
-    assert trainer._level().size == trainer.rays.size
+    assert trainer.pyramid.level(trainer.progress()).size == trainer.rays.size
     h, w = trainer.train.images.stored[0].shape[:2]
     assert trainer.rays.level(4).size == len(trainer.train) * (h // 4) * (w // 4)
 

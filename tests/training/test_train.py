@@ -13,10 +13,11 @@ from mi_nerfpp.files.checkpoint import load_checkpoint
 from mi_nerfpp.data import load_dataset
 from mi_nerfpp.training import priors
 from mi_nerfpp.training.evaluate import evaluate_split
-from mi_nerfpp.training.config import TrainConfig
+from mi_nerfpp.training.config import TrainConfig, per_volume
 from mi_nerfpp.training.options import values
 from mi_nerfpp.training.error_map import ErrorMap
-from mi_nerfpp.training.train import Trainer, TrainingError
+from mi_nerfpp.training.errors import TrainingError
+from mi_nerfpp.training.train import Trainer
 from tests.helpers import one_thread, straight_and_resumed
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -276,7 +277,8 @@ def test_sparsity_prior_reaches_each_volume_only_after_its_start(dataset, tmp_pa
 
     def touched():
         tr.model.set_parameters({k: tr.opt[k] for k in tr.opt.keys()})
-        dr.backward(tr._sparsity_loss(tr._step_inputs()['draws']['sparsity']))
+        points = tr._step_inputs(tr.progress())['draws']['sparsity']
+        dr.backward(tr.sparsity.loss((tr.model.fg, tr.model.bg), points))
         out = {vol: any(np.any(np.array(dr.grad(tr.opt[k])) != 0)
                         for k in tr.opt.keys() if k.startswith(vol + '.'))
                for vol in ('fg', 'bg')}
@@ -297,20 +299,21 @@ def test_sparsity_prior_weighs_each_volume_by_its_own_weight(dataset, tmp_path):
                  TrainConfig.from_options(iterations=10, sparsity=(0.02, 0.005),
                                           sparsity_start=(0.0,), **SMALL))
     assert tr.cfg.losses.sparsity == (0.02, 0.005)
-    points = tr._step_inputs()['draws']['sparsity']
+    points = tr._step_inputs(0.0)['draws']['sparsity']
     assert all(u is not None for u in points)
+    fields = (tr.model.fg, tr.model.bg)
 
     def loss(weights):
-        tr.cfg.losses.sparsity = weights
-        return float(tr._sparsity_loss(points).array[0])
+        return float(priors.Sparsity(per_volume(weights), (0.0, 0.0)).loss(fields, points)
+                     .array[0])
 
     fg, bg = loss((1.0, 0.0)), loss((0.0, 1.0))
     assert fg > 0 and bg > 0
     assert loss((0.02, 0.005)) == pytest.approx(0.02 * fg + 0.005 * bg, rel=1e-5)
     assert loss((0.01,)) == pytest.approx(0.01 * (fg + bg), rel=1e-5)
     # A volume whose weight is 0 draws no points (and costs nothing).
-    tr.cfg.losses.sparsity = (0.01, 0.0)
-    assert tr._step_inputs()['draws']['sparsity'][1] is None
+    tr.sparsity = priors.Sparsity((0.01, 0.0), (0.0, 0.0))
+    assert tr._step_inputs(0.0)['draws']['sparsity'][1] is None
     for bad in ((0.01, 0.01, 0.01), (-0.01,), (0.01, float('nan'))):
         with pytest.raises(ValueError, match='--sparsity must be one finite number >= 0, or two'):
             TrainConfig.from_options(sparsity=bad)

@@ -1,0 +1,116 @@
+"""What a run's options leave to the capture, chosen in one place and announced from there: the
+sparse foreground level, where the rays are drawn, what the photos' masks mean and the time
+budget (:func:`from_capture`). A resumed run keeps what it chose before.
+
+The resolution (``--downscale``) is chosen with the dataset's loading
+(:func:`mi_nerfpp.jobs.run.prepare`): it decides which images are read at all.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mi_nerfpp.core import budget
+from mi_nerfpp.data import DatasetError, masks
+from mi_nerfpp.training.config import TrainConfig, default_minutes
+
+# What each meaning of the masks does, as the announcement says it.
+MASK_MEANINGS = {'ignore': 'their black pixels are left out of the colour loss',
+                 'object': "their white pixels are the object's silhouette, which the "
+                           "foreground's opacity is fitted to",
+                 'none': 'not used'}
+
+
+def _quiet(line):
+    pass
+
+
+def from_capture(config: TrainConfig, dataset, stored: dict | None = None, notice=_quiet,
+                 sparse: bool = True) -> TrainConfig:
+    """``config`` with every option it leaves to the capture chosen: the sparse foreground
+    level (with ``sparse``; :func:`choose_sparse_level`), the share of rays drawn by the error
+    map (:func:`choose_error_rays`), the meaning of the masks (:func:`choose_masks`) and the
+    budget (:func:`choose_budget`). ``stored``: the config of the checkpoint a run resumes
+    (its choices are kept); ``notice(line)`` receives each announcement."""
+    stored = stored or {}
+    if sparse and config.model.grid_sparse is None:
+        config = choose_sparse_level(config, dataset, stored, notice)
+    config = choose_error_rays(config, stored)
+    config = choose_masks(config, dataset, stored, notice)
+    return choose_budget(config, dataset, notice)
+
+
+def centre_footprint(cameras) -> float:
+    """The median width of a training pixel at the scene's centre, in the dataset's frame (the
+    unit ball's units): each camera's distance to the origin over its focal length in pixels."""
+    return float(np.median([np.linalg.norm(c.center) / c.K[0, 0] for c in cameras]))
+
+
+def choose_sparse_level(config: TrainConfig, dataset, stored: dict, notice=_quiet):
+    """``config`` with its sparse foreground level chosen (``--grid-sparse`` not given): a
+    resumed run's own, else :func:`~mi_nerfpp.core.budget.sparse_resolution` of the capture's
+    :func:`centre_footprint`, announced."""
+    if stored:
+        return config.replace(grid_sparse=tuple(
+            TrainConfig.stored_options(stored).get('grid_sparse') or ()))
+    m = config.model
+    if m.field != 'grid' or not config.sampling.occupancy:
+        return config.replace(grid_sparse=())
+    footprint = centre_footprint(dataset.train.cameras)
+    finest = max(m.levels('ball'))
+    r = budget.sparse_resolution(footprint, finest, config.sampling.occupancy_res)
+    cells = f'{2 / finest / footprint:.1f} pixels per cell of --grid-levels {finest}'
+    if r is None:
+        notice(f'no sparse foreground level: a training pixel is {footprint:.4f} of the unit '
+               f'ball wide at the centre ({cells}); --grid-sparse RES to add one')
+        return config.replace(grid_sparse=())
+    config = config.replace(grid_sparse=(r,))
+    entries = sum(budget.sparse_level_entries(config, 'ball'))
+    notice(f'sparse foreground level {r}³ (a training pixel is {footprint:.4f} of the unit '
+           f'ball wide at the centre: {cells}), at most {entries / 1e6:.1f} M entries in '
+           f'bricks where the surfaces are; --grid-sparse to change, --grid-sparse alone for '
+           f'none')
+    return config
+
+
+def choose_error_rays(config: TrainConfig, stored: dict) -> TrainConfig:
+    """``config`` with the error map's share of the rays chosen (``--error-rays`` not given):
+    a resumed run draws as it did (runs from before the error map: uniformly), a new one
+    uniformly (:mod:`.error_map`)."""
+    if config.schedule.error_rays is not None:
+        return config
+    drawn = TrainConfig.stored_options(stored).get('error_rays') if stored else None
+    return config.replace(error_rays=drawn or 0.0)
+
+
+def choose_masks(config: TrainConfig, dataset, stored: dict, notice=_quiet) -> TrainConfig:
+    """``config`` with the meaning of the photos' masks (:mod:`mi_nerfpp.data.masks`) chosen
+    when ``--masks`` is not given (a resumed run's own; ``ignore`` when the training photos
+    have masks) and announced; ``--masks ignore|object`` without masks is refused."""
+    found = dataset.train.masks
+    meaning = config.losses.masks
+    if meaning is None:
+        meaning = (TrainConfig.stored_options(stored).get('masks') if stored else None) or (
+            masks.DEFAULT_MEANING if found is not None else 'none')
+    if meaning != 'none' and found is None:
+        raise DatasetError(f'{dataset.root}: --masks {meaning}, but no training photo has a '
+                           f'mask (looked for masks/ beside images/, mask/ in each split '
+                           f'folder, "mask_path" in transforms.json: docs/data.md, "Masks")')
+    if found is None:           # (a capture without masks stores none)
+        return config
+    with_mask = sum(m is not None for m in found)
+    notice(f'masks: {with_mask} of {len(found)} training photos have one; --masks {meaning}: '
+           f'{MASK_MEANINGS[meaning]} (--masks ignore|object|none to change)')
+    return config.replace(masks=meaning)
+
+
+def choose_budget(config: TrainConfig, dataset, notice=_quiet) -> TrainConfig:
+    """``config`` with a time budget when it gives neither iterations nor minutes:
+    :func:`~mi_nerfpp.training.config.default_minutes` of the training pixels, announced."""
+    schedule = config.schedule
+    if schedule.iterations is not None or schedule.minutes is not None:
+        return config
+    cam = dataset.train.cameras[0]
+    minutes = default_minutes(len(dataset.train) * cam.width * cam.height)
+    notice(f'training for {minutes:g} minutes (chosen from {len(dataset.train)} views of '
+           f'{cam.width}x{cam.height}; --minutes to change)')
+    return config.replace(minutes=minutes)

@@ -1,0 +1,102 @@
+"""The parts of a training run that act at times of their own, each owning its schedule (as
+nerfacc's estimators own ``update_every_n_steps``); the trainer's step asks each whether it is
+due and calls it, in order:
+
+* :class:`OccupancyRefresh` — the occupancy grids, every ``--occupancy-every`` steps;
+* :class:`SparseAllocation` — the sparse levels' bricks, at each ``--sparse-at`` fraction of
+  the run passed;
+* :class:`ImagePyramid` — the level of the training images, coarse to fine at the
+  ``--pyramid`` fractions.
+
+The priors say when they apply themselves (:class:`~mi_nerfpp.training.priors.Sparsity`), and
+the pose refinement its start and blur (:mod:`mi_nerfpp.core.poses`).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+
+from mi_nerfpp.core import bricks
+from mi_nerfpp.core.profiling import stage
+
+
+def passed(fractions, progress) -> int:
+    """How many of the run's ``fractions`` ``progress`` (fraction of the run done) has passed."""
+    return sum(progress >= f for f in fractions)
+
+
+class OccupancyRefresh:
+    """Refreshes the model's occupancy grids from the fields every ``every`` steps, from the
+    first on."""
+
+    def __init__(self, every: int):
+        self.every = int(every)
+
+    def due(self, iteration: int) -> bool:
+        return iteration % self.every == 0
+
+    def __call__(self, model, seed: int):
+        with stage('occupancy refresh'):
+            model.update_occupancy(seed)
+
+
+def sparse_levels(model):
+    """``(volume, field, level)`` of every sparse grid level of ``model``."""
+    return [(volume, field, i) for volume, field in (('fg', model.fg), ('bg', model.bg))
+            if field is not None for i in range(len(getattr(field, 'bricks', ())))]
+
+
+class SparseAllocation:
+    """At each of ``fractions`` of the run passed, allocates the sparse levels' bricks where
+    the occupancy grid is occupied (grown by :data:`~mi_nerfpp.core.bricks.DILATION`), at most
+    ``max_entries`` entries a level, the densest first; bricks kept keep their texels. A
+    resumed run that has bricks has the fractions before its ``progress`` behind it."""
+
+    def __init__(self, fractions, max_entries: int, model=None, progress: float = 0.0):
+        self.fractions, self.max_entries = tuple(fractions), int(max_entries)
+        allocated = model is not None and any(len(g) for g in model.allocated_bricks().values())
+        self.done = passed(self.fractions, progress) if allocated else 0
+        self.records = []       # one dict per level and allocation (metrics.json)
+
+    def due(self, progress: float) -> bool:
+        return passed(self.fractions, progress) > self.done
+
+    def __call__(self, model, params, iteration: int, progress: float):
+        """Allocate in every sparse level of ``model``; ``params`` (the optimizer, which owns
+        the parameters) gets each level's new texel pool, with fresh Adam moments."""
+        self.done = passed(self.fractions, progress)
+        for volume, field, i in sparse_levels(model):
+            grid, brick = model.occupancy[volume], field.bricks[i]
+            density = grid.numpy()
+            occupied = bricks.block_mask(density > grid.threshold, brick.blocks)
+            mask = bricks.dilate(occupied, bricks.DILATION[field.domain],
+                                 periodic_x=field.domain == 'inverted_sphere')
+            score = bricks.block_max(density, brick.blocks)
+            limit = self.max_entries // (brick.texels_per_brick * brick.channels)
+            chosen = bricks.choose(mask, score, max(limit, 1))
+            key = f'{volume}.sparse{i}'
+            field.set_parameters({f'sparse{i}': dr.detach(params[key])})
+            field.set_bricks({f'sparse{i}': chosen})
+            params[key] = field.params[f'sparse{i}']     # new shape: fresh Adam moments
+            self.records.append({'iteration': iteration, 'level': key,
+                                 'bricks': int(chosen.size), 'of': brick.n_blocks,
+                                 'occupied': int(mask.sum()),
+                                 'entries': int(np.prod(brick.pool_shape()))})
+
+
+class ImagePyramid:
+    """The training images coarse to fine: at ``progress`` (fraction of the run done) a step
+    draws its rays from the ray bank at factor ``2^(fractions not passed yet)``, at most as
+    coarse as leaves the images a pixel (:meth:`~mi_nerfpp.training.raybank.RayBank.level`);
+    the last fraction reaches full size."""
+
+    def __init__(self, bank, fractions):
+        self.bank, self.fractions = bank, tuple(fractions)
+
+    def factor(self, progress: float) -> int:
+        f = 1 << sum(progress < f for f in self.fractions)
+        return 1 if f == 1 else min(f, self.bank.max_factor())
+
+    def level(self, progress: float):
+        factor = self.factor(progress)
+        return self.bank if factor == 1 else self.bank.level(factor)

@@ -9,6 +9,7 @@ they fail, unless ``MI_NERFPP_NO_BROWSER=1`` skips them.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import signal
@@ -33,6 +34,7 @@ from mi_nerfpp.output.camera_path import (CameraPath, CameraPathError, Pose,
                                           path_cameras, read_path,
                                           sample_frames, write_path)
 from mi_nerfpp.output.views import ViewRenderer
+from tests.helpers import orbit_camera
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CHROMIUM = shutil.which('chromium') or shutil.which('chromium-browser')
@@ -57,14 +59,9 @@ def env():
 # ------------------------------------------------------------------------------- camera paths
 
 def _pose(angle, height=0.2, fov=40.0, radius=3.0):
-    center = np.array([radius * np.cos(angle), height, radius * np.sin(angle)])
-    z = -center / np.linalg.norm(center)
-    x = np.cross(z, [0, -1.0, 0])
-    x /= np.linalg.norm(x)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    c2w[:3, 3] = center
-    return Pose(c2w, fov)
+    """A pose at ``height`` on a circle of ``radius`` about the y axis, looking at the origin."""
+    camera = orbit_camera(angle, math.atan2(height, radius), math.hypot(radius, height), 8, 8)
+    return Pose(camera.c2w, fov)
 
 
 def test_a_path_passes_through_its_keyframes_smoothly_and_a_loop_closes():

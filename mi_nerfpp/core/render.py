@@ -96,10 +96,11 @@ class Shading:
 
 @dataclass
 class VolumeRender:
-    """One volume's composite and the per-sample weights of its merged samples (for the
+    """One volume's quadrature (``shading``: its colour, opacity and depth per ray, of the
+    coarse and fine samples merged) and the per-sample weights of its merged samples (for the
     regularizers and the surface estimate)."""
-    fine: Shading
-    weights: mi.Float          # w_i of the fine pass, flat layout with n samples per ray
+    shading: Shading
+    weights: mi.Float          # w_i of the merged samples, flat layout with n samples per ray
     position: mi.Float         # sample positions normalized to [0, 1] along the volume
     n: int
     distance: mi.Float = None  # distance along the ray of each sample (same layout as weights)
@@ -114,7 +115,7 @@ class RenderResult:
     """Per-ray output of :func:`render_rays`: both volumes and their Eq. 4 composite."""
     fg: VolumeRender
     bg: VolumeRender | None
-    fine: Shading            # Eq. 4 composite of the volumes (the image)
+    composite: Shading       # Eq. 4 composite of the volumes (the image)
 
 
 # ----------------------------------------------------------------------------- volumes
@@ -654,7 +655,7 @@ class RenderOptions:
     ray's origin are scaled down by :func:`near_gradient_scale`; values are unchanged.
     ``coverage`` (:class:`~.coverage.CoverageFill`, rendering only): paint the background's
     colour where the training views did not see the rays' directions, on rays that no ``far``
-    ends (``fine`` of the background only; its samples are kept as they are)."""
+    ends (the background's ``shading`` only; its samples are kept as they are)."""
     occupancy: dict | None = None
     skip_occluded: bool = False
     fused: bool = False
@@ -666,9 +667,9 @@ class RenderOptions:
 def _render_visible_background(rays, fg, render):
     """The background of the rays that the foreground does not occlude, zero elsewhere
     (``render(rays)`` of those rays)."""
-    n_rays = dr.width(fg.fine.opacity)
-    dr.eval(fg.fine.opacity)
-    visible = dr.compress(1.0 - fg.fine.opacity > OCCLUDED_TRANSMITTANCE)
+    n_rays = dr.width(fg.shading.opacity)
+    dr.eval(fg.shading.opacity)
+    visible = dr.compress(1.0 - fg.shading.opacity > OCCLUDED_TRANSMITTANCE)
 
     def expand(shading):
         out = Shading(rgb=dr.zeros(mi.Color3f, n_rays), opacity=dr.zeros(mi.Float, n_rays),
@@ -681,7 +682,7 @@ def _render_visible_background(rays, fg, render):
     if dr.width(visible) == 0:
         return VolumeRender(expand(None), None, None, 0)
     sub = render(rays.gather(visible), visible)
-    return dataclasses.replace(sub, fine=expand(sub.fine), rays=visible)
+    return dataclasses.replace(sub, shading=expand(sub.shading), rays=visible)
 
 
 def render_rays(rays: Rays, fg_field, bg_field, sampling, options: RenderOptions = None):
@@ -693,11 +694,12 @@ def render_rays(rays: Rays, fg_field, bg_field, sampling, options: RenderOptions
     (:class:`Sampling`) gives the samples per ray and where camera rays start. The rays'
     ``seed`` jitters sample placement (None: strata midpoints); their ``far`` ends every ray
     at that distance, where it meets a surface: both volumes are integrated on ``[near, far]``
-    only, the background is then not opaque (``fine.opacity < 1``: ``1 - fine.opacity`` is
-    the light that reaches the surface), and a ray with ``far = inf`` renders exactly as
-    without it; their ``footprint`` filters the lookups of fields that filter (module docs,
-    "Pixel footprints"). ``options`` (:class:`RenderOptions`; None: the defaults): empty-space
-    skipping, early termination, fused quadrature, gradients to the rays, the coverage fill.
+    only, the background is then not opaque (``composite.opacity < 1``: ``1 -
+    composite.opacity`` is the light that reaches the surface), and a ray with ``far = inf``
+    renders exactly as without it; their ``footprint`` filters the lookups of fields that
+    filter (module docs, "Pixel footprints"). ``options`` (:class:`RenderOptions`; None: the
+    defaults): empty-space skipping, early termination, fused quadrature, gradients to the
+    rays, the coverage fill.
     """
     options = options or RenderOptions()
     o, d = mi.Point3f(rays.o), mi.Vector3f(rays.d)
@@ -721,7 +723,7 @@ def render_rays(rays: Rays, fg_field, bg_field, sampling, options: RenderOptions
                        sampling.fg_samples, sampling.fine_samples, options, stream=0)
     bg = None
     # Fused: the background's share of the surface level, in its own accumulated weight.
-    level = _background_level(fg.fine.opacity, SURFACE_LEVEL) if fused else SURFACE_LEVEL
+    level = _background_level(fg.shading.opacity, SURFACE_LEVEL) if fused else SURFACE_LEVEL
     if bg_field is not None and options.skip_occluded:
         bg = _render_visible_background(rays, fg, lambda sub, visible: render_volume(
             volume(Background(sub), 'bg'), bg_field, sampling.bg_samples,
@@ -731,8 +733,8 @@ def render_rays(rays: Rays, fg_field, bg_field, sampling, options: RenderOptions
         bg = render_volume(volume(Background(rays), 'bg'), bg_field, sampling.bg_samples,
                            sampling.fine_samples, options, stream=2, level=level)
     if bg is not None and options.coverage is not None:
-        bg = dataclasses.replace(bg, fine=options.coverage.blend(d, bg.fine, rays.far))
-    return RenderResult(fg=fg, bg=bg, fine=composite(fg.fine, bg.fine if bg else None))
+        bg = dataclasses.replace(bg, shading=options.coverage.blend(d, bg.shading, rays.far))
+    return RenderResult(fg=fg, bg=bg, composite=composite(fg.shading, bg.shading if bg else None))
 
 
 def _crossing(weights, distance, n, level):
@@ -757,7 +759,7 @@ def _background_level(alpha, level):
 
 
 def surface_distance(res: RenderResult, level=SURFACE_LEVEL):
-    """Per ray: the distance at which the accumulated opacity of the fine composite (foreground,
+    """Per ray: the distance at which the accumulated opacity of the composite (foreground,
     then ``λ·`` background) reaches ``level`` - a robust surface estimate, unlike the expected
     depth, which lands between surfaces at soft edges and in haze. Rays whose composite never
     reaches ``level`` (a foreground-only render over nothing) get the foreground's expected
@@ -767,15 +769,15 @@ def surface_distance(res: RenderResult, level=SURFACE_LEVEL):
     fused = fg.weights is None
     if fused and level != SURFACE_LEVEL:
         raise ValueError(f'a fused render has its surfaces at level {SURFACE_LEVEL}, not {level}')
-    alpha = dr.detach(fg.fine.opacity)
+    alpha = dr.detach(fg.shading.opacity)
     if fused:
         t_fg, found_fg = fg.surface
     else:
         t_fg, found_fg = _crossing(dr.detach(fg.weights), fg.distance, fg.n,
                                    dr.full(mi.Float, level, dr.width(alpha)))
-    empty = dr.maximum(res.fine.opacity, 0.0) <= 1e-6
-    fallback = dr.select(empty, MAX_DEPTH_RADIUS, res.fine.depth / dr.maximum(res.fine.opacity,
-                                                                               1e-6))
+    empty = dr.maximum(res.composite.opacity, 0.0) <= 1e-6
+    fallback = dr.select(empty, MAX_DEPTH_RADIUS,
+                         res.composite.depth / dr.maximum(res.composite.opacity, 1e-6))
     depth = dr.select(found_fg, t_fg, fallback)
     bg = res.bg
     if bg is None or (bg.weights is None and bg.surface is None):

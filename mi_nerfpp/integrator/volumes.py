@@ -66,9 +66,9 @@ class VolumeRenderer:
                           coverage=model.coverage if ig.fill_unseen else None))
         model.set_appearance(None)
         # 4. The layers.
-        fg = res.fg.fine
-        L, fg_rgb, alpha = res.fine.rgb, fg.rgb, dr.clip(fg.opacity, 0.0, 1.0)
-        bg = res.bg.fine.rgb if res.bg is not None else mi.Color3f(0.0)
+        fg = res.fg.shading
+        L, fg_rgb, alpha = res.composite.rgb, fg.rgb, dr.clip(fg.opacity, 0.0, 1.0)
+        bg = res.bg.shading.rgb if res.bg is not None else mi.Color3f(0.0)
         if model.composite == 'srgb' and model.color_space == 'srgb':
             # A checkpoint from before linear compositing: decode its layers to linear light
             # (the foreground unpremultiplied first); fg over bg is then exact only where
@@ -88,12 +88,12 @@ class VolumeRenderer:
         aovs = layer_channels(fg=(fg_rgb.x, fg_rgb.y, fg_rgb.z, alpha),
                               bg=(seen * bg.x, seen * bg.y, seen * bg.z),
                               depth=(depth,),
-                              distance=(norm.to_world_distance(res.fine.depth),),
+                              distance=(norm.to_world_distance(res.composite.depth),),
                               A=(dr.full(mi.Float, 1.0, dr.width(alpha)) if ig.background
                                  else alpha,))
         if keep_samples:
             record.update(res=res, aovs=aovs)
-        return L, aovs, res.fine.opacity
+        return L, aovs, res.composite.opacity
 
     def segments(self, rays: Rays, primal):
         """Radiance and transmittance of the volumes along ``rays`` that end at their ``far``

@@ -119,7 +119,7 @@ def _events(integrator, frame, o, d, seed, footprint=None):
         out.append((kind, keep, ray, z, w, rgb))
     if deep.get('far') is not None:
         hit = deep['hit']
-        rest = dr.maximum(1.0 - res.fine.opacity, 0.0)
+        rest = dr.maximum(1.0 - res.composite.opacity, 0.0)
         rays = dr.compress(hit & (rest > DROP_WEIGHT))
         z_hit = z0 + deep['far'] * cos
         out.append((SHAPE, rays, dr.arange(mi.UInt32, n), z_hit, rest, deep['surfaces']))

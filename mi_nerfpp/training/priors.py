@@ -96,12 +96,12 @@ def ray_distortion(res):
         return distortion(fg.weights, fg.position, fg.n)
     if bg.rays is not None:
         raise ValueError('ray_distortion needs the background of every ray (no skip_occluded)')
-    n_rays = dr.width(fg.fine.opacity)
+    n_rays = dr.width(fg.shading.opacity)
     n = fg.n + bg.n
     ray, k = flat_index(n_rays, n)
     in_fg = k < fg.n
     i_fg, i_bg = ray * fg.n + k, ray * bg.n + (k - fg.n)
-    lam = dr.gather(mi.Float, 1.0 - fg.fine.opacity, ray)
+    lam = dr.gather(mi.Float, 1.0 - fg.shading.opacity, ray)
     w = dr.select(in_fg, dr.gather(mi.Float, fg.weights, i_fg, in_fg),
                   lam * dr.gather(mi.Float, bg.weights, i_bg, ~in_fg))
     m = dr.select(in_fg, 0.5 * dr.gather(mi.Float, fg.position, i_fg, in_fg),

@@ -383,13 +383,13 @@ class Trainer:
         if model.appearance is not None:
             params = opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, rays.image, c))  # noqa: E731
-        pred = encode(res.fine.rgb)
+        pred = encode(res.composite.rgb)
         # Masks: the pixels kept in the colour loss (ignore), or the object's silhouette.
         kept = mask if self.masks == 'ignore' else None
         terms = {'colour': optim.COLOR_LOSS_WEIGHT
                  * optim.COLOR_LOSSES[cfg.color_loss](pred, gt, kept)}
         if self.masks == 'object':
-            terms['silhouette'] = cfg.mask_weight * optim.silhouette_loss(res.fg.fine.opacity,
+            terms['silhouette'] = cfg.mask_weight * optim.silhouette_loss(res.fg.shading.opacity,
                                                                           mask)
         if model.appearance is not None and cfg.appearance_prior > 0:
             terms['appearance'] = cfg.appearance_prior * app.prior(opt['appearance'])

@@ -116,21 +116,21 @@ def test_a_render_paints_the_fill_where_no_view_saw_and_the_volume_where_two_did
     sampling = Sampling(16, 16, 0)
     plain = render_rays(Rays(o, d), fg, bg, sampling)
     filled = render_rays(Rays(o, d), fg, bg, sampling, RenderOptions(coverage=fill))
-    lam = 1.0 - plain.fg.fine.opacity
+    lam = 1.0 - plain.fg.shading.opacity
     for k in range(2):                         # the horizon: seen, the volume unchanged
-        assert np.asarray(filled.fine.rgb)[:, k] == pytest.approx(np.asarray(plain.fine.rgb)[:, k])
+        assert np.asarray(filled.composite.rgb)[:, k] == pytest.approx(np.asarray(plain.composite.rgb)[:, k])
     for k in (2, 3):                           # the poles: the fill, opaque, behind the fg
-        np.testing.assert_allclose(np.asarray(filled.bg.fine.rgb)[:, k], 0.5, atol=1e-6)
-        assert float(filled.bg.fine.opacity[k]) == pytest.approx(1.0)
-        np.testing.assert_allclose(np.asarray(filled.fine.rgb)[:, k],
-                                   np.asarray(plain.fg.fine.rgb)[:, k] + float(lam[k]) * 0.5,
+        np.testing.assert_allclose(np.asarray(filled.bg.shading.rgb)[:, k], 0.5, atol=1e-6)
+        assert float(filled.bg.shading.opacity[k]) == pytest.approx(1.0)
+        np.testing.assert_allclose(np.asarray(filled.composite.rgb)[:, k],
+                                   np.asarray(plain.fg.shading.rgb)[:, k] + float(lam[k]) * 0.5,
                                    rtol=1e-5)
     # a ray that ends at a surface (a finite far) is not painted
     far = mi.Float([np.inf, np.inf, 0.5, np.inf])
     ended = render_rays(Rays(o, d, far=far), fg, bg, sampling, RenderOptions(coverage=fill))
     unended = render_rays(Rays(o, d, far=far), fg, bg, sampling)
-    np.testing.assert_allclose(np.asarray(ended.fine.rgb)[:, 2],
-                               np.asarray(unended.fine.rgb)[:, 2], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(ended.composite.rgb)[:, 2],
+                               np.asarray(unended.composite.rgb)[:, 2], rtol=1e-6)
 
 
 def test_the_fill_round_trips_through_the_checkpoint_and_the_integrator_can_turn_it_off(

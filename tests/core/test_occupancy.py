@@ -119,7 +119,7 @@ def test_occupied_quadrature_matches_the_closed_form():
     fg = Foreground(Rays(o, d))
     vol = OccupiedVolume(fg, half_space_grid(), bins=128)
     n = 32
-    shading = render_volume(vol, half_space_field(), n, 0).fine
+    shading = render_volume(vol, half_space_field(), n, 0).shading
     x_exit = np.sqrt(1.0 - (yz ** 2).sum(axis=1))       # chord ends on the unit sphere
     L_occ, L_empty = x_exit, 0.9
     # Bins are looked up at their midpoints: the bin that straddles x = 0 counts as one or the other.
@@ -134,11 +134,11 @@ def test_occupancy_converges_with_far_fewer_samples():
     over three times as accurate as the same budget spread over the whole chord."""
     o, d, _ = axis_rays()
     field = half_space_field()
-    ref = render_rays(Rays(o, d), field, None, Sampling(4096, 1, 0)).fine.opacity
+    ref = render_rays(Rays(o, d), field, None, Sampling(4096, 1, 0)).composite.opacity
     grid = half_space_grid(64)
     occ = render_rays(Rays(o, d), field, None, Sampling(16, 1, 16),
-                      RenderOptions(occupancy={'fg': grid})).fine.opacity
-    plain = render_rays(Rays(o, d), field, None, Sampling(16, 1, 16)).fine.opacity
+                      RenderOptions(occupancy={'fg': grid})).composite.opacity
+    plain = render_rays(Rays(o, d), field, None, Sampling(16, 1, 16)).composite.opacity
     err_occ = np.abs(npf(occ) - npf(ref)).max()
     err_plain = np.abs(npf(plain) - npf(ref)).max()
     assert err_occ < 3e-3 and 3 * err_occ < err_plain
@@ -151,7 +151,7 @@ def test_empty_grid_renders_nothing_in_the_foreground():
     res = render_rays(Rays(o, d), AnalyticField(50.0, (1.0, 1.0, 1.0)), None, Sampling(16, 1, 16),
                       RenderOptions(occupancy={'fg': grid}))
     # The field is dense everywhere, but every cell is marked empty: only ε of it is seen.
-    assert npf(res.fine.opacity).max() < 1.0 - np.exp(-50.0 * EMPTY_WEIGHT * 2.0) + 1e-6
+    assert npf(res.composite.opacity).max() < 1.0 - np.exp(-50.0 * EMPTY_WEIGHT * 2.0) + 1e-6
 
 
 def test_checkpoint_keeps_the_occupancy(tmp_path):
@@ -173,7 +173,7 @@ def test_checkpoint_keeps_the_occupancy(tmp_path):
                     RenderOptions(occupancy=model.occupancy))
     b = render_rays(Rays(o, d), loaded.fg, loaded.bg, Sampling(8, 8, 8),
                     RenderOptions(occupancy=loaded.occupancy))
-    np.testing.assert_allclose(npf(a.fine.rgb, 16), npf(b.fine.rgb, 16), atol=1e-6)
+    np.testing.assert_allclose(npf(a.composite.rgb, 16), npf(b.composite.rgb, 16), atol=1e-6)
 
 
 @pytest.mark.parametrize('domain,bins', [('ball', 128), ('inverted_sphere', 64), ('ball', 32)])

@@ -83,7 +83,7 @@ def test_loss_gradient_wrt_the_pose_corrections_matches_finite_differences():
             dr.enable_grad(params)
         o, d = poses.correct_rays(params, image, o0, d0)
         rgb = render_rays(Rays(o, d), _blob, _sky, sampling,
-                          RenderOptions(ray_gradients=grad)).fine.rgb
+                          RenderOptions(ray_gradients=grad)).composite.rgb
         if grad:
             dr.backward(dr.sum(weights[0] * rgb.x + weights[1] * rgb.y + weights[2] * rgb.z))
             return np.array(dr.grad(params))

@@ -174,7 +174,7 @@ def test_empty_foreground_contributes_nothing():
     d = mi.Vector3f(F([1.0]), F([0.0]), F([0.0]))
     vol = Foreground(Rays(o, d))
     out = render_volume(vol, constant_field(50.0, (1, 1, 1)), 8, 8)
-    for sh in (out.fine,):
+    for sh in (out.shading,):
         assert npf(sh.opacity)[0] == 0 and np.all(npf(sh.rgb) == 0) and npf(sh.depth)[0] == 0
 
 
@@ -274,7 +274,7 @@ def test_render_rays_constant_fields_composite():
     c_fg, c_bg = np.array([0.9, 0.1, 0.2]), np.array([0.1, 0.4, 0.8])
     res = render_rays(Rays(o, d), constant_field(2.0, c_fg), constant_field(0.7, c_bg),
                       Sampling(fg_samples=16, bg_samples=16, fine_samples=32))
-    fg, full = res.fg.fine, res.fine
+    fg, full = res.fg.shading, res.composite
     alpha = npf(fg.opacity)
     assert np.all((alpha > 0.05) & (alpha < 1))
     np.testing.assert_allclose(npf(fg.rgb, 40), np.outer(c_fg, alpha), atol=1e-5)
@@ -319,10 +319,10 @@ def test_render_volume_fine_pass_constant_density(seeded):
         # Closed form for constant σ: the merged intervals telescope from the first sample.
         alpha = 1.0 - np.exp(-sigma * (hi[r] - v[0]))
         assert np.isclose(1.0 - lam, alpha)
-        assert npf(out.fine.opacity)[r] == pytest.approx(alpha, abs=1e-5)
-        np.testing.assert_allclose(npf(out.fine.rgb, n_rays)[:, r], np.multiply(c, alpha), atol=1e-5)
+        assert npf(out.shading.opacity)[r] == pytest.approx(alpha, abs=1e-5)
+        np.testing.assert_allclose(npf(out.shading.rgb, n_rays)[:, r], np.multiply(c, alpha), atol=1e-5)
         # Depth depends on every interval: only right if the merged samples are in order.
-        assert npf(out.fine.depth)[r] == pytest.approx(np.sum(w * v), abs=1e-4)
+        assert npf(out.shading.depth)[r] == pytest.approx(np.sum(w * v), abs=1e-4)
         # (The coarse pass only places samples: its weights are checked through the merged
         # sample positions of the reference, which the fine samples follow.)
         assert npf(out.distance, n_c + n_f)[r] == pytest.approx(v, abs=1e-5)
@@ -346,9 +346,9 @@ def test_render_volume_fine_pass_varying_density():
         radius = lambda t: np.linalg.norm(on[r] + t[:, None] * dn[r], axis=1)  # noqa: E731
         sig = lambda t: np.where((radius(t) > 0.3) & (radius(t) < 0.6), 8.0, 0.0)  # noqa: E731
         v, w, lam = np_render_volume(lo[r], hi[r], sig, n_c, n_f)
-        assert npf(out.fine.opacity)[r] == pytest.approx(1 - lam, abs=1e-4)
-        assert npf(out.fine.rgb, n_rays)[0, r] == pytest.approx(np.sum(w * radius(v)), abs=1e-4)
-        assert npf(out.fine.depth)[r] == pytest.approx(np.sum(w * v), abs=2e-4)
+        assert npf(out.shading.opacity)[r] == pytest.approx(1 - lam, abs=1e-4)
+        assert npf(out.shading.rgb, n_rays)[0, r] == pytest.approx(np.sum(w * radius(v)), abs=1e-4)
+        assert npf(out.shading.depth)[r] == pytest.approx(np.sum(w * v), abs=2e-4)
 
 
 def test_distortion_loss_matches_pairwise_definition():
@@ -453,18 +453,18 @@ def test_skipping_the_occluded_background_changes_the_composite_by_at_most_its_t
     full = render_rays(Rays(o, d), half_opaque, bg_field, sampling)
     skip = render_rays(Rays(o, d), half_opaque, bg_field, sampling,
                        RenderOptions(skip_occluded=True))
-    lam = 1.0 - npf(full.fg.fine.opacity)
+    lam = 1.0 - npf(full.fg.shading.opacity)
     occluded = lam <= OCCLUDED_TRANSMITTANCE
     assert 0.1 < occluded.mean() < 0.9
-    np.testing.assert_allclose(npf(skip.fine.rgb, 256), npf(full.fine.rgb, 256), atol=OCCLUDED_TRANSMITTANCE)
-    assert (npf(skip.bg.fine.rgb, 256)[:, occluded] == 0).all()
-    np.testing.assert_allclose(npf(skip.bg.fine.rgb, 256)[:, ~occluded],
-                               npf(full.bg.fine.rgb, 256)[:, ~occluded], atol=1e-6)
+    np.testing.assert_allclose(npf(skip.composite.rgb, 256), npf(full.composite.rgb, 256), atol=OCCLUDED_TRANSMITTANCE)
+    assert (npf(skip.bg.shading.rgb, 256)[:, occluded] == 0).all()
+    np.testing.assert_allclose(npf(skip.bg.shading.rgb, 256)[:, ~occluded],
+                               npf(full.bg.shading.rgb, 256)[:, ~occluded], atol=1e-6)
     # All rays occluded: no background is rendered at all.
     o_in = mi.Point3f(0.5, 0.0, 0.0)
     none = render_rays(Rays(o_in, mi.Vector3f(1, 0, 0)), half_opaque, bg_field, sampling,
                        RenderOptions(skip_occluded=True))
-    assert npf(none.bg.fine.opacity)[0] == 0.0
+    assert npf(none.bg.shading.opacity)[0] == 0.0
 
 
 def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_threshold():
@@ -491,11 +491,11 @@ def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_
     # exp(-300·0.1)); about half of all samples lie behind it.
     assert np.concatenate(field.shaded_x).max() < 0.0
     assert field.shaded < 0.6 * n_rays * (n_c + n_f), field.shaded
-    assert npf(full.fine.opacity).min() > 0.999           # every ray meets the slab
-    np.testing.assert_allclose(npf(lazy.fine.rgb, n_rays), npf(full.fine.rgb, n_rays),
+    assert npf(full.shading.opacity).min() > 0.999           # every ray meets the slab
+    np.testing.assert_allclose(npf(lazy.shading.rgb, n_rays), npf(full.shading.rgb, n_rays),
                                rtol=0, atol=HIDDEN_WEIGHT)
-    np.testing.assert_allclose(npf(lazy.fine.opacity), npf(full.fine.opacity), rtol=1e-6)
-    np.testing.assert_allclose(npf(lazy.fine.depth), npf(full.fine.depth), rtol=1e-6)
+    np.testing.assert_allclose(npf(lazy.shading.opacity), npf(full.shading.opacity), rtol=1e-6)
+    np.testing.assert_allclose(npf(lazy.shading.depth), npf(full.shading.depth), rtol=1e-6)
     np.testing.assert_allclose(npf(lazy.weights), npf(full.weights), rtol=1e-6, atol=1e-9)
     # render_rays uses it for primal renders (skip_occluded) in both volumes: each volume's
     # skipped samples and the skipped occluded background add at most their thresholds.
@@ -505,7 +505,7 @@ def test_early_termination_within_a_volume_changes_the_composite_by_at_most_its_
     a = render_rays(Rays(o2, d2), field, bg, Sampling(32, 16, 16))
     b = render_rays(Rays(o2, d2), field, bg, Sampling(32, 16, 16),
                     RenderOptions(skip_occluded=True))
-    np.testing.assert_allclose(npf(b.fine.rgb, 256), npf(a.fine.rgb, 256), rtol=0,
+    np.testing.assert_allclose(npf(b.composite.rgb, 256), npf(a.composite.rgb, 256), rtol=0,
                                atol=2 * HIDDEN_WEIGHT + OCCLUDED_TRANSMITTANCE)
 
 
@@ -534,17 +534,17 @@ def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(
     lookups.clear()
     lazy = render_volume(volume(), field, n_c, n_f, skip)
     assert lookups == [n_rays * n_c, n_rays * n_f]
-    assert npf(full.fine.opacity).max() > 0.5       # a field that shows
-    np.testing.assert_allclose(npf(lazy.fine.rgb, n_rays), npf(full.fine.rgb, n_rays),
+    assert npf(full.shading.opacity).max() > 0.5       # a field that shows
+    np.testing.assert_allclose(npf(lazy.shading.rgb, n_rays), npf(full.shading.rgb, n_rays),
                                rtol=0, atol=HIDDEN_WEIGHT)
-    np.testing.assert_allclose(npf(lazy.fine.opacity), npf(full.fine.opacity), rtol=1e-6)
-    np.testing.assert_allclose(npf(lazy.fine.depth), npf(full.fine.depth), rtol=1e-6)
+    np.testing.assert_allclose(npf(lazy.shading.opacity), npf(full.shading.opacity), rtol=1e-6)
+    np.testing.assert_allclose(npf(lazy.shading.depth), npf(full.shading.depth), rtol=1e-6)
     # The same through the linear-radiance wrapper of an sRGB model (how renders see it).
     from mi_nerfpp.core.model import LinearRadiance
     lookups.clear()
     linear = render_volume(volume(), LinearRadiance(field), n_c, n_f, skip)
     assert lookups == [n_rays * n_c, n_rays * n_f]
-    np.testing.assert_allclose(npf(linear.fine.opacity), npf(full.fine.opacity), rtol=1e-6)
+    np.testing.assert_allclose(npf(linear.shading.opacity), npf(full.shading.opacity), rtol=1e-6)
 
 
 def test_scale_gradient_keeps_the_value_and_scales_the_gradient():
@@ -576,10 +576,10 @@ def test_near_gradient_scales_each_sample_by_its_squared_distance():
         theta = mi.Float(0.7)
         dr.enable_grad(theta)
         res = render(theta, radius)
-        loss = dr.mean(res.fine.rgb.x + res.fine.rgb.z + res.fg.fine.rgb.y + res.fine.opacity)
+        loss = dr.mean(res.composite.rgb.x + res.composite.rgb.z + res.fg.shading.rgb.y + res.composite.opacity)
         dr.backward(loss)
         grads.append(np.array(dr.grad(theta))[0])
-        images.append(np.array(dr.detach(res.fine.rgb)))
+        images.append(np.array(dr.detach(res.composite.rgb)))
     for image in images[1:]:
         assert np.array_equal(image, images[0])
     assert abs(grads[0]) > 1e-3
@@ -631,11 +631,11 @@ def test_deferred_and_per_sample_colour_agree_for_an_affine_colour_network():
         out[deferred] = render_rays(Rays(o, d, seed=seed), AffineColourField(deferred),
                                     AffineColourField(deferred), Sampling(12, 12, 12))
     for name in ('fg', 'bg'):
-        a, b = getattr(out[False], name).fine, getattr(out[True], name).fine
+        a, b = getattr(out[False], name).shading, getattr(out[True], name).shading
         assert npf(a.opacity).min() > 0.05
         np.testing.assert_allclose(npf(b.rgb, 64), npf(a.rgb, 64), rtol=0, atol=1e-5)
         np.testing.assert_array_equal(npf(b.opacity), npf(a.opacity))
-    np.testing.assert_allclose(npf(out[True].fine.rgb, 64), npf(out[False].fine.rgb, 64),
+    np.testing.assert_allclose(npf(out[True].composite.rgb, 64), npf(out[False].composite.rgb, 64),
                                rtol=0, atol=1e-5)
 
 
@@ -660,8 +660,8 @@ def test_deferred_grid_field_colours_the_composited_features_once_per_ray():
     alpha = w.sum(-1)
     assert alpha.min() > 0.01
     c = field.color([mi.Float(x.astype(np.float32)) for x in F64 / alpha], d)
-    np.testing.assert_allclose(npf(out.fine.opacity), alpha, atol=1e-6)
-    np.testing.assert_allclose(npf(out.fine.rgb, n_rays), npf(c, n_rays) * alpha, atol=2e-6)
+    np.testing.assert_allclose(npf(out.shading.opacity), alpha, atol=1e-6)
+    np.testing.assert_allclose(npf(out.shading.rgb, n_rays), npf(c, n_rays) * alpha, atol=2e-6)
 
 
 @pytest.mark.parametrize('deferred', [False, True])
@@ -682,7 +682,7 @@ def test_gradients_through_the_merged_samples_match_finite_differences(deferred)
         field = Scaled(deferred)
         field.theta = theta
         res = render_rays(Rays(o, d, seed=seed), field, field, Sampling(10, 10, 10))
-        return dr.sum(w * (res.fine.rgb.x + 2.0 * res.fine.rgb.y - res.fine.rgb.z))
+        return dr.sum(w * (res.composite.rgb.x + 2.0 * res.composite.rgb.y - res.composite.rgb.z))
 
     theta = mi.Float(0.8)
     dr.enable_grad(theta)
@@ -701,10 +701,10 @@ def _fused_and_wavefront(rays, fg_field, bg_field, sampling, options=RenderOptio
     for fused in (False, True):
         res = render_rays(rays, fg_field, bg_field, sampling,
                           dataclasses.replace(options, fused=fused))
-        n = dr.width(res.fine.opacity)
-        out.append({'rgb': npf(res.fine.rgb, n), 'opacity': npf(res.fine.opacity),
-                    'depth': npf(res.fine.depth), 'fg': npf(res.fg.fine.rgb, n),
-                    'fg_opacity': npf(res.fg.fine.opacity), 'fg_depth': npf(res.fg.fine.depth),
+        n = dr.width(res.composite.opacity)
+        out.append({'rgb': npf(res.composite.rgb, n), 'opacity': npf(res.composite.opacity),
+                    'depth': npf(res.composite.depth), 'fg': npf(res.fg.shading.rgb, n),
+                    'fg_opacity': npf(res.fg.shading.opacity), 'fg_depth': npf(res.fg.shading.depth),
                     'surface': npf(surface_distance(res)), 'fused': res.fg.weights is None})
     assert not out[0]['fused'] and out[1]['fused']
     return out

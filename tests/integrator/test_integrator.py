@@ -195,6 +195,6 @@ def test_renders_pass_each_pixels_footprint_to_the_fields():
     for footprint in (bank.footprint(index), None):
         res = render_rays(rays.replace(footprint=footprint), *model.radiance_fields(),
                           model.sampling, RenderOptions(skip_occluded=True))
-        expected[footprint is None] = np.array(res.fine.rgb).T.reshape(9, 12, 3)
+        expected[footprint is None] = np.array(res.composite.rgb).T.reshape(9, 12, 3)
     np.testing.assert_allclose(image, expected[False], atol=2e-3)
     assert np.abs(image - expected[True]).mean() > 5e-3     # the footprints did change it

@@ -29,9 +29,9 @@ def test_far_at_infinity_renders_bit_identically():
             a = render_rays(Rays(o, d), model.fg, model.bg, sampling, options)
             b = render_rays(Rays(o, d, far=dr.full(mi.Float, dr.inf, 64)), model.fg, model.bg,
                             sampling, options)
-            for x, y in ((a.fine.rgb, b.fine.rgb), (a.fine.opacity, b.fine.opacity),
-                         (a.fine.depth, b.fine.depth), (a.fg.fine.rgb, b.fg.fine.rgb),
-                         (a.bg.fine.rgb, b.bg.fine.rgb)):
+            for x, y in ((a.composite.rgb, b.composite.rgb), (a.composite.opacity, b.composite.opacity),
+                         (a.composite.depth, b.composite.depth), (a.fg.shading.rgb, b.fg.shading.rgb),
+                         (a.bg.shading.rgb, b.bg.shading.rgb)):
                 np.testing.assert_array_equal(npf(x), npf(y))
 
 
@@ -42,10 +42,10 @@ def test_far_ends_the_foreground_at_the_hit():
     res = render_rays(Rays(o, d, far=F([far])), constant_field(sigma, (1, 0.5, 0.2)),
                       constant_field(5.0, (0, 1, 0)), Sampling(4096, 16, 0))
     expected = 1 - np.exp(-sigma * far)
-    assert npf(res.fg.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
-    assert npf(res.bg.fine.opacity)[0] == 0.0
-    assert npf(res.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
-    np.testing.assert_allclose(npf(res.fine.rgb), np.array([1, 0.5, 0.2]) * expected, atol=1e-3)
+    assert npf(res.fg.shading.opacity)[0] == pytest.approx(expected, abs=1e-3)
+    assert npf(res.bg.shading.opacity)[0] == 0.0
+    assert npf(res.composite.opacity)[0] == pytest.approx(expected, abs=1e-3)
+    np.testing.assert_allclose(npf(res.composite.rgb), np.array([1, 0.5, 0.2]) * expected, atol=1e-3)
 
 
 @pytest.mark.parametrize('far', [1.5, 4.0, 30.0])
@@ -57,14 +57,14 @@ def test_far_ends_the_background_at_the_hit(far):
     res = render_rays(Rays(o, d, far=F([far])), constant_field(0.0, (0, 0, 0)),
                       constant_field(sigma, (0.3, 0.6, 0.9)), Sampling(4, 4096, 0))
     expected = 1 - np.exp(-sigma * (1 - 1 / far))
-    assert npf(res.bg.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
-    assert npf(res.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
+    assert npf(res.bg.shading.opacity)[0] == pytest.approx(expected, abs=1e-3)
+    assert npf(res.composite.opacity)[0] == pytest.approx(expected, abs=1e-3)
     # An origin outside the sphere, ray pointing away: the background starts at the origin.
     o2 = mi.Point3f(2.0, 0.0, 0.0)
     res = render_rays(Rays(o2, d, far=F([far])), constant_field(0.0, (0, 0, 0)),
                       constant_field(sigma, (1, 1, 1)), Sampling(4, 4096, 0))
     expected = 1 - np.exp(-sigma * (0.5 - 1 / (2 + far)))
-    assert npf(res.bg.fine.opacity)[0] == pytest.approx(expected, abs=1e-3)
+    assert npf(res.bg.shading.opacity)[0] == pytest.approx(expected, abs=1e-3)
 
 
 # ----------------------------------------------------------------------------- scenes with shapes
@@ -194,7 +194,7 @@ def test_mirror_sphere_reflects_the_reconstruction_from_the_hit_point(near):
     res = render_rays(Rays(mi.Point3f(*[F(p[ys, xs, i]) for i in range(3)]),
                            mi.Vector3f(*[F(r[ys, xs, i]) for i in range(3)])), fg, bg,
                       dataclasses.replace(integ.sampling, near=0.0))
-    expected = npf(res.fine.rgb, len(ys)).T
+    expected = npf(res.composite.rgb, len(ys)).T
     # The camera segment sees the empty lower foreground only: all of it is the reflection.
     got = np.stack([c['obj.R'], c['obj.G'], c['obj.B']], axis=-1)[ys, xs]
     assert np.ptp(expected[:, 0]) > 0.1           # the reflection varies over the sphere

@@ -115,6 +115,32 @@ def this_command() -> str:
     return shlex.join(['python', os.path.relpath(script, root)] + sys.argv[1:])
 
 
+def add_train_command(commands, func, minutes: float, cases=None):
+    """The ``train`` command of a benchmark that trains its cases one after the other: ``work``
+    (the folder of the cases), ``--minutes``, ``--seed`` and, with ``cases`` (their names),
+    ``--cases`` and ``--options LABEL=ARGS`` (more runs with other options)."""
+    p = commands.add_parser('train', help='train the cases one after the other')
+    p.add_argument('work')
+    p.add_argument('--minutes', type=float, default=minutes)
+    if cases is not None:
+        p.add_argument('--cases', nargs='*', choices=list(cases), default=list(cases))
+        p.add_argument('--options', nargs='*', default=[], metavar='LABEL=ARGS')
+    p.add_argument('--seed', type=int, default=0)
+    p.set_defaults(func=func)
+    return p
+
+
+def add_score_command(commands, func, name: str):
+    """The ``score`` command of a benchmark that scores the finished runs of ``work``: the
+    results file ``--name`` (default ``name``) and its ``--note``."""
+    p = commands.add_parser('score', help='score the finished runs')
+    p.add_argument('work')
+    p.add_argument('--name', default=name)
+    p.add_argument('--note', default=None)
+    p.set_defaults(func=func)
+    return p
+
+
 def machine() -> dict:
     """The machine the numbers were measured on: CPU model and cores, memory, OS, Python,
     Mitsuba and Dr.Jit versions."""

@@ -38,7 +38,7 @@ import mitsuba as mi
 import mi_nerfpp.training.train as T
 from mi_nerfpp.jobs import bench
 from mi_nerfpp.training import optim
-from mi_nerfpp.core.fields import GridField
+from mi_nerfpp.core.fields import grid_field
 
 CAMERA_RADIUS = 1.5     # the cameras' distance from the centre, in units of the ball
 TARGET_RADIUS = 0.3     # the points they look at lie within this of the centre
@@ -70,7 +70,7 @@ class Level:
     """One grid level, its optimizer, and the three measurements."""
 
     def __init__(self, resolution, points):
-        self.field = GridField('ball', resolutions=(resolution,), seed=0)
+        self.field = grid_field('ball', resolutions=(resolution,), seed=0)
         self.points = points
         self.opt = optim.adam({'grid0': self.field.params['grid0']}, lr=optim.LR_GRID)
         self.entries = dr.width(self.field.params['grid0'].array)

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 
 from mi_nerfpp.core.arrays import llvm_backend
-from mi_nerfpp.core.fields import plane_shapes
+from mi_nerfpp.core.encodings import plane_shapes
 from mi_nerfpp.core.occupancy import grid_shape
 
 # Dr.Jit 1.x: "jit_var_counter(): tried to create an array with N entries, which exceeds the
@@ -241,7 +241,7 @@ def grid_level_entries(config, domain, levels=None, channels=None) -> list[int]:
 def grid_plane_entries(config, domain, planes=None, channels=None,
                        largest: bool = False) -> list[int]:
     """Entries of each plane level of one volume's grid field (its three planes,
-    :func:`~mi_nerfpp.core.fields.plane_shapes`), times ``--grid-channels``; ``largest``: of
+    :func:`~mi_nerfpp.core.encodings.plane_shapes`), times ``--grid-channels``; ``largest``: of
     its largest plane only (one array). ``planes``, ``channels``: in place of the config's."""
     m = config.model
     if not _has_grid(config, domain):

@@ -8,8 +8,8 @@ Two domains (the two volumes of the paper's §4):
 
 Three field kinds, chosen per volume by the ``field`` XML parameter:
 
-* :class:`GridField` (``'grid'``, the default) — a multi-resolution dense feature
-  grid (Dr.Jit ``Texture3f`` levels, trilinear) plus a small MLP. Density comes
+* :class:`GridField` (``'grid'``, the default) — multi-resolution feature-grid levels
+  (dense, plane and sparse, :mod:`mi_nerfpp.core.encodings`) plus a small MLP. Density comes
   from position features alone; colour from the features and the encoded view
   direction, injected late (the structure of the paper's Figure 3). The
   background grid is indexed by the spherical angles of ``x̂`` and ``s``.
@@ -29,7 +29,9 @@ that dict is the single source of truth that the integrator exposes through
 """
 from __future__ import annotations
 
+import inspect
 import os
+from dataclasses import dataclass
 
 import drjit as dr
 import drjit.nn as nn
@@ -37,7 +39,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_nerfpp.core.arrays import llvm_backend
-from mi_nerfpp.core.bricks import BrickGrid
+from mi_nerfpp.core.encodings import CHANNELS, DenseLevels, PlaneLevels, SparseLevels
 from mi_nerfpp.core.geometry import ball_warp, grid_coordinates
 
 DOMAINS = {'ball': 3, 'inverted_sphere': 4}
@@ -121,28 +123,6 @@ def mlp(widths, out):
 ACTIVATIONS = {'exp': trunc_exp, 'softplus': softplus}
 
 
-def level_weight(width, cell):
-    """The weight of a grid level of cells ``cell`` wide for a footprint ``width`` wide:
-    ``clip(2 − width/cell, 0, 1)`` — 1 while a cell spans the footprint, falling linearly to 0
-    at two cells, beyond which the level's detail is finer than the footprint resolves."""
-    return dr.clip(2.0 - width * (1.0 / cell), 0.0, 1.0)
-
-
-# The coordinate pairs of a plane level of :class:`GridField`: (first, second) texture axes, by
-# index into :func:`~mi_nerfpp.core.geometry.grid_coordinates`.
-PLANE_AXES = {'xy': (0, 1), 'xz': (0, 2), 'yz': (1, 2)}
-
-
-def plane_shapes(domain, r):
-    """``[(axes, (H, W))]`` of the three planes of a plane level at resolution ``r``: ``r x r``
-    in the ball; in the inverted sphere (longitude, colatitude) ``r x 2r``, (longitude, s)
-    ``r/2 x 2r`` and (colatitude, s) ``r/2 x r`` (as a dense level of ``s_ratio`` 0.5)."""
-    if domain == 'ball':
-        return [(a, (r, r)) for a in PLANE_AXES]
-    n = {0: 2 * r, 1: r, 2: max(r // 2, 4)}       # cells along longitude, colatitude, s
-    return [(a, (n[j], n[i])) for a, (i, j) in PLANE_AXES.items()]
-
-
 class Field:
     """Base class: config, parameters and the ``(x, d) -> (σ, rgb)`` interface."""
 
@@ -184,12 +164,6 @@ class Field:
                 raise ValueError(f"parameter '{k}': shape {tuple(v.shape)} does not match "
                                  f"the field's {tuple(self.params[k].shape)}")
             self.params[k] = mi.TensorXf(v)
-        for i, tex in enumerate(getattr(self, 'textures', ())):
-            # Let go of the previous tensors now (a frozen training step, which sets them on
-            # lookup, would keep its recording's inputs alive otherwise).
-            tex.set_tensor(self.params[f'grid{i}'])
-        for key, tex in getattr(self, 'plane_textures', {}).items():
-            tex.set_tensor(self.params[key])
 
 
 class _Net:
@@ -287,84 +261,86 @@ class _LateNet:
 
 # ----------------------------------------------------------------------------- grid + MLP
 
-class GridField(Field):
-    """Multi-resolution dense feature grid + small colour MLP.
+@dataclass(frozen=True)
+class ColorNetwork:
+    """The colour MLP of a grid field: ``layers`` hidden layers of ``hidden`` units over the
+    features and ``γ^dir_octaves(d)`` (plus ``appearance_dims`` of a per-ray appearance code).
+    The default — one layer of 32, ``γ^2`` — is the late-injection prior: the direction passes
+    one non-linearity. Two octaves, not NeRF's four: with fewer view-dependent degrees of
+    freedom the colour generalizes better to held-out views (measured on the default capture,
+    README tuning table). ``layers=4, hidden=64, dir_octaves=10`` is the grid analogue of the
+    paper's vanilla MLP (§3): grid features and ``γ^10(d)`` side by side at the input of a deep
+    colour MLP."""
+    hidden: int = 32
+    layers: int = 1
+    dir_octaves: int = 2
+    appearance_dims: int = 0
 
-    Each level is a ``Texture3f`` with ``channels`` channels. Channel 0 of all
-    levels sums to the density logit: ``σ = exp(Σ_l g_l[0](x) + density_bias)``
-    (``density_activation='exp'``, clamped; or ``'softplus'``). The exponential
-    lets opaque surfaces (σ·δ ≫ 1) form in a few hundred Adam steps.
-    The other channels are concatenated into a feature vector ``f(x)``; colour
-    is ``sigmoid(MLP([f, γ^dir_octaves(d)]))`` with ``color_layers`` hidden
-    layers of ``hidden`` units. With ``color='deferred'`` (the default) ``f`` is the
-    feature vector composited along the ray (normalized by its opacity, see
-    :func:`mi_nerfpp.core.render.composite_features`) and the MLP runs once per ray; with
-    ``color='sample'`` (models trained before deferred colour) it runs at every sample on
-    ``f(x)``, its first layer's direction share computed once per ray. The default — one
-    layer of 32, ``γ^2`` — is the late-injection prior: the direction passes one
-    non-linearity. Two octaves, not NeRF's four: with
-    fewer view-dependent degrees of freedom the colour generalizes better to held-out views
-    (measured on the default capture, README tuning table). ``color_layers=4, hidden=64,
-    dir_octaves=10`` is the grid analogue of the paper's vanilla MLP (§3): grid
-    features and ``γ^10(d)`` side by side at the input of a deep colour MLP.
+    def __post_init__(self):
+        if self.layers < 1:
+            raise ValueError('GridField needs color_layers >= 1')
+        if self.appearance_dims < 0:
+            raise ValueError(f'GridField appearance_dims must be >= 0, got {self.appearance_dims}')
+
+
+class GridField(Field):
+    """Multi-resolution feature-grid levels (:mod:`~mi_nerfpp.core.encodings`) + a small colour
+    MLP.
+
+    ``levels``: the grid levels it sums, in order — :class:`~.encodings.DenseLevels`,
+    :class:`~.encodings.PlaneLevels`, :class:`~.encodings.SparseLevels`, at most one of each
+    kind, all of the same channels. Channel 0 of all levels sums to the density logit:
+    ``σ = exp(Σ_l g_l[0](x) + density_bias)`` (``density_activation='exp'``, clamped; or
+    ``'softplus'``). The exponential lets opaque surfaces (σ·δ ≫ 1) form in a few hundred Adam
+    steps. The other channels are concatenated into a feature vector ``f(x)``; colour is
+    ``sigmoid(MLP([f, γ(d)]))``, the MLP described by ``network`` (:class:`ColorNetwork`). With
+    ``color='deferred'`` (the default) ``f`` is the feature vector composited along the ray
+    (normalized by its opacity, see :func:`mi_nerfpp.core.render.composite_features`) and the
+    MLP runs once per ray; with ``color='sample'`` (models trained before deferred colour) it
+    runs at every sample on ``f(x)``, its first layer's direction share computed once per ray.
 
     ``antialias``: a level whose cells are smaller than a sample's pixel footprint (its
     ``width``, :meth:`mi_nerfpp.core.render.Volume.footprint_at`) cannot be resolved at that
     width and would alias; its contribution (density logit and features) is weighted by
     ``clip(2 − width/cell, 0, 1)``: whole up to a footprint of one cell, gone from two cells on
-    (:func:`level_weight`), so coarse levels alone describe what a wide footprint sees. A
-    footprint within the finest cell, or none, is today's point lookup exactly. Fields built
+    (:func:`~.encodings.level_weight`), so coarse levels alone describe what a wide footprint
+    sees. A footprint within the finest cell, or none, is a point lookup exactly. Fields built
     without it (and checkpoints from before it) look up points.
 
-    ``planes``: plane levels (resolutions ``R``), a factorized level that holds fine cells in
-    few entries: three ``Texture2f`` planes over the coordinate pairs (x, y), (x, z), (y, z) of
-    the ball (``R x R`` each; in the background (longitude, colatitude) ``2R x R``, and
-    longitude and colatitude against ``s`` with ``R/2`` cells along ``s``), whose bilinear
-    lookups are summed into one more level's density logit and features (so density is their
-    product, as K-Planes'). ``3R²`` entries instead of ``R³``: a step's cost grows with the
-    entries (the Adam update and the gradient buffers), not with the resolution. They start
-    at zero, so what no sample reaches adds nothing.
+    ``warp_radius`` (ball): dense and plane levels index :func:`~mi_nerfpp.core.geometry.
+    ball_warp` of the point (finer cells in the centre, where a 360° capture's cameras look);
+    0 indexes the point itself. The background's levels are indexed by the spherical angles of
+    ``x̂`` and ``s``.
 
-    ``sparse``: sparse levels (resolutions ``R``, :class:`~mi_nerfpp.core.bricks.BrickGrid`):
-    fine texels (``R³`` in the ball; ``2R x R`` in angle and ``sparse_s`` along ``s`` in the
-    background) stored only in allocated bricks, one brick per cell of a ``sparse_blocks``
-    grid (the occupancy grid's cells). They index the domain unwarped, start with no brick
-    (adding nothing) and take bricks from :meth:`set_bricks`, which training calls where the
-    occupancy grid finds surfaces; their lookups are summed like the dense levels'.
-
-    ``init``: the standard deviation of the normal noise the dense levels start with (the
-    colour MLP starts the same whatever it is); 0 starts them neutral, so that a cell no sample
-    reaches holds no colour of its own (after 10 minutes 0.1-0.2 dB lower than with noise on two
-    captures; docs/experiments.md, 2026-11-26).
-
-    Ball domain: level ``R`` is an ``R³`` grid over ``[-1, 1]³``, indexed by the point itself or,
-    with ``warp_radius > 0``, by :func:`~mi_nerfpp.core.geometry.ball_warp` of it (finer cells in the
-    centre, where a 360° capture's cameras look).
-    Inverted-sphere domain: level ``R`` is a grid over (longitude, colatitude,
-    s) of ``2R × R × max(s_ratio·R, 4)`` cells, periodic in longitude. Distant content
-    needs angular resolution more than resolution in ``s``: a small ``s_ratio`` buys finer
-    angles for the same number of parameters. ``s_ratio`` is one number or one per level
-    (e.g. a fine angular level with only 4 cells along ``s`` over coarser levels resolved in
-    depth: a factorization of angle and depth).
+    Its config (:attr:`config`, stored in checkpoints) is one flat dict; :func:`grid_field`
+    builds a field from it.
     """
 
     kind = 'grid'
 
-    def __init__(self, domain, resolutions=(32, 128), channels=4, hidden=32, dir_octaves=2,
-                 density_bias=-3.0, density_activation='exp', color_layers=1, s_ratio=0.5,
-                 warp_radius=0.0, color='deferred', antialias=False, planes=(), init=0.1,
-                 sparse=(), sparse_blocks=None, sparse_s=None, appearance_dims=0, seed=0):
+    def __init__(self, domain, levels, network=ColorNetwork(), density_bias=-3.0,
+                 density_activation='exp', warp_radius=0.0, color='deferred', antialias=False,
+                 rng=None):
         super().__init__(domain)
-        self.appearance_dims = int(appearance_dims)
-        if self.appearance_dims < 0:
-            raise ValueError(f'GridField appearance_dims must be >= 0, got {appearance_dims}')
+        self.levels = list(levels)
+        kinds = [lv.kind for lv in self.levels]
+        if len(set(kinds)) != len(kinds) or any(lv.domain != domain for lv in self.levels):
+            raise ValueError(f'GridField takes at most one level set of each kind, of its '
+                             f'domain {domain!r}: got {kinds}')
+        channels = {lv.channels for lv in self.levels}
+        if len(channels) > 1:
+            raise ValueError(f'GridField levels must have the same channels, got {channels}')
+        self.channels = channels.pop() if channels else CHANNELS
+        # One dict of parameters, the field's: the levels read theirs from it.
+        for lv in self.levels:
+            self.params.update(lv.params)
+            lv.params = self.params
         # The appearance code of each ray (``appearance_dims`` Floats, one value per ray, or
         # one value for all of them), set by whoever renders (:meth:`mi_nerfpp.core.model.
         # NeRFPPModel.set_appearance`); None: the neutral code, zero.
         self.appearance_code = None
-        self.init = float(init)
-        if not self.init >= 0:
-            raise ValueError(f'GridField init must be a standard deviation >= 0, got {init}')
+        self.network = network
+        self.appearance_dims = network.appearance_dims
         self.antialias = bool(antialias)
         if color not in COLOR_MODES:
             raise ValueError(f"GridField color must be one of {', '.join(COLOR_MODES)}, "
@@ -373,206 +349,95 @@ class GridField(Field):
         self.warp_radius = float(warp_radius)
         if not 0 <= self.warp_radius < 1:
             raise ValueError(f'GridField warp_radius must be in [0, 1), got {warp_radius}')
-        if channels < 2:
-            raise ValueError('GridField needs channels >= 2 (density + features)')
-        self.resolutions = [int(r) for r in resolutions]
-        # One ratio for all levels, or one per level (fine angles with few cells along s).
-        ratios = [s_ratio] * len(self.resolutions) if isinstance(s_ratio, (int, float)) \
-            else list(s_ratio)
-        if len(ratios) != len(self.resolutions) or not all(0 < float(q) <= 1 for q in ratios):
-            raise ValueError(f'GridField s_ratio must be a number in (0, 1] or one per level '
-                             f'({len(self.resolutions)}), got {s_ratio}')
-        self.s_ratio = float(s_ratio) if isinstance(s_ratio, (int, float)) \
-            else [float(q) for q in ratios]
-        self.s_ratios = [float(q) for q in ratios]
-        self.channels = int(channels)
-        self.hidden = int(hidden)
-        self.dir_octaves = int(dir_octaves)
-        self.color_layers = int(color_layers)
-        if self.color_layers < 1:
-            raise ValueError('GridField needs color_layers >= 1')
         self.density_bias = float(density_bias)
         if density_activation not in ACTIVATIONS:
             raise ValueError(f"density_activation must be one of {sorted(ACTIVATIONS)}")
         self.density_activation = density_activation
-        rng = dr.rng(seed=seed)
-        wrap = dr.WrapMode.Repeat if domain == 'inverted_sphere' else dr.WrapMode.Clamp
-        self.textures = []
-        for i, r in enumerate(self.resolutions):
-            shape = self._grid_shape(r, i) + (self.channels,)
-            size = shape[0] * shape[1] * shape[2] * shape[3]
-            noise = rng.normal(mi.Float, size)    # drawn at any init: the MLP's start is the same
-            self.params[f'grid{i}'] = mi.TensorXf(noise * self.init, shape)
-            self.textures.append(mi.Texture3f(self.params[f'grid{i}'], use_accel=False, wrap_mode=wrap))
-        self.planes = [int(r) for r in planes]
-        if any(r < 2 for r in self.planes):
-            raise ValueError(f'GridField planes must be resolutions of at least 2, got {planes}')
-        # Plane levels start at zero: a plane cell that no sample reaches adds nothing, so the
-        # dense levels alone describe what training did not see.
-        self.plane_textures = {}         # parameter name -> Texture2f
-        for i, r in enumerate(self.planes):
-            for axes, shape in plane_shapes(self.domain, r):
-                key = f'plane{i}{axes}'
-                self.params[key] = mi.TensorXf(dr.zeros(mi.Float, shape[0] * shape[1]
-                                                        * self.channels), shape + (self.channels,))
-                self.plane_textures[key] = mi.Texture2f(self.params[key], use_accel=False,
-                                                        wrap_mode=wrap)
-        self.sparse = [int(r) for r in sparse]
-        self.sparse_blocks = None if sparse_blocks is None else [int(b) for b in sparse_blocks]
-        self.sparse_s = None if sparse_s is None else int(sparse_s)
-        # Sparse levels start with no brick allocated: they add nothing until the run allocates
-        # bricks where the occupancy says the surfaces are (:meth:`set_bricks`).
-        self.bricks = []
-        if self.sparse:
-            if self.sparse_blocks is None or len(self.sparse_blocks) != 3:
-                raise ValueError('GridField sparse levels need sparse_blocks, the bricks per '
-                                 'axis (Z, Y, X)')
-            for i, r in enumerate(self.sparse):
-                grid = BrickGrid(self._sparse_shape(r), self.sparse_blocks, self.channels,
-                                 periodic=domain == 'inverted_sphere')
-                self.bricks.append(grid)
-                self.params[f'sparse{i}'] = mi.TensorXf(np.zeros(grid.pool_shape(), np.float32))
-        n_feat = (len(self.resolutions) + len(self.planes) + len(self.sparse)) \
-            * (self.channels - 1)
-        n_dir = 3 * (1 + 2 * self.dir_octaves)
-        self.color_net = _LateNet(self, 'color', n_feat, n_dir + self.appearance_dims,
-                                  [self.hidden] * self.color_layers, 3, rng)
+        rng = dr.rng(seed=0) if rng is None else rng
+        n_feat = sum(lv.features for lv in self.levels)
+        n_dir = 3 * (1 + 2 * network.dir_octaves)
+        self.color_net = _LateNet(self, 'color', n_feat, n_dir + network.appearance_dims,
+                                  [network.hidden] * network.layers, 3, rng)
 
-    def _grid_shape(self, r, level):
-        """Tensor shape (Z, Y, X) of a level at resolution ``r``: texture axes are (x, y, z) =
-        coordinates."""
-        if self.domain == 'ball':
-            return (r, r, r)
-        return (max(int(r * self.s_ratios[level]), 4), r, 2 * r)
+    def _of_kind(self, cls):
+        return next((lv for lv in self.levels if isinstance(lv, cls)), cls(self.domain))
 
-    def _sparse_shape(self, r):
-        """Texel shape (Z, Y, X) of a sparse level at resolution ``r``: ``r³`` in the ball; in
-        the inverted sphere ``2r`` along longitude, ``r`` along colatitude and ``sparse_s`` (by
-        default one texel per brick) along ``s``: fine angles, depth from the occupied bricks."""
-        if self.domain == 'ball':
-            return (r, r, r)
-        return (self.sparse_s or self.sparse_blocks[0], r, 2 * r)
+    @property
+    def dense(self) -> DenseLevels:
+        """Its dense levels (none: an empty set)."""
+        return self._of_kind(DenseLevels)
+
+    @property
+    def planes(self) -> PlaneLevels:
+        """Its plane levels (none: an empty set)."""
+        return self._of_kind(PlaneLevels)
+
+    @property
+    def sparse(self) -> SparseLevels:
+        """Its sparse levels (none: an empty set)."""
+        return self._of_kind(SparseLevels)
 
     @property
     def config(self):
-        cfg = dict(kind=self.kind, domain=self.domain, resolutions=self.resolutions,
-                   channels=self.channels, hidden=self.hidden, dir_octaves=self.dir_octaves,
-                   color_layers=self.color_layers, density_bias=self.density_bias,
-                   density_activation=self.density_activation, s_ratio=self.s_ratio,
-                   warp_radius=self.warp_radius, color=self.color_mode,
-                   antialias=self.antialias, planes=self.planes, init=self.init)
-        if self.sparse:            # (so that files without sparse levels stay as they were)
-            cfg.update(sparse=self.sparse, sparse_blocks=self.sparse_blocks,
-                       sparse_s=self.sparse_s)
+        cfg = dict(kind=self.kind, domain=self.domain, resolutions=[], channels=self.channels,
+                   hidden=self.network.hidden, dir_octaves=self.network.dir_octaves,
+                   color_layers=self.network.layers, density_bias=self.density_bias,
+                   density_activation=self.density_activation, warp_radius=self.warp_radius,
+                   color=self.color_mode, antialias=self.antialias, planes=[])
+        for lv in self.levels:
+            cfg.update(lv.config)
         if self.appearance_dims:
             cfg.update(appearance_dims=self.appearance_dims)
         return cfg
 
+    def set_parameters(self, values):
+        super().set_parameters(values)
+        # Let go of the previous tensors now (a frozen training step, which sets them on
+        # lookup, would keep its recording's inputs alive otherwise).
+        for lv in self.levels:
+            lv.bind()
+
     def allocated_bricks(self):
         """The allocated bricks of each sparse level: ``{'sparse<i>': flat brick indices}``."""
-        return {f'sparse{i}': g.allocated for i, g in enumerate(self.bricks)}
+        return self.sparse.allocated()
 
     def set_bricks(self, values):
-        """Allocate the bricks of sparse levels (``{'sparse<i>': flat brick indices}``): the
-        texels of bricks kept stay, new bricks start at zero, the others are let go. The
-        parameter changes shape (an optimiser must take it anew)."""
-        for key, bricks in values.items():
-            i = int(key[len('sparse'):]) if key.startswith('sparse') else -1
-            if not 0 <= i < len(self.bricks):
-                raise KeyError(f"field '{self.kind}' has no sparse level '{key}'")
-            grid = self.bricks[i]
-            pool = grid.moved(self.params[key].numpy(), bricks)
-            grid.allocate(bricks)
-            self.params[key] = mi.TensorXf(pool)
+        """Allocate the bricks of sparse levels (:meth:`~.encodings.SparseLevels.allocate`)."""
+        if values:
+            self.sparse.allocate(values)
 
     @property
     def deferred(self):
         """Whether colour comes from features composited along the ray (one MLP per ray)."""
         return self.color_mode == 'deferred'
 
-    def cell_size(self, level):
-        """The width of a cell of ``level`` in the units of :meth:`Volume.footprint_at
-        <mi_nerfpp.core.render.Volume.footprint_at>`: ``2/R`` of the (warped) ball, ``π/R`` radians of
-        the background's colatitude (and of its longitude at the equator)."""
-        return self._cell_width(self.resolutions[level])
-
-    def plane_cell_size(self, level):
-        """The width of a cell of plane level ``level``, as :meth:`cell_size`."""
-        return self._cell_width(self.planes[level])
-
-    def sparse_cell_size(self, level):
-        """The width of a texel of sparse level ``level``, as :meth:`cell_size`."""
-        return self._cell_width(self.sparse[level])
-
-    def _cell_width(self, r):
-        return 2.0 / r if self.domain == 'ball' else dr.pi / r
+    def _coordinates(self, x, width, warped):
+        """Grid coordinates of field inputs ``x`` and the footprint ``width`` in the units the
+        levels measure cells in: through the ball's warp (``warped``) or of ``x`` itself."""
+        if not warped or self.domain != 'ball':
+            return grid_coordinates(self.domain, x), width
+        if width is not None and self.warp_radius > 0:
+            # The warp scales lengths about the centre by |warp(p)|/|p| (tangentially).
+            r = dr.norm(mi.Vector3f(*x))
+            warped_x = ball_warp(x, self.warp_radius)
+            width = width * dr.norm(mi.Vector3f(*warped_x)) / dr.maximum(r, 1e-12)
+            return grid_coordinates(self.domain, warped_x), width
+        return grid_coordinates(self.domain, ball_warp(x, self.warp_radius)), width
 
     def _lookup(self, x, width=None):
         """Density logit and feature vector (all levels) at field inputs ``x``, each level
-        weighted by :func:`level_weight` of the footprint ``width`` (``antialias`` only)."""
+        weighted by :func:`~.encodings.level_weight` of the footprint ``width`` (``antialias``
+        only)."""
         if not self.antialias:
             width = None
-        plain, plain_width = x, width      # sparse levels index the domain unwarped
-        if self.domain == 'ball':
-            if width is not None and self.warp_radius > 0:
-                # The warp scales lengths about the centre by |warp(p)|/|p| (tangentially).
-                r = dr.norm(mi.Vector3f(*x))
-                warped = ball_warp(x, self.warp_radius)
-                width = width * dr.norm(mi.Vector3f(*warped)) / dr.maximum(r, 1e-12)
-                x = warped
-            else:
-                x = ball_warp(x, self.warp_radius)
-        coords = grid_coordinates(self.domain, x)
         density = mi.Float(self.density_bias)
         features = []
-        for i, (tex, r) in enumerate(zip(self.textures, self.resolutions)):
-            tex.set_tensor(self.params[f'grid{i}'])
-            shape = self._grid_shape(r, i)
-            if self.domain == 'inverted_sphere':
-                # Periodic in longitude only: keep colatitude and s off the wrap.
-                c = [coords[0]] + [dr.clip(coords[k], 0.5 / shape[2 - k], 1.0 - 0.5 / shape[2 - k])
-                                   for k in (1, 2)]
-            else:
-                c = coords
-            g = list(tex.eval(mi.Point3f(*c)))
-            if width is not None:
-                w = level_weight(width, self.cell_size(i))
-                g = [w * v for v in g]
-            density += g[0]
-            features += g[1:]
-        for i, r in enumerate(self.planes):
-            g = None
-            for axes, shape in plane_shapes(self.domain, r):
-                tex = self.plane_textures[f'plane{i}{axes}']
-                tex.set_tensor(self.params[f'plane{i}{axes}'])
-                a, b = PLANE_AXES[axes]
-                c = [coords[a], coords[b]]
-                if self.domain == 'inverted_sphere':
-                    # Periodic in longitude only (axis 0): keep colatitude and s off the wrap.
-                    c = [c[k] if (a, b)[k] == 0 else
-                         dr.clip(c[k], 0.5 / shape[1 - k], 1.0 - 0.5 / shape[1 - k])
-                         for k in (0, 1)]
-                v = list(tex.eval(mi.Point2f(*c)))
-                g = v if g is None else [p + q for p, q in zip(g, v)]
-            if width is not None:
-                w = level_weight(width, self.plane_cell_size(i))
-                g = [w * v for v in g]
-            density += g[0]
-            features += g[1:]
-        if self.bricks:
-            coords = grid_coordinates(self.domain, plain)
-        for i, grid in enumerate(self.bricks):
-            c = coords
-            if self.domain == 'inverted_sphere':
-                Z, Y, _ = grid.shape
-                c = [coords[0], dr.clip(coords[1], 0.5 / Y, 1.0 - 0.5 / Y),
-                     dr.clip(coords[2], 0.5 / Z, 1.0 - 0.5 / Z)]
-            g = grid.lookup(self.params[f'sparse{i}'].array, c)
-            if plain_width is not None:
-                w = level_weight(plain_width, self.sparse_cell_size(i))
-                g = [w * v for v in g]
-            density += g[0]
-            features += g[1:]
+        for lv in self.levels:
+            if not len(lv):
+                continue
+            for g in lv.lookup(*self._coordinates(x, width, lv.warped)):
+                density += g[0]
+                features += g[1:]
         return density, features
 
     def density(self, x, width=None):
@@ -600,7 +465,7 @@ class GridField(Field):
     def _ray_inputs(self, d):
         """What the colour network takes once per ray: the encoded direction and the ray's
         appearance code (zero unless set, :attr:`appearance_code`)."""
-        inputs = positional_encoding([d.x, d.y, d.z], self.dir_octaves)
+        inputs = positional_encoding([d.x, d.y, d.z], self.network.dir_octaves)
         if self.appearance_dims:
             zero = dr.zeros(mi.Float, dr.width(d.x))
             code = self.appearance_code or [0.0] * self.appearance_dims
@@ -612,6 +477,49 @@ class GridField(Field):
         density, features = self._lookup(x, width)
         return ACTIVATIONS[self.density_activation](density), self.sample_color(features, d, ray)
 
+
+# Where each entry of a grid field's stored config (:attr:`GridField.config`, one flat dict)
+# goes: (the class that takes it, its parameter there). The one home of that layout; each
+# entry's default is its parameter's (:func:`grid_default`).
+GRID_CONFIG = {
+    'resolutions': (DenseLevels, 'resolutions'), 's_ratio': (DenseLevels, 's_ratio'),
+    'init': (DenseLevels, 'init'), 'channels': (DenseLevels, 'channels'),
+    'planes': (PlaneLevels, 'resolutions'),
+    'sparse': (SparseLevels, 'resolutions'), 'sparse_blocks': (SparseLevels, 'blocks'),
+    'sparse_s': (SparseLevels, 's'),
+    'hidden': (ColorNetwork, 'hidden'), 'color_layers': (ColorNetwork, 'layers'),
+    'dir_octaves': (ColorNetwork, 'dir_octaves'),
+    'appearance_dims': (ColorNetwork, 'appearance_dims'),
+    'density_bias': (GridField, 'density_bias'),
+    'density_activation': (GridField, 'density_activation'),
+    'warp_radius': (GridField, 'warp_radius'), 'color': (GridField, 'color'),
+    'antialias': (GridField, 'antialias')}
+
+
+def grid_default(entry):
+    """The default of an entry of a grid field's stored config (:data:`GRID_CONFIG`)."""
+    owner, name = GRID_CONFIG[entry]
+    return inspect.signature(owner).parameters[name].default
+
+
+def grid_field(domain, seed=0, **config):
+    """A :class:`GridField` from the entries of its stored config (:attr:`GridField.config`,
+    :data:`GRID_CONFIG`), the others at their defaults: dense, plane and sparse levels (all
+    with ``channels``) and the colour network, drawn from one generator seeded ``seed``."""
+    unknown = sorted(set(config) - set(GRID_CONFIG))
+    if unknown:
+        raise TypeError(f"unexpected grid field entries {unknown}")
+    args = {}
+    for entry, value in config.items():
+        owner, name = GRID_CONFIG[entry]
+        args.setdefault(owner, {})[name] = value
+    channels = args.get(DenseLevels, {}).get('channels', CHANNELS)
+    rng = dr.rng(seed=seed)
+    levels = [DenseLevels(domain, rng=rng, **args.get(DenseLevels, {})),
+              PlaneLevels(domain, channels=channels, **args.get(PlaneLevels, {})),
+              SparseLevels(domain, channels=channels, **args.get(SparseLevels, {}))]
+    return GridField(domain, levels, network=ColorNetwork(**args.get(ColorNetwork, {})),
+                     rng=rng, **args.get(GridField, {}))
 
 # ----------------------------------------------------------------------------- pure MLP
 
@@ -681,7 +589,7 @@ def make_field(config, seed=0):
     domain = cfg.pop('domain')
     try:
         if kind == 'grid':
-            return GridField(domain, seed=seed, **cfg)
+            return grid_field(domain, seed=seed, **cfg)
         if kind in ('nerf', 'vanilla'):
             return MLPField(domain, structure=kind, seed=seed, **cfg)
     except TypeError as e:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import inspect
 import json
 import math
 from dataclasses import dataclass
@@ -30,7 +29,7 @@ from dataclasses import dataclass
 from mi_nerfpp.core import appearance as app
 from mi_nerfpp.core import occupancy as occ
 from mi_nerfpp.core import poses
-from mi_nerfpp.core.fields import BACKGROUND_COLOR, COLOR_MODES, GridField
+from mi_nerfpp.core.fields import BACKGROUND_COLOR, COLOR_MODES, grid_default
 from mi_nerfpp.core.frame import NERF_CAMERA_RADIUS
 from mi_nerfpp.core.model import FIELD_KINDS, default_field_config
 from mi_nerfpp.core.render import SKIPPING, Sampling
@@ -89,8 +88,9 @@ def default_minutes(train_pixels: int) -> float:
 
 
 def _grid_default(name):
-    """A default of the grid field, read from :class:`~mi_nerfpp.core.fields.GridField` (its home)."""
-    return inspect.signature(GridField.__init__).parameters[name].default
+    """A default of the grid field's config entry ``name``, read from its home
+    (:func:`~mi_nerfpp.core.fields.grid_default`)."""
+    return grid_default(name)
 
 
 def _comma_floats(text):

@@ -17,6 +17,7 @@ import drjit as dr
 import numpy as np
 
 from mi_nerfpp.core import bricks
+from mi_nerfpp.core.fields import GridField
 from mi_nerfpp.core.profiling import stage
 
 
@@ -43,7 +44,7 @@ class OccupancyRefresh:
 def sparse_levels(model):
     """``(volume, field, level)`` of every sparse grid level of ``model``."""
     return [(volume, field, i) for volume, field in (('fg', model.fg), ('bg', model.bg))
-            if field is not None for i in range(len(getattr(field, 'bricks', ())))]
+            if isinstance(field, GridField) for i in range(len(field.sparse))]
 
 
 class SparseAllocation:
@@ -66,7 +67,7 @@ class SparseAllocation:
         the parameters) gets each level's new texel pool, with fresh Adam moments."""
         self.done = passed(self.fractions, progress)
         for volume, field, i in sparse_levels(model):
-            grid, brick = model.occupancy[volume], field.bricks[i]
+            grid, brick = model.occupancy[volume], field.sparse.bricks[i]
             density = grid.numpy()
             occupied = bricks.block_mask(density > grid.threshold, brick.blocks)
             mask = bricks.dilate(occupied, bricks.DILATION[field.domain],

@@ -319,7 +319,8 @@ class Trainer:
                      shapes=tuple(tuple(self.opt[k].shape) for k in self.opt.keys()))
         return {'opt': self.opt, 'draws': draws, 'phase': phase, 'rays': rays.arrays(),
                 'occupancy': {k: g.density for k, g in self.model.occupancy.items()},
-                'slots': [field.bricks[i].slots for _, field, i in sparse_levels(self.model)],
+                'slots': [field.sparse.bricks[i].slots
+                          for _, field, i in sparse_levels(self.model)],
                 'non_finite': dr.opaque(mi.UInt32, 0, 1),     # set by the step's guard
                 # Coarse to fine while poses are refined (:func:`~mi_nerfpp.core.poses.blur`):
                 # a value, not a Python number, so that the frozen step is not recorded anew.
@@ -346,7 +347,7 @@ class Trainer:
             occupancy[k].density = inputs['occupancy'][k]
         optim.write_back(opt, model, detach=False)
         for (_, field, i), slots in zip(sparse_levels(model), inputs['slots']):
-            field.bricks[i].slots = slots
+            field.sparse.bricks[i].slots = slots
         refine = inputs['phase']['refine']
         if model.poses is not None:    # the rays of the corrected cameras (:mod:`.poses`)
             params = opt['poses'] if refine else dr.detach(opt['poses'])
@@ -386,7 +387,7 @@ class Trainer:
         pred = encode(res.composite.rgb)
         # Masks: the pixels kept in the colour loss (ignore), or the object's silhouette.
         kept = mask if self.masks == 'ignore' else None
-        terms = {'colour': optim.COLOR_LOSS_WEIGHT
+        terms = {'color': optim.COLOR_LOSS_WEIGHT
                  * optim.COLOR_LOSSES[cfg.color_loss](pred, gt, kept)}
         if self.masks == 'object':
             terms['silhouette'] = cfg.mask_weight * optim.silhouette_loss(res.fg.shading.opacity,

@@ -194,7 +194,7 @@ def test_the_code_conditions_the_colour_network_and_zero_is_neutral():
     field = embedded_model().fg
     rng = np.random.default_rng(0)
     features = [mi.Float(rng.normal(size=16)) for _ in range(field.channels - 1)
-                for _ in range(len(field.resolutions))]
+                for _ in range(len(field.dense))]
     d = dr.normalize(mi.Vector3f(*[mi.Float(rng.normal(size=16)) for _ in range(3)]))
     neutral = field.color(features, d).numpy()
     field.appearance_code = [0.0, 0.0, 0.0]
@@ -208,7 +208,7 @@ def test_colour_gradient_of_the_embeddings_matches_finite_differences():
     field = model.fg
     rng = np.random.default_rng(1)
     features = [mi.Float(rng.normal(size=8)) for _ in range(field.channels - 1)
-                for _ in range(len(field.resolutions))]
+                for _ in range(len(field.dense))]
     d = dr.normalize(mi.Vector3f(*[mi.Float(rng.normal(size=8)) for _ in range(3)]))
     image = mi.UInt32(np.arange(8) % 4)
     table = rng.normal(size=(4, 3)).astype(np.float32)

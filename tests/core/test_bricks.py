@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mi_nerfpp.core.bricks import BrickGrid, block_mask, block_max, choose, dilate
-from mi_nerfpp.core.fields import GridField
+from mi_nerfpp.core.fields import grid_field
 from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
 from tests.helpers import tiny_model
@@ -140,10 +140,10 @@ def test_reallocating_keeps_the_texels_of_bricks_kept():
 
 
 def _sparse_model():
-    fg = GridField('ball', resolutions=(4,), channels=4, sparse=(16,), sparse_blocks=(4, 4, 4),
-                   antialias=True, seed=1)
-    bg = GridField('inverted_sphere', resolutions=(4,), channels=4, sparse=(16,),
-                   sparse_blocks=(4, 8, 16), seed=2)
+    fg = grid_field('ball', resolutions=(4,), channels=4, sparse=(16,), sparse_blocks=(4, 4, 4),
+                    antialias=True, seed=1)
+    bg = grid_field('inverted_sphere', resolutions=(4,), channels=4, sparse=(16,),
+                    sparse_blocks=(4, 8, 16), seed=2)
     return NeRFPPModel(fg, bg)
 
 

@@ -4,7 +4,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_nerfpp.core.fields import GridField, MLPField, make_field
+from mi_nerfpp.core.fields import MLPField, grid_field, make_field
 from tests.helpers import field_inputs
 
 
@@ -23,9 +23,9 @@ def _eval(field, n=64, seed=0):
 FIELDS = {
     'nerf': lambda: MLPField('ball', 'nerf', depth=2, width=16),
     'vanilla': lambda: MLPField('ball', 'vanilla', depth=2, width=16),
-    'grid': lambda: GridField('ball', resolutions=(4, 8), channels=3, hidden=8),
-    'grid, vanilla colour': lambda: GridField('ball', resolutions=(4, 8), channels=3, hidden=8,
-                                              color_layers=3, dir_octaves=10),
+    'grid': lambda: grid_field('ball', resolutions=(4, 8), channels=3, hidden=8),
+    'grid, vanilla colour': lambda: grid_field('ball', resolutions=(4, 8), channels=3, hidden=8,
+                                               color_layers=3, dir_octaves=10),
 }
 
 
@@ -56,43 +56,43 @@ def test_direction_encoding_and_depth_of_each_structure():
 
 
 def test_grid_colour_layers_round_trip_through_config():
-    f = GridField('inverted_sphere', resolutions=(4,), channels=3, hidden=8, color_layers=2,
-                  dir_octaves=10)
+    f = grid_field('inverted_sphere', resolutions=(4,), channels=3, hidden=8, color_layers=2,
+                   dir_octaves=10)
     g = make_field(f.config)
     assert g.config == f.config
     assert set(g.params) == set(f.params)
     assert g.params['color.ray.layers.0.weights'].shape == (8, 63)
     with pytest.raises(ValueError, match='color_layers'):
-        GridField('ball', color_layers=0)
+        grid_field('ball', color_layers=0)
 
 
 def test_background_grid_cells_along_s_follow_s_ratio():
     """The inverted-sphere grid is 2R x R x max(s_ratio R, 4) (longitude, colatitude, s); the ratio
     round-trips through the config, and configs written before it existed read as 0.5."""
-    f = GridField('inverted_sphere', resolutions=(8, 64), channels=3, hidden=8, s_ratio=0.125)
+    f = grid_field('inverted_sphere', resolutions=(8, 64), channels=3, hidden=8, s_ratio=0.125)
     assert tuple(f.params['grid0'].shape) == (4, 8, 16, 3)      # at least 4 cells along s
     assert tuple(f.params['grid1'].shape) == (8, 64, 128, 3)
     again = make_field(f.config)
-    assert again.s_ratio == 0.125 and tuple(again.params['grid1'].shape) == (8, 64, 128, 3)
+    assert again.dense.s_ratio == 0.125 and tuple(again.params['grid1'].shape) == (8, 64, 128, 3)
     old = {k: v for k, v in f.config.items() if k != 's_ratio'}
-    assert make_field(old).s_ratio == 0.5
+    assert make_field(old).dense.s_ratio == 0.5
     with pytest.raises(ValueError, match='s_ratio'):
-        GridField('inverted_sphere', resolutions=(8,), s_ratio=0)
+        grid_field('inverted_sphere', resolutions=(8,), s_ratio=0)
 
 
 def test_background_grid_takes_one_s_ratio_per_level():
     """Per-level ratios: a fine angular level with few cells along s over a coarse level
     resolved in depth; they round-trip through the config, and a list of the wrong length is
     refused."""
-    f = GridField('inverted_sphere', resolutions=(16, 64), channels=3, hidden=8,
-                  s_ratio=[0.5, 1 / 16])
+    f = grid_field('inverted_sphere', resolutions=(16, 64), channels=3, hidden=8,
+                   s_ratio=[0.5, 1 / 16])
     assert tuple(f.params['grid0'].shape) == (8, 16, 32, 3)
     assert tuple(f.params['grid1'].shape) == (4, 64, 128, 3)
     again = make_field(f.config)
-    assert again.s_ratio == [0.5, 0.0625]
+    assert again.dense.s_ratio == [0.5, 0.0625]
     assert tuple(again.params['grid1'].shape) == (4, 64, 128, 3)
     with pytest.raises(ValueError, match='one per level'):
-        GridField('inverted_sphere', resolutions=(16, 64), s_ratio=[0.5])
+        grid_field('inverted_sphere', resolutions=(16, 64), s_ratio=[0.5])
 
 
 def test_density_gradient_reaches_the_sample_positions_through_the_grid():
@@ -125,7 +125,7 @@ def test_a_footprint_within_the_finest_cell_is_the_point_lookup(domain, warp):
     """``antialias`` with footprints no wider than the finest level's cell: every level keeps
     its weight of 1, so density and features are those of the point lookup, bit for bit."""
     extra = {'warp_radius': warp} if domain == 'ball' else {}
-    field = GridField(domain, resolutions=(4, 16), channels=3, antialias=True, seed=3, **extra)
+    field = grid_field(domain, resolutions=(4, 16), channels=3, antialias=True, seed=3, **extra)
     x = field_inputs(domain)
     n = dr.width(x[0])
     # Footprints up to the finest cell, in the domain's units; the warp magnifies the centre
@@ -133,7 +133,7 @@ def test_a_footprint_within_the_finest_cell_is_the_point_lookup(domain, warp):
     from mi_nerfpp.core.geometry import BALL_WARP_SHARE
     magnify = BALL_WARP_SHARE / warp if warp else 1.0
     width = mi.Float(np.linspace(0.0, 1.0, n).astype(np.float32)) * (
-        field.cell_size(1) / magnify)
+        field.dense.cell_size(1) / magnify)
     sigma_p, feat_p = field.features(x)
     sigma_f, feat_f = field.features(x, width)
     np.testing.assert_array_equal(np.array(sigma_f), np.array(sigma_p))
@@ -150,13 +150,13 @@ def test_a_wide_footprint_weighs_each_level_by_how_well_its_cells_resolve_it(dom
     """Closed form: at a footprint of 1.5 fine cells the fine level weighs 0.5 and the coarse
     level 1 (its cells are 4x wider); from 2 fine cells to one coarse cell the fine level is gone. The
     same as the point lookup of a field whose fine grid is scaled by that weight."""
-    field = GridField(domain, resolutions=(4, 16), channels=3, antialias=True, seed=5)
+    field = grid_field(domain, resolutions=(4, 16), channels=3, antialias=True, seed=5)
     x = field_inputs(domain)
     n = dr.width(x[0])
     for multiple, weight in ((1.5, 0.5), (2.0, 0.0), (3.5, 0.0)):
-        width = dr.full(mi.Float, field.cell_size(1) * multiple, n)
+        width = dr.full(mi.Float, field.dense.cell_size(1) * multiple, n)
         sigma, features = field.features(x, width)
-        reference = GridField(domain, resolutions=(4, 16), channels=3, seed=5)
+        reference = grid_field(domain, resolutions=(4, 16), channels=3, seed=5)
         reference.set_parameters({'grid1': field.params['grid1'] * weight})
         sigma_ref, features_ref = reference.features(x)
         np.testing.assert_allclose(np.array(sigma), np.array(sigma_ref), rtol=1e-5,
@@ -164,19 +164,13 @@ def test_a_wide_footprint_weighs_each_level_by_how_well_its_cells_resolve_it(dom
         for a, b in zip(features, features_ref):
             np.testing.assert_allclose(np.array(a), np.array(b), rtol=1e-5, atol=1e-7)
     # At 16 fine cells (4 coarse cells) no level is left: density from the bias alone.
-    width = dr.full(mi.Float, field.cell_size(1) * 16.0, n)
+    width = dr.full(mi.Float, field.dense.cell_size(1) * 16.0, n)
     np.testing.assert_allclose(np.array(field.density(x, width)),
                                np.exp(field.density_bias), rtol=1e-6)
 
 
-def test_level_weight():
-    from mi_nerfpp.core.fields import level_weight
-    w = level_weight(mi.Float([0.0, 0.5, 1.0, 1.25, 1.5, 2.0, 3.0]), 1.0)
-    np.testing.assert_allclose(np.array(w), [1, 1, 1, 0.75, 0.5, 0, 0])
-
-
 def test_antialias_round_trips_through_the_config():
-    field = GridField('ball', resolutions=(4, 8), channels=3, antialias=True)
+    field = grid_field('ball', resolutions=(4, 8), channels=3, antialias=True)
     again = make_field(field.config)
     assert again.antialias and field.config['antialias'] is True
     assert make_field({k: v for k, v in field.config.items() if k != 'antialias'}).antialias \
@@ -190,8 +184,8 @@ def test_per_sample_colour_for_training_equals_the_render_network(layers):
     colours (packed cooperative vectors, row by row) and weight gradients equal to central
     finite differences."""
     from mi_nerfpp.core.fields import positional_encoding
-    field = GridField('inverted_sphere', resolutions=(4, 8), channels=3, hidden=8,
-                      color_layers=layers, dir_octaves=1, color='sample')
+    field = grid_field('inverted_sphere', resolutions=(4, 8), channels=3, hidden=8,
+                       color_layers=layers, dir_octaves=1, color='sample')
     net = field.color_net
     n_feat = field.params['color.sample.layers.0.weights'].shape[1]
     rng = np.random.default_rng(1)
@@ -200,12 +194,12 @@ def test_per_sample_colour_for_training_equals_the_render_network(layers):
     d = rng.normal(size=(3, n_rays))
     d = mi.Vector3f(*[mi.Float(v) for v in (d / np.linalg.norm(d, axis=0)).astype(np.float32)])
     ray = mi.UInt32(np.repeat(np.arange(n_rays), per_ray).astype(np.uint32))
-    encoded = positional_encoding([d.x, d.y, d.z], field.dir_octaves)
+    encoded = positional_encoding([d.x, d.y, d.z], field.network.dir_octaves)
     coef = rng.normal(size=3)
 
-    def colours():
+    def colors():
         return np.array([np.array(c) for c in net(features, encoded, ray)])
-    rendered = colours()
+    rendered = colors()
     keys = ['color.sample.layers.0.weights', 'color.ray.layers.0.weights',
             'color.ray.layers.0.bias']
     for key in keys:
@@ -224,7 +218,7 @@ def test_per_sample_colour_for_training_equals_the_render_network(layers):
                 moved = base.ravel().copy()
                 moved[i] += h
                 field.params[key] = mi.TensorXf(moved.astype(np.float32).reshape(shape))
-                values.append(float(np.sum(coef[:, None] * colours())))
+                values.append(float(np.sum(coef[:, None] * colors())))
             field.params[key] = mi.TensorXf(base.astype(np.float32).reshape(shape))
             assert grad[i] == pytest.approx((values[0] - values[1]) / 2e-3, rel=2e-2, abs=2e-3), \
                 (key, i)

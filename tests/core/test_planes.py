@@ -10,7 +10,7 @@ from mi_nerfpp.core import budget
 
 from mi_nerfpp.files.checkpoint import load_checkpoint, save_checkpoint
 from mi_nerfpp.training.config import TrainConfig
-from mi_nerfpp.core.fields import GridField, make_field
+from mi_nerfpp.core.fields import grid_field, make_field
 from mi_nerfpp.core.model import NeRFPPModel
 from mi_nerfpp.training.optim import is_grid
 from tests.helpers import TINY_GRID, field_inputs
@@ -46,7 +46,7 @@ def test_a_plane_level_is_the_sum_of_three_bilinear_planes(domain):
     the three planes' bilinear lookups at the coordinate pairs (longitude periodic, colatitude
     and s clamped to the cell centres in the background)."""
     from mi_nerfpp.core.geometry import grid_coordinates
-    field = GridField(domain, resolutions=(4,), channels=3, planes=(8,), density_bias=0.0)
+    field = grid_field(domain, resolutions=(4,), channels=3, planes=(8,), density_bias=0.0)
     rng = np.random.default_rng(2)
     values = {k: rng.normal(size=v.shape).astype(np.float32) for k, v in field.params.items()
               if k.startswith('plane')}
@@ -68,7 +68,7 @@ def test_a_plane_level_is_the_sum_of_three_bilinear_planes(domain):
 
 
 def test_the_background_planes_are_periodic_in_longitude_only():
-    field = GridField('inverted_sphere', resolutions=(4,), channels=2, planes=(8,))
+    field = grid_field('inverted_sphere', resolutions=(4,), channels=2, planes=(8,))
     rng = np.random.default_rng(4)
     field.set_parameters({k: mi.TensorXf(rng.normal(size=v.shape).astype(np.float32))
                           for k, v in field.params.items() if k.startswith('plane')})
@@ -89,8 +89,8 @@ def test_plane_levels_start_at_zero_and_change_nothing(domain):
     """A new field's plane levels add nothing: density and dense features are those of the
     same field without planes (same seed), and the planes' features are zero."""
     x = field_inputs(domain)
-    with_planes = GridField(domain, resolutions=(4, 8), channels=3, planes=(16,), seed=7)
-    without = GridField(domain, resolutions=(4, 8), channels=3, seed=7)
+    with_planes = grid_field(domain, resolutions=(4, 8), channels=3, planes=(16,), seed=7)
+    without = grid_field(domain, resolutions=(4, 8), channels=3, seed=7)
     sigma, features = with_planes.features(x)
     sigma_ref, features_ref = without.features(x)
     np.testing.assert_array_equal(np.array(sigma), np.array(sigma_ref))
@@ -104,8 +104,8 @@ def test_plane_levels_start_at_zero_and_change_nothing(domain):
 def test_plane_gradients_match_central_differences(domain):
     """d(Σ σ)/d(plane entries), by Dr.Jit's AD of the texture lookups, against central
     differences of the density at a few entries that the points reach."""
-    field = GridField(domain, resolutions=(4,), channels=2, planes=(8,), density_bias=-1.0,
-                      seed=1)
+    field = grid_field(domain, resolutions=(4,), channels=2, planes=(8,), density_bias=-1.0,
+                       seed=1)
     rng = np.random.default_rng(3)
     base = {k: rng.normal(scale=0.3, size=v.shape).astype(np.float32)
             for k, v in field.params.items() if k.startswith('plane')}
@@ -144,7 +144,7 @@ def test_plane_levels_round_trip_through_config_and_checkpoint(tmp_path):
     rng = np.random.default_rng(0)
     model.set_parameters({k: mi.TensorXf(rng.normal(size=v.shape).astype(np.float32))
                           for k, v in model.parameters().items() if 'plane' in k})
-    assert make_field(model.fg.config).planes == [8]
+    assert make_field(model.fg.config).planes.resolutions == [8]
     path = tmp_path / 'model.npz'
     save_checkpoint(path, model, meta={})
     again, _, _ = load_checkpoint(path)
@@ -153,7 +153,7 @@ def test_plane_levels_round_trip_through_config_and_checkpoint(tmp_path):
     np.testing.assert_array_equal(np.array(again.fg.density(x)), np.array(model.fg.density(x)))
     # A field stored before plane levels has none.
     old = {k: v for k, v in model.fg.config.items() if k != 'planes'}
-    assert make_field(old).planes == []
+    assert make_field(old).planes.resolutions == []
 
 
 def test_plane_options_reach_the_fields_and_the_learning_rates():

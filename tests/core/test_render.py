@@ -516,10 +516,10 @@ def test_early_termination_of_a_grid_field_colours_the_features_its_passes_kept(
     shown samples only run the colour network on them. The composite is the full render's
     within HIDDEN_WEIGHT, opacity and depth exactly, and the field takes exactly two lookups
     (the coarse and the fine pass), not a third at the shown samples."""
-    from mi_nerfpp.core.fields import GridField
+    from mi_nerfpp.core.fields import grid_field
     from mi_nerfpp.core.render import HIDDEN_WEIGHT
-    field = GridField(domain, resolutions=(8, 16), color='sample', init=1.0, density_bias=0.0,
-                      seed=3)
+    field = grid_field(domain, resolutions=(8, 16), color='sample', init=1.0, density_bias=0.0,
+                       seed=3)
     lookups = []
     lookup = field._lookup
     field._lookup = lambda x, width=None: (lookups.append(dr.width(x[0])), lookup(x, width))[1]
@@ -590,7 +590,7 @@ def test_near_gradient_scales_each_sample_by_its_squared_distance():
 
 # ----------------------------------------------------------------------------- deferred colour
 
-class AffineColourField:
+class AffineColorField:
     """Closed-form density, two features per sample, and a colour that is affine in the
     features: ``c(F, d) = A·F + b(d)``. With ``deferred`` it composites the features and
     colours each ray once (the grid field's path); without, it colours every sample."""
@@ -628,8 +628,8 @@ def test_deferred_and_per_sample_colour_agree_for_an_affine_colour_network():
     seed = mi.UInt32(np.arange(64, dtype=np.uint32) * 7 + 3)
     out = {}
     for deferred in (False, True):
-        out[deferred] = render_rays(Rays(o, d, seed=seed), AffineColourField(deferred),
-                                    AffineColourField(deferred), Sampling(12, 12, 12))
+        out[deferred] = render_rays(Rays(o, d, seed=seed), AffineColorField(deferred),
+                                    AffineColorField(deferred), Sampling(12, 12, 12))
     for name in ('fg', 'bg'):
         a, b = getattr(out[False], name).shading, getattr(out[True], name).shading
         assert npf(a.opacity).min() > 0.05
@@ -643,9 +643,9 @@ def test_deferred_grid_field_colours_the_composited_features_once_per_ray():
     """A grid field's volume colour is ``α·c(F/α, d)`` with ``F = Σ w_i f_i`` over its merged
     samples (float64 composite of the field's own features at the returned positions)."""
     from tests.helpers import TINY_GRID
-    from mi_nerfpp.core.fields import GridField
-    field = GridField('ball', **{k: v for k, v in TINY_GRID.items() if k != 'kind'},
-                      density_bias=1.0, seed=3)
+    from mi_nerfpp.core.fields import grid_field
+    field = grid_field('ball', **{k: v for k, v in TINY_GRID.items() if k != 'kind'},
+                       density_bias=1.0, seed=3)
     assert field.deferred
     n_rays, n_c, n_f = 32, 8, 8
     o, d = rays(n_rays, seed=22)
@@ -674,7 +674,7 @@ def test_gradients_through_the_merged_samples_match_finite_differences(deferred)
     seed = mi.UInt32(np.arange(48, dtype=np.uint32) * 5 + 1)
     w = mi.Float(np.random.default_rng(5).uniform(0.2, 1.0, 48).astype(np.float32))
 
-    class Scaled(AffineColourField):
+    class Scaled(AffineColorField):
         def _features(self, x):
             return [self.theta * f for f in super()._features(x)]
 

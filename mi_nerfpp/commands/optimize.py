@@ -65,8 +65,8 @@ def run(args):
 def train(args, observer):
     options, data = values(args, TrainConfig), args.data
     config = TrainConfig.from_options(**options)    # checks every option (ValueError: the flag)
-    plan = budget.plan(config)                      # what they size (memory, Dr.Jit), once
-    budget.check(config, plan)
+    plan = budget.plan(config.sizing())             # what they size (memory, Dr.Jit), once
+    budget.check(plan)
     if data is None:        # after the checks: the default capture may take minutes to render
         data, options = runs.default_job(options, progress=True)
         config = TrainConfig.from_options(**options)

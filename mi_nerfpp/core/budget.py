@@ -6,10 +6,13 @@ Two limits bound every array: Dr.Jit's arrays hold at most :data:`MAX_ARRAY_ENTR
 and the largest value that fits, before Dr.Jit sees it (instead of Dr.Jit's
 ``jit_var_counter`` message or the kernel's out-of-memory kill).
 
-A training run is sized once, by :func:`plan` (``plan(config, Machine.here())``), which
-returns a :class:`Plan`: the entries of its arrays, the bytes they take, the first limit the
-options exceed with the largest value of that option that fits, and the bytes left for the
-images (what the automatic downscale spends, :class:`~mi_nerfpp.data.dataset.AutoDownscale`).
+A training run is described by a :class:`Sizing` (each volume's grid levels, planes and sparse
+levels, the colour MLP, rays per step, samples per ray, the occupancy grids), which the training
+layer makes from its options (:meth:`~mi_nerfpp.training.config.TrainConfig.sizing`), and sized
+once, by :func:`plan` (``plan(config.sizing(), Machine.here())``), which returns a
+:class:`Plan`: the entries of its arrays, the bytes they take, the first limit the sizes exceed
+with the largest value of that size that fits, and the bytes left for the images (what the
+automatic downscale spends, :class:`~mi_nerfpp.data.dataset.AutoDownscale`).
 Its one memory model:
 
 - the process with Mitsuba, Dr.Jit, LLVM and the step's kernels: :data:`BASE_BYTES`;
@@ -30,13 +33,14 @@ rounded up; the measurements are noted at each constant.
 
 The ``nerfpp`` integrator renders ``chunk_rays`` rays at a time, and :func:`check_chunk_sizes`
 refuses per-chunk arrays beyond :data:`MAX_CHUNK_ENTRIES`; a capture's images are sized with
-:data:`CAPTURE_BYTES_PER_PIXEL`. A config is read through its attributes (no import of the
-training layer).
+:data:`CAPTURE_BYTES_PER_PIXEL`. No option is known here by name: a refusal names the option
+through the words the :class:`Sizing` carries for each size (:attr:`Sizing.flags`).
 """
 from __future__ import annotations
 
+import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import drjit as dr
 
@@ -204,17 +208,117 @@ class Machine:
         return cls(memory_bytes(), available_bytes(), dr.thread_count() if llvm_backend() else 0)
 
 
-# ----------------------------------------------------------------------------- a run's arrays
-# A config is read through its attributes: ``config.model`` (``kind``, ``field``, ``bg_field``,
-# ``grid_channels``, ``bg_s_ratio``, ``levels(domain)``, ``planes(domain)``), ``config.sampling``
-# (``occupancy``, ``occupancy_res``), ``config.schedule.batch_rays``, ``config.samples_per_ray``
-# and ``config.flag(option)`` (the command-line spelling, for messages).
+# ----------------------------------------------------------------------------- a run's sizes
+# A run's sizes come from the training layer as a Sizing (``TrainConfig.sizing()``, where its
+# options are resolved into them once); a refusal names an option only through Sizing.flags.
 
-def _has_grid(config, domain) -> bool:
-    """Whether the volume of ``domain`` has a grid field."""
-    m = config.model
-    kind = m.field if domain == 'ball' else m.bg_field
-    return kind == 'grid' and (domain == 'ball' or m.kind == 'nerfpp')
+
+@dataclass(frozen=True)
+class VolumeSizes:
+    """One volume of a run as it sizes arrays: its ``domain`` (``'ball'`` or
+    ``'inverted_sphere'``), the ``kind`` of its field and, for a grid field, the resolutions of its
+    dense ``levels``, its ``planes`` and its ``sparse`` levels, and (in the inverted sphere) its
+    ``s_ratios``, one per level (an MLP field has none of these). ``levels_by``, ``planes_by``:
+    the size that sets its levels and planes (a key of :attr:`Sizing.flags`; volumes that share
+    it are sized together)."""
+    domain: str
+    kind: str
+    levels: tuple = ()
+    planes: tuple = ()
+    sparse: tuple = ()
+    s_ratios: tuple = ()
+    levels_by: str = ''
+    planes_by: str = ''
+
+
+@dataclass(frozen=True)
+class Sizing:
+    """What sizes a training run's arrays: its ``volumes`` (the foreground first), the grid
+    fields' ``grid_channels`` and colour MLP (``color_width`` x ``color_layers``, its inputs'
+    ``dir_octaves`` and ``appearance_dims``), ``batch_rays`` per step, ``samples_per_ray``
+    (field samples per training ray: coarse and fine, every volume), the ``render_sampling``
+    of the model's renders (a :class:`~mi_nerfpp.core.render.Sampling`), the occupancy grids
+    (``occupancy``: whether there are any, ``occupancy_res``) and ``sparse_entries`` (the most
+    entries of one sparse level).
+
+    ``flags``: for each size a refusal may name (the scalar fields here and each volume's
+    ``levels_by``, ``planes_by``), the command-line words that set it (``'--batch-rays
+    1024'``); ``defaults``: the default values of ``grid_channels`` and ``batch_rays``, which a
+    refusal blames before the others when they are raised above them."""
+    volumes: tuple
+    grid_channels: int
+    color_width: int
+    color_layers: int
+    dir_octaves: int
+    appearance_dims: int
+    batch_rays: int
+    samples_per_ray: int
+    render_sampling: object
+    occupancy: bool
+    occupancy_res: int
+    sparse_entries: int
+    flags: dict = field(default_factory=dict, repr=False, compare=False)
+    defaults: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def volume(self, domain) -> VolumeSizes | None:
+        """The volume over ``domain``; None when the run has none there."""
+        return next((v for v in self.volumes if v.domain == domain), None)
+
+    def with_size(self, name: str, value: int) -> Sizing:
+        """A copy with size ``name`` at ``value``: a scalar size, or the finest level of the
+        levels or planes that ``name`` sets (in every volume it sets them; the other levels
+        kept)."""
+        if name in _SCALAR_SIZES:
+            return replace(self, **{name: value})
+
+        def finest_at(levels):
+            i = levels.index(max(levels))
+            return levels[:i] + (value,) + levels[i + 1:]
+        return replace(self, volumes=tuple(
+            replace(v, **{part: finest_at(getattr(v, part))
+                          for part, by in (('levels', v.levels_by), ('planes', v.planes_by))
+                          if by == name and getattr(v, part)})
+            for v in self.volumes))
+
+    def size(self, name: str) -> int:
+        """The value of size ``name``: a scalar size, or the finest level of the levels or
+        planes that ``name`` sets."""
+        if name in _SCALAR_SIZES:
+            return getattr(self, name)
+        sets = [max(getattr(v, part)) for v in self.volumes
+                for part, by in (('levels', v.levels_by), ('planes', v.planes_by))
+                if by == name and getattr(v, part)]
+        if not sets:
+            raise ValueError(f"no size '{name}' in this run")
+        return sets[0]
+
+    def sets_levels(self, name: str) -> bool:
+        """Whether size ``name`` sets grid levels or planes (a resolution) of some volume."""
+        return any(name in (v.levels_by, v.planes_by) for v in self.volumes)
+
+    def color_parameters(self) -> int:
+        """Weights of the colour MLPs of the grid fields (:class:`~.fields.GridField`: the
+        features, the encoded direction and the appearance code in, ``color_layers`` hidden
+        layers, RGB out)."""
+        total = 0
+        for v in self.volumes:
+            if v.kind == 'grid':
+                n_in = ((len(v.levels) + len(v.planes) + len(v.sparse))
+                        * (self.grid_channels - 1)
+                        + 3 * (1 + 2 * self.dir_octaves) + self.appearance_dims)
+                w = self.color_width
+                total += (n_in + 1) * w + (self.color_layers - 1) * (w + 1) * w + (w + 1) * 3
+        return total
+
+    def color_units(self) -> int:
+        """Hidden units of the colour MLPs (width x layers); none without a grid field."""
+        grid = any(v.kind == 'grid' for v in self.volumes)
+        return self.color_width * self.color_layers if grid else 0
+
+
+# The sizes that are one number of the run (the others are volumes' levels and planes).
+_SCALAR_SIZES = ('batch_rays', 'samples_per_ray', 'grid_channels', 'color_width',
+                 'occupancy_res', 'sparse_entries')
 
 
 def _per_level(values, n):
@@ -222,34 +326,29 @@ def _per_level(values, n):
     return values * n if len(values) == 1 else values
 
 
-def grid_level_entries(config, domain, levels=None, channels=None) -> list[int]:
+def grid_level_entries(sizing: Sizing, domain) -> list[int]:
     """Entries of each feature-grid level of one volume (:class:`~.fields.GridField`'s
     shapes): ``R³`` cells in the ball, ``max(⌊q·R⌋, 4) × R × 2R`` in the inverted sphere, times
-    ``--grid-channels``; empty for a volume without a grid field. ``levels``, ``channels``: in
-    place of the config's."""
-    m = config.model
-    if not _has_grid(config, domain):
+    ``grid_channels``; empty for a volume without a grid field."""
+    v, channels = sizing.volume(domain), sizing.grid_channels
+    if v is None:
         return []
-    levels = m.levels(domain) if levels is None else levels
-    channels = channels or m.grid_channels
     if domain == 'ball':
-        return [r ** 3 * channels for r in levels]
-    ratios = _per_level(m.bg_s_ratio, len(levels))
-    return [max(int(r * q), 4) * r * 2 * r * channels for r, q in zip(levels, ratios)]
+        return [r ** 3 * channels for r in v.levels]
+    ratios = _per_level(v.s_ratios, len(v.levels))
+    return [max(int(r * q), 4) * r * 2 * r * channels for r, q in zip(v.levels, ratios)]
 
 
-def grid_plane_entries(config, domain, planes=None, channels=None,
-                       largest: bool = False) -> list[int]:
+def grid_plane_entries(sizing: Sizing, domain, largest: bool = False) -> list[int]:
     """Entries of each plane level of one volume's grid field (its three planes,
-    :func:`~mi_nerfpp.core.encodings.plane_shapes`), times ``--grid-channels``; ``largest``: of
-    its largest plane only (one array). ``planes``, ``channels``: in place of the config's."""
-    m = config.model
-    if not _has_grid(config, domain):
+    :func:`~mi_nerfpp.core.encodings.plane_shapes`), times ``grid_channels``; ``largest``: of its
+    largest plane only (one array)."""
+    v = sizing.volume(domain)
+    if v is None:
         return []
-    planes = m.planes(domain) if planes is None else planes
-    channels = channels or m.grid_channels
     combine = max if largest else sum
-    return [combine(h * w for _, (h, w) in plane_shapes(domain, r)) * channels for r in planes]
+    return [combine(h * w for _, (h, w) in plane_shapes(domain, r)) * sizing.grid_channels
+            for r in v.planes]
 
 
 # The sparse foreground level a run chooses unless told (``--grid-sparse``): twice the finest
@@ -274,116 +373,52 @@ def sparse_resolution(footprint: float, finest: int, occupancy_res: int) -> int 
     return r if 2.0 / r >= SPARSE_PIXELS * footprint else None
 
 
-def sparse_level_entries(config, domain, limit=None, channels=None) -> list[int]:
+def sparse_level_entries(sizing: Sizing, domain) -> list[int]:
     """Entries of each sparse level of one volume's grid field at most
-    (:class:`~.bricks.BrickGrid`): its bricks up to ``--sparse-entries`` (``limit``), or all of
-    them when fewer; empty without a grid field or sparse levels."""
-    m = config.model
-    if not _has_grid(config, domain):
+    (:class:`~.bricks.BrickGrid`): its bricks up to ``sparse_entries``, or all of them when
+    fewer; empty without a grid field or sparse levels."""
+    v, limit, channels = sizing.volume(domain), sizing.sparse_entries, sizing.grid_channels
+    if v is None:
         return []
-    limit = config.schedule.sparse_entries if limit is None else limit
-    channels = channels or m.grid_channels
     if domain == 'ball':
-        return [min(limit, r ** 3 * channels) for r in m.sparse(domain)]
-    along_s = grid_shape(domain, config.sampling.occupancy_res)[0]
-    return [min(limit, along_s * r * 2 * r * channels) for r in m.sparse(domain)]
+        return [min(limit, r ** 3 * channels) for r in v.sparse]
+    along_s = grid_shape(domain, sizing.occupancy_res)[0]
+    return [min(limit, along_s * r * 2 * r * channels) for r in v.sparse]
 
 
-def occupancy_cells(config, resolution=None) -> list[int]:
+def occupancy_cells(sizing: Sizing) -> list[int]:
     """Cells of each volume's occupancy grid (:class:`~.occupancy.OccupancyGrid`)."""
-    if not config.sampling.occupancy:
+    if not sizing.occupancy:
         return []
-    r = config.sampling.occupancy_res if resolution is None else resolution
-    return [r ** 3] + ([max(r // 4, 4) * max(r // 2, 4) * r]
-                       if config.model.kind == 'nerfpp' else [])
+    return [math.prod(grid_shape(v.domain, sizing.occupancy_res)) for v in sizing.volumes]
 
 
-@dataclass(frozen=True)
-class Sizes:
-    """The values that size a run's arrays: rays per step, samples per ray, each volume's
-    grid levels, grid channels and the occupancy resolution."""
-    batch_rays: int
-    samples_per_ray: int
-    grid_levels: tuple
-    bg_grid_levels: tuple
-    grid_channels: int
-    occupancy_res: int
-    grid_planes: tuple = ()
-    bg_grid_planes: tuple = ()
-    sparse_entries: int = 0
-    color_width: int = MEASURED_COLOR_UNITS
-    color_layers: int = 1
-
-    @classmethod
-    def of(cls, config, **values) -> Sizes:
-        """The config's sizes, with ``values`` in their place (the background grid follows
-        ``grid_levels`` unless it has levels of its own)."""
-        m = config.model
-        fg = values.get('grid_levels') or m.grid_levels
-        bg = values.get('bg_grid_levels') or m.bg_grid_levels or fg
-        fg_planes = values.get('grid_planes', m.grid_planes)
-        bg_planes = values.get('bg_grid_planes') or m.bg_grid_planes or fg_planes
-        return cls(values.get('batch_rays') or config.schedule.batch_rays,
-                   values.get('samples_per_ray') or config.samples_per_ray,
-                   tuple(fg), tuple(bg), values.get('grid_channels') or m.grid_channels,
-                   values.get('occupancy_res') or config.sampling.occupancy_res,
-                   tuple(fg_planes), tuple(bg_planes),
-                   values.get('sparse_entries') or config.schedule.sparse_entries,
-                   values.get('color_width') or m.color_width, m.color_layers)
-
-    def color_parameters(self, config) -> int:
-        """Weights of the colour MLPs of the grid fields (:class:`~.fields.GridField`: the
-        features and the encoded direction in, ``color_layers`` hidden layers, RGB out)."""
-        m, total = config.model, 0
-        for domain, levels, planes in (('ball', self.grid_levels, self.grid_planes),
-                                       ('inverted_sphere', self.bg_grid_levels,
-                                        self.bg_grid_planes)):
-            if _has_grid(config, domain):
-                n_in = ((len(levels) + len(planes) + len(m.sparse(domain)))
-                        * (self.grid_channels - 1)
-                        + 3 * (1 + 2 * m.dir_octaves))
-                w = self.color_width
-                total += (n_in + 1) * w + (self.color_layers - 1) * (w + 1) * w + (w + 1) * 3
-        return total
-
-    def color_units(self, config) -> int:
-        """Hidden units of the colour MLPs (width x layers); none without a grid field."""
-        grid = _has_grid(config, 'ball') or _has_grid(config, 'inverted_sphere')
-        return self.color_width * self.color_layers if grid else 0
-
-
-def _grid_parts(config, sizes: Sizes) -> dict:
-    """Entries of the grids by the option that sizes them: ``{option: entries}``."""
-    channels = sizes.grid_channels
-    return _sum_into({}, [
-        ('grid_levels', sum(grid_level_entries(config, 'ball', sizes.grid_levels, channels))),
-        (_levels_option(config, 'inverted_sphere'), sum(grid_level_entries(
-            config, 'inverted_sphere', sizes.bg_grid_levels, channels))),
-        ('grid_planes', sum(grid_plane_entries(config, 'ball', sizes.grid_planes, channels))),
-        (_planes_option(config, 'inverted_sphere'), sum(grid_plane_entries(
-            config, 'inverted_sphere', sizes.bg_grid_planes, channels))),
-        ('sparse_entries', sum(sum(sparse_level_entries(config, d, sizes.sparse_entries,
-                                                        channels))
-                               for d in ('ball', 'inverted_sphere')))])
+def _grid_parts(s: Sizing) -> dict:
+    """Entries of the grids by the size that sets them: ``{size: entries}``."""
+    return _sum_into({}, [(v.levels_by, sum(grid_level_entries(s, v.domain)))
+                          for v in s.volumes]
+                     + [(v.planes_by, sum(grid_plane_entries(s, v.domain)))
+                        for v in s.volumes]
+                     + [('sparse_entries', sum(sum(sparse_level_entries(s, v.domain))
+                                               for v in s.volumes))])
 
 
 def _sum_into(parts: dict, items) -> dict:
-    """``parts`` with each ``(option, entries)`` of ``items`` added to its option's entries."""
-    for option, entries in items:
-        parts[option] = parts.get(option, 0) + entries
+    """``parts`` with each ``(size, entries)`` of ``items`` added to its size's entries."""
+    for size, entries in items:
+        parts[size] = parts.get(size, 0) + entries
     return parts
 
 
-def _entries(config, sizes: Sizes) -> dict:
-    return {'grids': (sum(_grid_parts(config, sizes).values())
-                      + sizes.color_parameters(config)),
-            'occupancy': sum(occupancy_cells(config, sizes.occupancy_res)),
-            'samples': sizes.batch_rays * sizes.samples_per_ray}
+def _entries(s: Sizing) -> dict:
+    return {'grids': sum(_grid_parts(s).values()) + s.color_parameters(),
+            'occupancy': sum(occupancy_cells(s)),
+            'samples': s.batch_rays * s.samples_per_ray}
 
 
 def _bytes(entries: dict, threads: int, color_units: int = 0) -> dict:
     """Bytes of a run's parts from its entries; ``color_units``: the colour MLP's hidden units
-    (:meth:`Sizes.color_units`), which scale a step's bytes per sample."""
+    (:meth:`Sizing.color_units`), which scale a step's bytes per sample."""
     per_sample = TRAIN_BYTES_PER_SAMPLE * max(1.0, color_units / MEASURED_COLOR_UNITS)
     return {'process': BASE_BYTES,
             'grids': 4 * (PARAMETER_COPIES + threads) * entries['grids'],
@@ -391,24 +426,9 @@ def _bytes(entries: dict, threads: int, color_units: int = 0) -> dict:
             'step': int(per_sample * entries['samples'])}
 
 
-def _levels_option(config, domain):
-    """The option that sets the levels of ``domain``'s grid."""
-    if domain == 'inverted_sphere' and config.model.bg_grid_levels is not None:
-        return 'bg_grid_levels'
-    return 'grid_levels'
-
-
-def _planes_option(config, domain):
-    """The option that sets the plane levels of ``domain``'s grid."""
-    if domain == 'inverted_sphere' and config.model.bg_grid_planes is not None:
-        return 'bg_grid_planes'
-    return 'grid_planes'
-
-
-def _exceeded(config, machine: Machine, **values):
-    """The first limit the config (with ``values`` in place of its own, :meth:`Sizes.of`)
-    exceeds on ``machine``, as ``(option, what)``, or None when it fits."""
-    s = Sizes.of(config, **values)
+def _exceeded(s: Sizing, machine: Machine):
+    """The first limit the sizes ``s`` exceed on ``machine``, as ``(size, what)``, or None
+    when they fit."""
     budget = machine.memory
     array = 'more than one Dr.Jit array holds (2^32 - 1 entries)'
     # A render of the model (evaluation, previews, videos) takes its samples per ray for a
@@ -416,37 +436,36 @@ def _exceeded(config, machine: Machine, **values):
     chunk = RENDER_CHUNK_RAYS
     spr = s.samples_per_ray
     if not fits(spr, chunk, chunk * RENDER_BYTES_PER_SAMPLE, budget):
-        return 'samples', (f'renders of the model take {spr:,} samples per ray for '
-                           f'{chunk:,} rays at a time, more than Dr.Jit\'s arrays (2^32 - 1 '
-                           f'entries) and {memory_text(budget)} of memory hold')
-    default_channels = type(config.model)().grid_channels
-    for domain, levels in (('ball', s.grid_levels), ('inverted_sphere', s.bg_grid_levels)):
-        for r, n in zip(levels, grid_level_entries(config, domain, levels, s.grid_channels)):
+        return 'samples_per_ray', (f'renders of the model take {spr:,} samples per ray for '
+                                   f'{chunk:,} rays at a time, more than Dr.Jit\'s arrays '
+                                   f'(2^32 - 1 entries) and {memory_text(budget)} of memory '
+                                   f'hold')
+    raised_channels = s.grid_channels > s.defaults.get('grid_channels', s.grid_channels)
+    for v in s.volumes:
+        behind = 'background ' if v.domain != 'ball' else ''
+        for r, n in zip(v.levels, grid_level_entries(s, v.domain)):
             if n > MAX_ARRAY_ENTRIES:
-                option = (_levels_option(config, domain) if s.grid_channels <= default_channels
-                          else 'grid_channels')
-                return (option, f'a {"background " if domain != "ball" else ""}level of '
-                                f'resolution {r} has {n:,} entries (--grid-channels '
-                                f'{s.grid_channels}), {array}')
-    for domain, planes in (('ball', s.grid_planes), ('inverted_sphere', s.bg_grid_planes)):
-        for r, n in zip(planes, grid_plane_entries(config, domain, planes, s.grid_channels,
-                                                   largest=True)):
-            if n > MAX_ARRAY_ENTRIES:
-                return (_planes_option(config, domain),
-                        f'a {"background " if domain != "ball" else ""}plane level of '
-                        f'resolution {r} has a plane of {n:,} entries (--grid-channels '
+                return (v.levels_by if not raised_channels else 'grid_channels',
+                        f'a {behind}level of resolution {r} has {n:,} entries (--grid-channels '
                         f'{s.grid_channels}), {array}')
-    for domain in ('ball', 'inverted_sphere'):
-        for n in sparse_level_entries(config, domain, s.sparse_entries, s.grid_channels):
+    for v in s.volumes:
+        behind = 'background ' if v.domain != 'ball' else ''
+        for r, n in zip(v.planes, grid_plane_entries(s, v.domain, largest=True)):
+            if n > MAX_ARRAY_ENTRIES:
+                return (v.planes_by, f'a {behind}plane level of resolution {r} has a plane of '
+                                     f'{n:,} entries (--grid-channels {s.grid_channels}), '
+                                     f'{array}')
+    for v in s.volumes:
+        for n in sparse_level_entries(s, v.domain):
             if n > MAX_ARRAY_ENTRIES:
                 return 'sparse_entries', f'a sparse level of {n:,} entries is {array}'
-    for cells in occupancy_cells(config, s.occupancy_res):
+    for cells in occupancy_cells(s):
         if cells > MAX_ARRAY_ENTRIES:
             return 'occupancy_res', f'a grid of {cells:,} cells is {array}'
     if s.batch_rays * spr > MAX_ARRAY_ENTRIES:
         return 'batch_rays', (f'{s.batch_rays:,} rays x {spr} samples per ray are '
                               f'{s.batch_rays * spr:,} field samples per step, {array}')
-    if s.color_units(config):
+    if s.color_units():
         # The colour MLP in a training step: a (width, samples) tensor per layer, and its
         # weights (width x width between hidden layers).
         rows = s.color_width * s.batch_rays * spr
@@ -455,7 +474,7 @@ def _exceeded(config, machine: Machine, **values):
             return 'color_width', (f'a colour MLP of width {s.color_width:,} holds arrays of '
                                    f'{max(rows, weights):,} entries (its width x the '
                                    f'{s.batch_rays * spr:,} field samples of a step), {array}')
-    need = _bytes(_entries(config, s), machine.threads, s.color_units(config))
+    need = _bytes(_entries(s), machine.threads, s.color_units())
     if sum(need.values()) <= budget:
         return None
     what = (f'a run takes about {memory_text(sum(need.values()))} (process '
@@ -464,43 +483,32 @@ def _exceeded(config, machine: Machine, **values):
             f'more than this machine\'s {memory_text(budget)}')
     grown = {k: v for k, v in need.items() if k != 'process'}
     heaviest = max(grown, key=grown.get)
-    if heaviest == 'step' and s.color_units(config) > MEASURED_COLOR_UNITS * s.color_layers:
+    if heaviest == 'step' and s.color_units() > MEASURED_COLOR_UNITS * s.color_layers:
         return 'color_width', what
     if heaviest == 'grids':
-        if s.grid_channels > default_channels:
+        if raised_channels:
             return 'grid_channels', what
-        parts = _grid_parts(config, s)
-        parts['color_width'] = s.color_parameters(config)
+        parts = _grid_parts(s)
+        parts['color_width'] = s.color_parameters()
         return max(parts, key=parts.get), what
     if heaviest == 'occupancy':
         return 'occupancy_res', what
-    default_batch = type(config.schedule)().batch_rays
-    return ('batch_rays' if s.batch_rays > default_batch else 'samples'), what
+    raised_batch = s.batch_rays > s.defaults.get('batch_rays', s.batch_rays)
+    return ('batch_rays' if raised_batch else 'samples_per_ray'), what
 
 
-def largest_that_fits(config, option: str, machine: Machine) -> int:
-    """The largest value of ``option`` (``batch_rays``, ``samples`` - samples per ray -,
-    ``grid_levels`` / ``bg_grid_levels`` - the finest level's resolution, the others kept -,
-    ``grid_channels``, ``color_width``, ``occupancy_res``) with which the config fits on ``machine``; 0 when
-    none does."""
-    m = config.model
-    if option in ('grid_levels', 'bg_grid_levels', 'grid_planes', 'bg_grid_planes'):
-        levels = list(getattr(m, option))
-        i = levels.index(max(levels))
-        values = lambda r: {option: tuple(levels[:i] + [r] + levels[i + 1:])}  # noqa: E731
-        high = levels[i]
-    else:
-        key = {'samples': 'samples_per_ray'}.get(option, option)
-        values = lambda v: {key: v}  # noqa: E731
-        high = {'batch_rays': config.schedule.batch_rays, 'samples': config.samples_per_ray,
-                'grid_channels': m.grid_channels, 'color_width': m.color_width,
-                'occupancy_res': config.sampling.occupancy_res,
-                'sparse_entries': config.schedule.sparse_entries}[option]
-    low = {'grid_levels': 2, 'bg_grid_levels': 2, 'grid_planes': 2, 'bg_grid_planes': 2,
-           'grid_channels': 2, 'occupancy_res': 4}.get(option, 1)
+def largest_that_fits(sizing: Sizing, size: str, machine: Machine) -> int:
+    """The largest value of ``size`` (a scalar size of :class:`Sizing` - ``batch_rays``,
+    ``samples_per_ray``, ``grid_channels``, ``color_width``, ``occupancy_res``,
+    ``sparse_entries`` -, or what a volume's ``levels_by`` / ``planes_by`` names: the finest
+    level's resolution, the others kept) with which the run fits on ``machine``; 0 when none
+    does."""
+    high = sizing.size(size)
+    low = 2 if size == 'grid_channels' or sizing.sets_levels(size) else (
+        4 if size == 'occupancy_res' else 1)
 
     def ok(value):
-        return _exceeded(config, machine, **values(value)) is None
+        return _exceeded(sizing.with_size(size, value), machine) is None
 
     if not ok(low):
         return 0
@@ -518,18 +526,20 @@ def largest_that_fits(config, option: str, machine: Machine) -> int:
 class Plan:
     """What a training run takes on a machine (:func:`plan`).
 
-    ``entries``: the run's ``grids`` (parameters), ``occupancy`` cells and field ``samples``
-    per step; ``bytes``: what the ``process``, the ``grids`` (with gradients, moments and the
-    threads' gradient copies), the ``occupancy`` grids and a training ``step`` take;
-    ``exceeded``: ``(option, what)`` of the first limit the options exceed, or None, and
-    ``largest``: the largest value of that option that fits; ``images``: the bytes left for
-    the images (:data:`USABLE_FRACTION` of the memory available, less ``total``)."""
+    ``sizing``: what it was made for; ``entries``: the run's ``grids`` (parameters),
+    ``occupancy`` cells and field ``samples`` per step; ``bytes``: what the ``process``, the
+    ``grids`` (with gradients, moments and the threads' gradient copies), the ``occupancy``
+    grids and a training ``step`` take; ``exceeded``: ``(size, what)`` of the first limit the
+    sizes exceed, or None, and ``largest``: the largest value of that size that fits;
+    ``images``: the bytes left for the images (:data:`USABLE_FRACTION` of the memory
+    available, less ``total``)."""
     machine: Machine
     entries: dict
     bytes: dict
     exceeded: tuple | None = None
     largest: int | None = None
     chunk_error: str | None = field(default=None, repr=False)
+    sizing: Sizing | None = field(default=None, repr=False)
 
     @property
     def total(self) -> int:
@@ -550,57 +560,51 @@ class Plan:
                 f'{self.machine.threads} threads), {memory_text(self.images)} left for images')
 
 
-def plan(config, machine: Machine | None = None) -> Plan:
-    """Size a training run of ``config`` (a :class:`~mi_nerfpp.training.config.TrainConfig`)
-    on ``machine`` (default: :meth:`Machine.here`), once: see :class:`Plan`. Raise with
-    :func:`check` to refuse options that do not fit."""
+def plan(sizing: Sizing, machine: Machine | None = None) -> Plan:
+    """Size a training run (``sizing``: its :class:`Sizing`,
+    :meth:`~mi_nerfpp.training.config.TrainConfig.sizing`) on ``machine`` (default:
+    :meth:`Machine.here`), once: see :class:`Plan`. Raise with :func:`check` to refuse sizes
+    that do not fit."""
     machine = machine or Machine.here()
-    s = Sizes.of(config)
-    entries = _entries(config, s)
+    entries = _entries(sizing)
     chunk_error = None
     try:
-        check_chunk_sizes(RENDER_CHUNK_RAYS, config.render_sampling, 1, 1)
+        check_chunk_sizes(RENDER_CHUNK_RAYS, sizing.render_sampling, 1, 1)
     except ValueError:
-        sampling, r = config.sampling, config.render_sampling
+        r = sizing.render_sampling
         per_volume = max(r.fg_samples, r.bg_samples) + r.fine_samples
         chunk_error = (
-            f'--samples {sampling.fg_samples} {sampling.bg_samples} {sampling.fine_samples} '
-            f'are too many: renders of the model take {per_volume:,} samples per ray of a '
-            f'volume (coarse and fine) for {RENDER_CHUNK_RAYS:,} rays at a time, more than the '
-            f'nerfpp integrator\'s {MAX_CHUNK_ENTRIES:,} entries per array; at most '
+            f'{sizing.flags["samples_per_ray"]} are too many: renders of the model take '
+            f'{per_volume:,} samples per ray of a volume (coarse and fine) for '
+            f'{RENDER_CHUNK_RAYS:,} rays at a time, more than the nerfpp integrator\'s '
+            f'{MAX_CHUNK_ENTRIES:,} entries per array; at most '
             f'{MAX_CHUNK_ENTRIES // RENDER_CHUNK_RAYS:,} samples per ray of a volume fit')
-    exceeded = _exceeded(config, machine)
-    best = None if exceeded is None else largest_that_fits(config, exceeded[0], machine)
-    return Plan(machine, entries, _bytes(entries, machine.threads, s.color_units(config)),
-                exceeded, best, chunk_error)
+    exceeded = _exceeded(sizing, machine)
+    best = None if exceeded is None else largest_that_fits(sizing, exceeded[0], machine)
+    return Plan(machine, entries, _bytes(entries, machine.threads, sizing.color_units()),
+                exceeded, best, chunk_error, sizing)
 
 
-def check(config, run_plan: Plan):
-    """Refuse, before any work, a ``run_plan`` whose options Dr.Jit's arrays cannot hold or
-    that do not fit in memory: a ValueError naming the option and the largest value that
-    fits. Renders the integrator would refuse come first (a run must not train and then fail
-    to evaluate)."""
+def check(run_plan: Plan):
+    """Refuse, before any work, a ``run_plan`` whose sizes Dr.Jit's arrays cannot hold or
+    that do not fit in memory: a ValueError naming the option (its :attr:`Sizing.flags`) and
+    the largest value that fits. Renders the integrator would refuse come first (a run must
+    not train and then fail to evaluate)."""
     if run_plan.chunk_error:
         raise ValueError(run_plan.chunk_error)
     if run_plan.exceeded is None:
         return
-    option, what = run_plan.exceeded
-    best = run_plan.largest
-    if option == 'samples':
-        s = config.sampling
-        raise ValueError(f'--samples {s.fg_samples} {s.bg_samples} {s.fine_samples} are too '
-                         f'many: {what}; at most {best:,} samples per ray (coarse and fine, '
-                         f'every volume) fit with --batch-rays {config.schedule.batch_rays}')
-    shown = getattr(config.sampling if option == 'occupancy_res' else
-                    config.schedule if option in ('batch_rays', 'sparse_entries')
-                    else config.model, option)
-    shown = ' '.join(map(str, shown)) if isinstance(shown, tuple) else shown
+    size, what = run_plan.exceeded
+    best, s = run_plan.largest, run_plan.sizing
+    if size == 'samples_per_ray':
+        raise ValueError(f'{s.flags[size]} are too many: {what}; at most {best:,} samples per '
+                         f'ray (coarse and fine, every volume) fit with '
+                         f'{s.flags["batch_rays"]}')
     largest_text = (f'the finest level fits at resolution {best:,} at most'
-                    if option.endswith(('grid_levels', 'grid_planes'))
-                    else f'at most {best:,} fits')
+                    if s.sets_levels(size) else f'at most {best:,} fits')
     if best == 0:
         largest_text = 'not even the smallest value fits: lower the other options'
-    raise ValueError(f'{config.flag(option)} {shown} is too large: {what}; {largest_text}')
+    raise ValueError(f'{s.flags[size]} is too large: {what}; {largest_text}')
 
 
 def images_budget(run_bytes: int = BASE_BYTES, available: int | None = None) -> int:

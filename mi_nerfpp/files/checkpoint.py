@@ -246,20 +246,25 @@ def read_version(path) -> int:
 
 def _sampling(config):
     """The samples per ray a checkpoint's model renders with: stored with the model, or in a
-    file written before that, those it was trained with (its training config); None (the
+    file written before that, those it was trained with (:func:`_legacy_sampling`); None (the
     model's default) for a file that says neither."""
     if 'sampling' in config:
         return Sampling(**config['sampling'])
     trained = config.get('meta', {}).get('config')
-    if trained:
-        return _trained_sampling(trained)
-    return None
+    return _legacy_sampling(trained) if trained else None
 
 
-def _trained_sampling(stored: dict) -> Sampling:
-    """The samples per ray of a model from the training config an older file stored in its
-    ``meta``: option groups (``sampling``, ``model``), or one flat dict in files older still;
-    counts it does not store take training's defaults (:data:`~mi_nerfpp.core.render.SKIPPING`)."""
+# ----------------------------------------------------------------------------- legacy reader
+# Files written before the model stored its samples per ray (before ff06f22: version 2 and
+# older) have them only in the training config of their ``meta``. The reader below is the one
+# place this layer reads a training config: the layout those files have, frozen (one flat dict
+# of options by name, or the option groups ``sampling`` and ``model``), which the training
+# layer's config need not keep.
+
+def _legacy_sampling(stored: dict) -> Sampling:
+    """Legacy reader: the samples per ray of a model from the training config an older file
+    stored in its ``meta`` (see above); counts it does not store take training's defaults
+    (:data:`~mi_nerfpp.core.render.SKIPPING`)."""
     grouped = isinstance(stored.get('model'), dict)
     sampling = stored.get('sampling', {}) if grouped else stored
     kind = stored['model'].get('kind') if grouped else stored.get('model')   # flat: --model

@@ -201,8 +201,8 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
     removed again when the inputs are refused.
     """
     observer = observer or RunObserver()
-    plan = plan or budget.plan(config)
-    budget.check(config, plan)
+    plan = plan or budget.plan(config.sizing())
+    budget.check(plan)
     observer.planned(plan)
     if not os.path.exists(data):
         raise DatasetError(f'{data}: dataset folder not found')

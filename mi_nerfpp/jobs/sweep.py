@@ -55,7 +55,7 @@ def make_jobs(datasets, option_sets, out, overwrite=False) -> list[SweepJob]:
     configs = []
     for text, options in option_sets:
         config = TrainConfig.from_options(**options)
-        budget.check(config, budget.plan(config))
+        budget.check(budget.plan(config.sizing()))
         configs.append((text, config))
     jobs = []
     for data, name in zip(datasets, names):

@@ -64,7 +64,7 @@ def choose_sparse_level(config: TrainConfig, dataset, stored: dict, notice=_quie
                f'ball wide at the centre ({cells}); --grid-sparse RES to add one')
         return config.replace(grid_sparse=())
     config = config.replace(grid_sparse=(r,))
-    entries = sum(budget.sparse_level_entries(config, 'ball'))
+    entries = sum(budget.sparse_level_entries(config.sizing(), 'ball'))
     notice(f'sparse foreground level {r}³ (a training pixel is {footprint:.4f} of the unit '
            f'ball wide at the centre: {cells}), at most {entries / 1e6:.1f} M entries in '
            f'bricks where the surfaces are; --grid-sparse to change, --grid-sparse alone for '

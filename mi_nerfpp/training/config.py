@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass
 
 from mi_nerfpp.core import appearance as app
+from mi_nerfpp.core import budget
 from mi_nerfpp.core import occupancy as occ
 from mi_nerfpp.core import poses
 from mi_nerfpp.core.fields import BACKGROUND_COLOR, COLOR_MODES, grid_default
@@ -70,6 +71,31 @@ RETIRED_AFTER = 'b4d9de3'
 # bounds.
 BUDGET_REFERENCE_PIXELS = 48 * 128 * 96
 DEFAULT_MINUTES_RANGE = (2.0, 60.0)
+# The entries of a volume's field config (:attr:`~mi_nerfpp.core.fields.GridField.config`)
+# that options set: entry -> (option of the foreground, option of the background; None: that
+# volume has no such entry). The one home of the option pairs: a background option left unset
+# (None) takes the foreground's value (:meth:`ModelOptions.effective`); a volume's options are
+# read through it (:meth:`ModelOptions.value_of`), :meth:`TrainConfig.field_config` writes a
+# grid field's entries from them and :func:`weight_options` reads them back from a checkpoint.
+GRID_FIELD_OPTIONS = {
+    'kind': ('field', 'bg_field'), 'sparse': ('grid_sparse', 'bg_grid_sparse'),
+    'channels': ('grid_channels', 'grid_channels'), 'hidden': ('color_width', 'color_width'),
+    'dir_octaves': ('dir_octaves', 'dir_octaves'),
+    'color_layers': ('color_layers', 'color_layers'), 'color': ('color', 'bg_color'),
+    'antialias': ('antialias', 'antialias'), 'planes': ('grid_planes', 'bg_grid_planes'),
+    'warp_radius': ('fg_warp', None), 's_ratio': (None, 'bg_s_ratio'),
+    'density_bias': ('density_bias', 'density_bias'),
+    'appearance_dims': ('appearance_embedding', 'appearance_embedding'),
+    'resolutions': ('grid_levels', 'bg_grid_levels'), 'init': ('grid_init', 'grid_init')}
+# The entries that hold one or more numbers: lists in a field config (one s ratio as a number,
+# as before per-level ratios), tuples as options.
+LIST_ENTRIES = ('resolutions', 'planes', 'sparse', 's_ratio')
+# What a field config written without an entry had (files from before sparse levels and
+# appearance codes have none); other entries it lacks are not read back.
+ABSENT_ENTRIES = {'sparse': (), 'appearance_dims': 0}
+# The entries a checkpoint's weights do not fix (:func:`weight_options`): its stored config has
+# the resolutions, and the noise the grids started with shapes nothing.
+UNFIXED_ENTRIES = ('resolutions', 'init')
 
 
 def default_minutes(train_pixels: int) -> float:
@@ -305,27 +331,51 @@ class ModelOptions(_Options):
         if self.bg_field is None:
             self.bg_field = self.field
 
+    def source(self, name):
+        """The option whose value option ``name`` takes effect with: ``name``, or for a
+        background option left unset (None) the foreground's of its pair
+        (:data:`GRID_FIELD_OPTIONS`)."""
+        if getattr(self, name) is None:
+            return next((fg for fg, bg in GRID_FIELD_OPTIONS.values() if bg == name and fg),
+                        name)
+        return name
+
+    def effective(self, name):
+        """The value option ``name`` takes effect with (:meth:`source`; ``--grid-sparse``
+        unset: none, a model built now has none - jobs.run.prepare chooses it), sequences as
+        tuples."""
+        value = getattr(self, self.source(name))
+        if value is None and name == 'grid_sparse':
+            value = ()
+        return tuple(value) if isinstance(value, (list, tuple)) else value
+
+    def option_of(self, entry, domain):
+        """The option that sets field-config ``entry`` in the volume over ``domain`` as it
+        takes effect (:meth:`source`); None where that volume has no such entry."""
+        name = GRID_FIELD_OPTIONS[entry][domain == 'inverted_sphere']
+        return name and self.source(name)
+
+    def value_of(self, entry, domain):
+        """The value of field-config ``entry`` (:data:`GRID_FIELD_OPTIONS`) in the volume over
+        ``domain``, as its option takes effect; None where that volume has no such entry."""
+        name = GRID_FIELD_OPTIONS[entry][domain == 'inverted_sphere']
+        return name and self.effective(name)
+
     def levels(self, domain):
         """The grid resolutions of one volume's grid field."""
-        if domain == 'inverted_sphere' and self.bg_grid_levels is not None:
-            return self.bg_grid_levels
-        return self.grid_levels
+        return self.value_of('resolutions', domain)
 
     def planes(self, domain):
         """The plane levels' resolutions of one volume's grid field."""
-        if domain == 'inverted_sphere' and self.bg_grid_planes is not None:
-            return self.bg_grid_planes
-        return self.grid_planes
+        return self.value_of('planes', domain)
 
     def field_of(self, domain):
         """The field kind of one volume."""
-        return self.bg_field if domain == 'inverted_sphere' else self.field
+        return self.value_of('kind', domain)
 
     def sparse(self, domain):
         """The sparse levels' resolutions of one volume's grid field."""
-        if domain == 'inverted_sphere':
-            return self.bg_grid_sparse
-        return self.grid_sparse or ()      # (None: not chosen yet, jobs.run.prepare chooses)
+        return self.value_of('sparse', domain)
 
 
 @dataclass
@@ -660,38 +710,66 @@ class TrainConfig:
         return config.replace(**wrong) if wrong else config
 
     def effective(self, name: str):
-        """The value option ``name`` takes effect with (``--bg-field`` and
-        ``--bg-grid-planes`` unset: the foreground's; ``--grid-sparse`` unset: none), sequences
-        as tuples."""
-        m = self.model
-        if name == 'bg_field':
-            return m.bg_field or m.field
-        if name == 'bg_grid_planes':
-            return tuple(m.planes('inverted_sphere'))
-        if name == 'grid_sparse':       # (None: chosen by the run; a model built now has none)
-            return tuple(m.sparse('ball'))
-        value = self.options()[name]
+        """The value option ``name`` takes effect with (a model option:
+        :meth:`ModelOptions.effective`), sequences as tuples."""
+        part, key = {option_name(f): (part, f.name)
+                     for part, f in options_of(type(self))}[name]
+        if part == 'model':
+            return self.model.effective(key)
+        value = getattr(getattr(self, part), key)
         return tuple(value) if isinstance(value, (list, tuple)) else value
 
     # ------------------------------------------------------------------ derived
     def field_config(self, kind, domain):
-        """The field config of one volume: the grid options apply to grid fields only."""
+        """The field config of one volume whose field is of ``kind``: a grid field's entries
+        from their options (:data:`GRID_FIELD_OPTIONS`), the other kinds' their defaults."""
         if kind != 'grid':
             return default_field_config(kind, domain)
-        m = self.model
-        ratio = m.bg_s_ratio[0] if len(m.bg_s_ratio) == 1 else list(m.bg_s_ratio)
-        extra = ({'s_ratio': ratio} if domain == 'inverted_sphere' else
-                 {'warp_radius': m.fg_warp})
-        if m.sparse(domain):
-            extra.update(sparse=list(m.sparse(domain)), sparse_blocks=list(
-                occ.grid_shape(domain, self.sampling.occupancy_res)))
-        return dict(kind='grid', domain=domain, resolutions=list(m.levels(domain)),
-                    channels=m.grid_channels, dir_octaves=m.dir_octaves,
-                    color_layers=m.color_layers, hidden=m.color_width,
-                    color=m.bg_color if domain == 'inverted_sphere' else m.color,
-                    density_bias=m.density_bias, antialias=m.antialias, init=m.grid_init,
-                    planes=list(m.planes(domain)), appearance_dims=m.appearance_embedding,
-                    **extra)
+        config = {'kind': 'grid', 'domain': domain}
+        for entry in GRID_FIELD_OPTIONS:
+            value = self.model.value_of(entry, domain)
+            if entry == 'kind' or value is None:
+                continue
+            if entry in LIST_ENTRIES:
+                value = value[0] if entry == 's_ratio' and len(value) == 1 else list(value)
+            config[entry] = value
+        if config['sparse']:        # (files without sparse levels stay as they were)
+            config['sparse_blocks'] = list(occ.grid_shape(domain, self.sampling.occupancy_res))
+        else:
+            del config['sparse']
+        return config
+
+    def sizing(self) -> budget.Sizing:
+        """What sizes this run's arrays (:class:`~mi_nerfpp.core.budget.Sizing`, what
+        :func:`~mi_nerfpp.core.budget.plan` takes): each volume's grid as
+        :meth:`field_config` builds it, the other sizes as the options give them, and the
+        command-line words that set each size, which the budget's refusals name."""
+        m, s, schedule = self.model, self.sampling, self.schedule
+        volumes = []
+        for domain in ('ball', 'inverted_sphere')[:2 if m.kind == 'nerfpp' else 1]:
+            grid = m.field_of(domain) == 'grid'
+            volumes.append(budget.VolumeSizes(
+                domain, m.field_of(domain),
+                levels=m.levels(domain) if grid else (), planes=m.planes(domain) if grid else (),
+                sparse=m.sparse(domain) if grid else (),
+                s_ratios=(m.value_of('s_ratio', domain) or ()) if grid else (),
+                levels_by=m.option_of('resolutions', domain),
+                planes_by=m.option_of('planes', domain)))
+        sizes = dict(grid_channels=m.grid_channels, color_width=m.color_width,
+                     batch_rays=schedule.batch_rays, occupancy_res=s.occupancy_res,
+                     sparse_entries=schedule.sparse_entries)
+        flags = {name: _as_flag(name, self.effective(name))
+                 for name in [*sizes] + [v.levels_by for v in volumes]
+                 + [v.planes_by for v in volumes]}
+        flags['samples_per_ray'] = (f'{self.flag("fg_samples")} {s.fg_samples} {s.bg_samples} '
+                                    f'{s.fine_samples}')
+        default = type(self)()
+        return budget.Sizing(
+            tuple(volumes), color_layers=m.color_layers, dir_octaves=m.dir_octaves,
+            appearance_dims=m.appearance_embedding, samples_per_ray=self.samples_per_ray,
+            render_sampling=self.render_sampling, occupancy=s.occupancy, **sizes, flags=flags,
+            defaults={'grid_channels': default.model.grid_channels,
+                      'batch_rays': default.schedule.batch_rays})
 
     @property
     def render_sampling(self) -> Sampling:
@@ -708,8 +786,7 @@ class TrainConfig:
         return n if self.model.kind == 'nerf' else n + s.bg_samples + s.fine_samples
 
     def flag(self, option: str) -> str:
-        """The command-line spelling of ``option`` (for messages, :mod:`mi_nerfpp.core.budget`
-        among them)."""
+        """The command-line spelling of ``option`` (for messages)."""
         return flag(type(self), option)
 
     @classmethod
@@ -775,43 +852,29 @@ class TrainConfig:
         return out
 
 
-# The keys of a grid field's config (:attr:`~mi_nerfpp.core.fields.GridField.config`) that an
-# option sets: key -> (option of the foreground, option of the background; None: not set).
-GRID_FIELD_OPTIONS = {
-    'channels': ('grid_channels', 'grid_channels'), 'hidden': ('color_width', 'color_width'),
-    'dir_octaves': ('dir_octaves', 'dir_octaves'),
-    'color_layers': ('color_layers', 'color_layers'), 'color': ('color', 'bg_color'),
-    'antialias': ('antialias', 'antialias'), 'planes': ('grid_planes', 'bg_grid_planes'),
-    'warp_radius': ('fg_warp', None), 's_ratio': (None, 'bg_s_ratio'),
-    'density_bias': ('density_bias', 'density_bias')}
-
-
 def weight_options(weights: dict) -> dict:
     """The model-shaping options that a checkpoint's model config fixes (its weights were
     made with them), by option name, as :meth:`TrainConfig.effective` gives them: the model
-    kind, each volume's field kind and its grid options, the appearance and pose models.
-    (The grid resolutions are not among them: the stored config has them.)"""
+    kind, the appearance and pose models, each volume's field kind and its grid options read
+    back through :data:`GRID_FIELD_OPTIONS` (not :data:`UNFIXED_ENTRIES`: the stored config has
+    the grid resolutions)."""
     out = {'model': 'nerf' if weights.get('bg') is None else 'nerfpp',
            'appearance': int(weights.get('appearance_images', 0)) > 0,
-           'appearance_embedding': int((weights.get('fg') or {}).get('appearance_dims', 0)),
            'refine_poses': int(weights.get('pose_images', 0)) > 0}
     for side, key in enumerate(('fg', 'bg')):
         field = weights.get(key)
         if not field:
             continue
-        out[('field', 'bg_field')[side]] = field['kind']
-        if field['kind'] != 'grid':
-            continue
-        # Sparse levels are fixed by the weights too; files without them have none.
-        out[('grid_sparse', 'bg_grid_sparse')[side]] = _as_tuple(field.get('sparse', ()))
         for entry, names in GRID_FIELD_OPTIONS.items():
             name = names[side]
-            if name is None or entry not in field or (side and name in out):
-                continue            # options both volumes share: the foreground's value
-            value = field[entry]
-            if entry in ('s_ratio', 'planes'):
-                value = _as_tuple(value)
-            out[name] = value
+            if name is None or (side and name in out):
+                continue            # options both volumes share: the first grid field's value
+            if entry != 'kind' and (field['kind'] != 'grid' or entry in UNFIXED_ENTRIES):
+                continue
+            if entry not in field and entry not in ABSENT_ENTRIES:
+                continue
+            value = field.get(entry, ABSENT_ENTRIES.get(entry))
+            out[name] = _as_tuple(value) if entry in LIST_ENTRIES else value
     return out
 
 

@@ -161,11 +161,12 @@ def test_plane_options_reach_the_fields_and_the_learning_rates():
     assert cfg.field_config('grid', 'ball')['planes'] == [64]
     assert cfg.field_config('grid', 'inverted_sphere')['planes'] == [32]
     # The memory plan counts the planes' entries: 3·64² in the ball, 2·32² + 3·32·16 behind.
-    assert budget.grid_plane_entries(cfg, 'ball') == [3 * 64 * 64 * 4]
-    assert budget.grid_plane_entries(cfg, 'inverted_sphere') == [(2 * 32 * 32 + 3 * 32 * 16) * 4]
+    sizing = cfg.sizing()
+    assert budget.grid_plane_entries(sizing, 'ball') == [3 * 64 * 64 * 4]
+    assert budget.grid_plane_entries(sizing, 'inverted_sphere') == [(2 * 32 * 32 + 3 * 32 * 16) * 4]
     field = make_field(cfg.field_config('grid', 'inverted_sphere'))
     entries = sum(np.prod(v.shape) for k, v in field.params.items() if k.startswith('plane'))
-    assert entries == budget.grid_plane_entries(cfg, 'inverted_sphere')[0]
+    assert entries == budget.grid_plane_entries(sizing, 'inverted_sphere')[0]
     assert is_grid('fg.plane0xy') and is_grid('bg.grid1') and is_grid('fg.sparse0')
     assert not is_grid('fg.color.rest.0')
     with pytest.raises(Exception, match='grid_planes|grid-planes'):

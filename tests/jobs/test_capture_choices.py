@@ -147,7 +147,7 @@ def test_a_capture_too_large_for_the_memory_is_downscaled_and_the_message_says_w
     # 8-bit images, the training ones counted twice: at 32x24 3 bytes per pixel, at 16x12
     # 6 (exact box sums): half the memory.
     full = (2 * n + held_out) * 32 * 24 * 3
-    step = budget.plan(TrainConfig()).total
+    step = budget.plan(TrainConfig().sizing()).total
     available = int((step + 0.75 * full) / budget.USABLE_FRACTION) + 1
     monkeypatch.setattr(budget, 'available_bytes', lambda: available)
     inputs, (resolution, minutes) = notices_of(capture, tmp_path, grid_sparse=(),
@@ -183,7 +183,7 @@ def test_the_estimate_counts_the_parameters_of_the_model(options):
                                bg_config=config.field_config(m.bg_field or m.field,
                                                              'inverted_sphere'))
     actual = sum(dr.width(v) for v in model.parameters().values())
-    plan = budget.plan(config)
+    plan = budget.plan(config.sizing())
     estimate = plan.entries['grids']
     assert estimate <= actual < estimate * 1.001 + 200_000     # the colour MLPs, an MLP field
     threads = dr.thread_count() if llvm_backend() else 0   # no per-thread copies on CUDA
@@ -211,7 +211,7 @@ def test_a_resumed_run_keeps_the_resolution_it_was_trained_at(capture, tmp_path,
     run.train(run.start(inputs))
     # Too little memory now for the images at any size: a new run is refused, the resumed one
     # goes on as it was trained.
-    needed = budget.plan(inputs.config).total
+    needed = budget.plan(inputs.config.sizing()).total
     monkeypatch.setattr(budget, 'available_bytes', lambda: needed + 1000)
     observer = Recorder()
     config = TrainConfig.from_options(**dict(tiny, iterations=3))

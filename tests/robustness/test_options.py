@@ -80,10 +80,11 @@ def test_options_that_size_arrays_name_the_largest_value_that_fits(capsys, tmp_p
     (name, value), = values.items()
     config = TrainConfig.from_options(**values)
     machine = budget.Machine.here()
-    assert budget.largest_that_fits(config, name, machine) == best and best >= 2
+    assert budget.largest_that_fits(config.sizing(), name, machine) == best and best >= 2
     size = (lambda v: (v,)) if isinstance(value, tuple) else (lambda v: v)
-    assert budget.plan(config.replace(**{name: size(best)}), machine).exceeded is None
-    assert budget.plan(config.replace(**{name: size(best + 1)}), machine).exceeded is not None
+    assert budget.plan(config.replace(**{name: size(best)}).sizing(), machine).exceeded is None
+    assert budget.plan(config.replace(**{name: size(best + 1)}).sizing(),
+                       machine).exceeded is not None
     assert not (tmp_path / 'run').exists()
 
 
@@ -108,7 +109,7 @@ def test_samples_beyond_what_a_render_holds_are_refused(capsys, tmp_path):
     for fg, bg, fine in ((per_volume - 8, 8, 8), (8, per_volume - 8, 8), (1, 1, per_volume - 1)):
         config = TrainConfig.from_options(fg_samples=fg, bg_samples=bg, fine_samples=fine,
                                           batch_rays=32)
-        assert budget.plan(config).chunk_error is None
+        assert budget.plan(config.sizing()).chunk_error is None
         check_chunk_sizes(chunk, config.render_sampling, 1, 1)
         for bigger in ((fg + 1, bg, fine), (fg, bg + 1, fine), (fg, bg, fine + 1)):
             config = TrainConfig.from_options(fg_samples=bigger[0], bg_samples=bigger[1],
@@ -116,7 +117,7 @@ def test_samples_beyond_what_a_render_holds_are_refused(capsys, tmp_path):
             if max(bigger[0], bigger[1]) + bigger[2] <= per_volume:
                 continue
             with pytest.raises(ValueError, match=r'^--samples .* are too many: renders'):
-                budget.check(config, budget.plan(config))
+                budget.check(budget.plan(config.sizing()))
             with pytest.raises(ValueError, match=r'^nerfpp: parameter'):
                 check_chunk_sizes(chunk, config.render_sampling, 1, 1)
 
@@ -136,7 +137,7 @@ def test_limits_against_a_memory_budget_in_closed_form():
     per_entry = 4 * (budget.PARAMETER_COPIES + 2)
     fixed = (budget.BASE_BYTES + grid_entries * per_entry
              + occupancy_cells * budget.OCCUPANCY_BYTES_PER_CELL)
-    plan = budget.plan(config, machine)
+    plan = budget.plan(config.sizing(), machine)
     assert plan.entries == {'grids': grid_entries, 'occupancy': occupancy_cells,
                             'samples': config.schedule.batch_rays * 48}
     assert plan.bytes == {'process': budget.BASE_BYTES, 'grids': grid_entries * per_entry,
@@ -145,14 +146,14 @@ def test_limits_against_a_memory_budget_in_closed_form():
                           * budget.TRAIN_BYTES_PER_SAMPLE}
     assert plan.exceeded is None and plan.total == sum(plan.bytes.values())
     assert plan.images == int(0.8 * 3 * GIB) - plan.total
-    budget.check(config, plan)
+    budget.check(plan)
     best = (4 * GIB - fixed) // (48 * budget.TRAIN_BYTES_PER_SAMPLE)
-    assert budget.largest_that_fits(config, 'batch_rays', machine) == best
+    assert budget.largest_that_fits(config.sizing(), 'batch_rays', machine) == best
     big = config.replace(batch_rays=best + 1)
-    big_plan = budget.plan(big, machine)
+    big_plan = budget.plan(big.sizing(), machine)
     assert big_plan.exceeded[0] == 'batch_rays' and big_plan.largest == best
     with pytest.raises(ValueError) as e:
-        budget.check(big, big_plan)
+        budget.check(big_plan)
     step = (best + 1) * 48 * budget.TRAIN_BYTES_PER_SAMPLE
     text = budget.memory_text
     assert str(e.value) == (
@@ -166,7 +167,7 @@ def test_limits_against_a_memory_budget_in_closed_form():
     small = budget.Machine(memory=budget.BASE_BYTES + GIB // 4, available=GIB, threads=2)
     with pytest.raises(ValueError, match=r'^--samples 16 16 1000 are too many: .*at most '
                                          r'[\d,]+ samples per ray .* fit with --batch-rays 64'):
-        budget.check(many, budget.plan(many, small))
+        budget.check(budget.plan(many.sizing(), small))
 
 
 def test_a_wide_colour_mlp_is_sized_by_its_width_and_layers():
@@ -174,18 +175,20 @@ def test_a_wide_colour_mlp_is_sized_by_its_width_and_layers():
     32 x 1, and its weights count with the grids': on a 4 GiB machine a wide, deep MLP is
     refused naming --color-width and the largest width that fits, which does fit."""
     machine = budget.Machine(memory=4 * GIB, available=3 * GIB, threads=2)
-    narrow = budget.plan(TrainConfig(), machine)
-    wide = budget.plan(TrainConfig.from_options(color_width=64, color_layers=2), machine)
+    narrow = budget.plan(TrainConfig().sizing(), machine)
+    wide = budget.plan(TrainConfig.from_options(color_width=64, color_layers=2).sizing(),
+                       machine)
     assert wide.bytes['step'] == 4 * narrow.bytes['step']
     assert wide.entries['grids'] > narrow.entries['grids']
     config = TrainConfig.from_options(color_width=4096, color_layers=8)
-    plan = budget.plan(config, machine)
+    plan = budget.plan(config.sizing(), machine)
     assert plan.exceeded[0] == 'color_width'
     with pytest.raises(ValueError, match=rf'^--color-width 4096 is too large: .*at most '
                                          rf'{plan.largest:,} fits$'):
-        budget.check(config, plan)
-    assert budget.plan(config.replace(color_width=plan.largest), machine).exceeded is None
-    assert budget.plan(config.replace(color_width=plan.largest + 1),
+        budget.check(plan)
+    assert budget.plan(config.replace(color_width=plan.largest).sizing(),
+                       machine).exceeded is None
+    assert budget.plan(config.replace(color_width=plan.largest + 1).sizing(),
                        machine).exceeded is not None
 
 

@@ -237,7 +237,7 @@ def test_random_numbers_to_the_options_are_refused_in_one_line(capsys, tmp_path,
                        else {name: tuple(parsed) if count > 1 else parsed[0]})
             try:
                 config = TrainConfig.from_options(**options)
-                budget.check(config, budget.plan(config))
+                budget.check(budget.plan(config.sizing()))
                 continue                        # a value it accepts: not a refusal to check
             except (ValueError, TypeError):
                 pass
@@ -272,14 +272,15 @@ def test_random_sizes_are_refused_before_work_naming_the_largest_that_fits(monke
         width = int(2 ** rng.uniform(0, 34))
         config = TrainConfig.from_options(color_width=width, batch_rays=rng.choice([32, 1024]),
                                           color_layers=rng.choice([1, 2, 8]))
-        plan = budget.plan(config, machine)
+        plan = budget.plan(config.sizing(), machine)
         if plan.exceeded is None:
             continue
         assert plan.exceeded[0] == 'color_width', (width, plan.exceeded)
         with pytest.raises(ValueError, match=rf'^--color-width {width} is too large: .*'
                                              rf'at most {plan.largest:,} fits$'):
-            budget.check(config, plan)
-        assert budget.plan(config.replace(color_width=plan.largest), machine).exceeded is None
+            budget.check(plan)
+        assert budget.plan(config.replace(color_width=plan.largest).sizing(),
+                           machine).exceeded is None
         widths.add(width)
     assert len(widths) > CASES // 4
 

@@ -195,7 +195,7 @@ def run(args):
 
 
 def render_here(checkpoint, cameras, pending, frames_dir, exr, bar, look=None):
-    FrameWorker(checkpoint, look=look).render(
+    FrameWorker(checkpoint, look=look).render_frames(
         {i: cameras[i] for i in pending}, frames_dir, exr, on_frame=lambda i: bar.update(1))
 
 
@@ -207,7 +207,7 @@ def render_on_cluster(args, checkpoint, cameras, pending, frames_dir, bar):
                   f'{args.worker_cpus} CPU(s)')
         pool = FramePool(checkpoint, workers, args.worker_cpus, look(args))
         try:
-            pool.render(cameras, pending, os.path.abspath(frames_dir), args.exr,
+            pool.render_frames(cameras, pending, os.path.abspath(frames_dir), args.exr,
                         on_frames=bar.update)
         finally:
             pool.close()

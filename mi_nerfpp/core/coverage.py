@@ -48,7 +48,7 @@ WEIGHT_BLUR = 2.8
 # the broad colour of what surrounds an unseen direction carries into it. On the default
 # capture's test views, its unseen pixels scored 15.70 / 18.03 dB (views 1 / 5) at 16,
 # 15.24 / 17.85 at 32 and 14.08 / 16.32 at 256 (benchmarks/coverage.py).
-COLOUR_RESOLUTION = 16
+COLOR_RESOLUTION = 16
 # Training pixels read per image to average the colours of the directions (a stride over
 # larger images).
 PIXELS_PER_IMAGE = 65536
@@ -162,7 +162,7 @@ def fill_holes(sums, counts, smoothing=SMOOTHING) -> np.ndarray:
     return mean
 
 
-def mean_colours(cameras, images, color_space, resolution, weights=None) -> np.ndarray:
+def mean_colors(cameras, images, color_space, resolution, weights=None) -> np.ndarray:
     """The training pixels' mean linear colour over the ``resolution/2 x resolution`` texels
     of their directions, the texels none falls in filled (:func:`fill_holes`). ``weights``:
     per image an ``H x W`` weight of its pixels in [0, 1] (None: all count)."""
@@ -190,24 +190,24 @@ class CoverageFill:
     nothing (module docs). ``seen``: ``H x W`` weights in [0, 1]; ``colour``: ``H x W x 3``
     linear RGB; ``H = W / 2`` (colatitude x longitude)."""
 
-    def __init__(self, seen, colour):
+    def __init__(self, seen, color):
         seen = np.asarray(seen, dtype=np.float32)
-        colour = np.asarray(colour, dtype=np.float32)
+        color = np.asarray(color, dtype=np.float32)
         if seen.ndim != 2 or seen.shape[1] != 2 * seen.shape[0] \
-                or colour.shape != seen.shape + (3,):
+                or color.shape != seen.shape + (3,):
             raise ValueError(f'a coverage fill needs seen weights of H x 2H and colours of '
                              f'H x 2H x 3, got {seen.shape} and {colour.shape}')
-        self.seen, self.colour = seen, colour
+        self.seen, self.color = seen, color
         # One texture of (w, r, g, b), a texel of longitude wrapped onto each side (periodic
         # there, clamped at the poles).
-        texels = np.concatenate([seen[..., None], colour], axis=-1)
+        texels = np.concatenate([seen[..., None], color], axis=-1)
         texels = np.concatenate([texels[:, -1:], texels, texels[:, :1]], axis=1)
         self.texture = mi.Texture2f(mi.TensorXf(np.ascontiguousarray(texels)),
                                     wrap_mode=dr.WrapMode.Clamp)
 
     @classmethod
     def of_views(cls, cameras, images, color_space='linear', resolution=RESOLUTION,
-                 colour_resolution=COLOUR_RESOLUTION, weights=None):
+                 color_resolution=COLOR_RESOLUTION, weights=None):
         """From the training ``cameras`` and their ``images`` (``H x W x 3`` each, in
         ``color_space``: sRGB images are decoded to linear light, as the model renders);
         ``weights``: how much each pixel counts in the colours (:func:`mean_colours`)."""
@@ -215,15 +215,15 @@ class CoverageFill:
         views = views_seeing(dirs.reshape(-1, 3), cameras).reshape(dirs.shape[:2])
         seen = gaussian_filter(np.minimum(views, SEEN_BY) / SEEN_BY,
                                WEIGHT_BLUR * resolution / 360.0, mode=['nearest', 'wrap'])
-        colour = mean_colours(cameras, images, color_space, min(colour_resolution, resolution),
+        color = mean_colors(cameras, images, color_space, min(color_resolution, resolution),
                               weights)
-        while colour.shape[1] < resolution:
-            colour = _double(colour, (2 * colour.shape[0], 2 * colour.shape[1]))
-        return cls(seen, colour)
+        while color.shape[1] < resolution:
+            color = _double(color, (2 * color.shape[0], 2 * color.shape[1]))
+        return cls(seen, color)
 
     def arrays(self) -> dict:
         """What a checkpoint stores (``coverage/<name>``)."""
-        return {'seen': self.seen, 'colour': self.colour}
+        return {'seen': self.seen, 'colour': self.color}
 
     @classmethod
     def from_arrays(cls, arrays: dict):

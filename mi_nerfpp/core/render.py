@@ -307,7 +307,7 @@ def near_gradient_scale(distance, radius):
 # the values those that the quadrature composites. One lookup per render, chosen by
 # :func:`field_lookup`.
 
-class SampleColour:
+class SampleColor:
     """Density and colour per sample (fields with per-sample colour): the colour is composited
     sample by sample."""
     shades_later = False
@@ -357,7 +357,7 @@ def field_lookup(field, visible_only: bool):
     if getattr(field, 'deferred', False):
         return Features(field)           # the same render either way
     if not visible_only:
-        return SampleColour(field)
+        return SampleColor(field)
     return KeptFeatures(field) if hasattr(field, 'sample_color') else DensityOnly(field)
 
 
@@ -524,7 +524,7 @@ def _fused_quadrature(volume, field, coarse, fine, level):
         _, _, _, _, _, opacity, depth, sums, hit_distance, found = dr.while_loop(
             state, lambda i, j, *_: i + j < n_c + n_f, body, label='fused_quadrature')
         if deferred:
-            with stage('colour'):
+            with stage('color'):
                 rgb = composite_features(field, list(sums), opacity, volume.d)
         else:
             rgb = mi.Color3f(*sums[:3])
@@ -561,7 +561,7 @@ def _shading(field, deferred, parts, w, distance, n, d):
         part = dr.block_sum([weight * f for f in values], m)
         sums = part if sums is None else [a + b for a, b in zip(sums, part)]
     if deferred:
-        with stage('colour'):
+        with stage('color'):
             rgb = composite_features(field, sums, opacity, d)
     else:
         rgb = mi.Color3f(*sums[:3])

@@ -350,15 +350,15 @@ class NeRFPPIntegrator(ADIntegrator):
         if frame.traces_paths and rays.path_seed is None:
             rays = rays.replace(path_seed=dr.arange(mi.UInt32, rays.width))
         if not primal or record is not None:
-            return frame.render(rays, primal, record)
-        return in_chunks(lambda chunk: frame.render(chunk, True), rays, self.chunk_rays,
+            return frame.layers(rays, primal, record)
+        return in_chunks(lambda chunk: frame.layers(chunk, True), rays, self.chunk_rays,
                          progress=self.show_progress)
 
     def sample(self, mode, scene, sampler, ray, active=True, **kwargs):
         """One camera sample per ray (Mitsuba's entry point): both volumes sampled and
         integrated by quadrature, composited by Eq. 4, developed into the layers
         (:meth:`~.volumes.VolumeRenderer.layers`), through the scene's shapes where it has
-        some (:meth:`~.shapes.ShapeRenderer.render`)."""
+        some (:meth:`~.shapes.ShapeRenderer.layers`)."""
         # --------------------------- Variables declared up front --------------------------
         primal = mode == dr.ADMode.Primal      # a render, not a gradient pass
         frame = self.frame(scene)              # volumes alone, or volumes and shapes
@@ -393,7 +393,7 @@ class VolumesOnly:
     def __init__(self, integrator):
         self.volumes = integrator.volumes
 
-    def render(self, rays, primal, record=None):
+    def layers(self, rays, primal, record=None):
         L, aovs, _ = self.volumes.layers(rays, primal, record=record)
         return L, aovs
 
@@ -411,8 +411,8 @@ class VolumesAndShapes:
             with dr.suspend_grad():
                 self.environment = integrator.shapes.catcher_environment(parts)
 
-    def render(self, rays, primal, record=None):
-        return self.shapes.render(self.parts, rays, primal, self.environment, record)
+    def layers(self, rays, primal, record=None):
+        return self.shapes.layers(self.parts, rays, primal, self.environment, record)
 
 
 def _ids(text):

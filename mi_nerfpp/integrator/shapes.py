@@ -22,7 +22,7 @@ class ShapeRenderer:
     def __init__(self, integrator, volumes: VolumeRenderer):
         self.integrator, self.volumes = integrator, volumes
 
-    def render(self, parts, rays: Rays, primal, environment=None, record=None):
+    def layers(self, parts, rays: Rays, primal, environment=None, record=None):
         """Beauty and AOVs of camera ``rays`` (:class:`~mi_nerfpp.core.rays.Rays`, with their
         ``path_seed``) through a scene with shapes (see
         :mod:`mi_nerfpp.core.objects`): the volumes up to the first surface, the surfaces path

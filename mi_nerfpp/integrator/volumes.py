@@ -98,13 +98,13 @@ class VolumeRenderer:
     def segments(self, rays: Rays, primal):
         """Radiance and transmittance of the volumes along ``rays`` that end at their ``far``
         (the segments that leave surfaces; neutral colour, in chunks when primal)."""
-        def render(rays):
+        def segment(rays):
             L, _, opacity = self.layers(rays, primal, transform=False, camera=False)
             return L, {'T': 1.0 - opacity}
         if primal:
-            L, values = in_chunks(render, rays, self.integrator.chunk_rays)
+            L, values = in_chunks(segment, rays, self.integrator.chunk_rays)
         else:
-            L, values = render(rays)
+            L, values = segment(rays)
         return L, values['T']
 
 

@@ -202,7 +202,7 @@ class FrameWorker:
     def pid(self):
         return os.getpid()
 
-    def render(self, cameras, frames_dir, exr=False, checkpoint_data=None, on_frame=None):
+    def render_frames(self, cameras, frames_dir, exr=False, checkpoint_data=None, on_frame=None):
         """:func:`mi_nerfpp.output.video.render_frames` of ``cameras`` (index -> camera)."""
         if not os.path.isdir(frames_dir):
             raise RuntimeError(f'{frames_dir} is not visible on node {socket.gethostname()}: '
@@ -228,7 +228,7 @@ class FramePool:
         """The process ids of the workers (after they started)."""
         return self.ray.get([a.pid.remote() for a in self.actors])
 
-    def render(self, cameras, indices, frames_dir, exr=False, chunk=None, on_frames=None):
+    def render_frames(self, cameras, indices, frames_dir, exr=False, chunk=None, on_frames=None):
         """Render frames ``indices`` of ``cameras`` to ``frames_dir`` across the workers, in
         chunks of ``chunk`` frames (default: about four chunks per worker, at most 8 frames);
         ``on_frames(n)`` after each chunk. A worker that dies for good leaves its chunks to
@@ -245,7 +245,7 @@ class FramePool:
         def submit():
             while queue and idle:
                 actor, part = idle.pop(), queue.pop(0)
-                ref = actor.render.remote({i: cameras[i] for i in part}, frames_dir, exr,
+                ref = actor.render_frames.remote({i: cameras[i] for i in part}, frames_dir, exr,
                                           self.data)
                 running[ref] = (actor, part)
 

@@ -209,13 +209,13 @@ def proxy_mesh(model, resolution=128, level=None, chunk=1 << 18):
             f'would mesh where it is densest')
     verts, faces, normals, _ = marching_cubes(volume, level, spacing=(step, step, step))
     verts = verts - 1.0                       # the grid starts at -1 on every axis
-    colours = _surface_colour(fg, verts, normals)
+    colors = _surface_color(fg, verts, normals)
     norm = model.normalization
     world = verts / norm.scale + norm.center_array
-    return world, faces.astype(np.int64), colours
+    return world, faces.astype(np.int64), colors
 
 
-def _surface_colour(field, points, normals):
+def _surface_color(field, points, normals):
     """Linear radiance of ``field`` at ``points`` seen along the inward normals. (scikit-image's
     gradient normals point towards lower values: out of the surface.)"""
     n = len(points)
@@ -233,21 +233,21 @@ def _surface_colour(field, points, normals):
     return np.clip(np.array(rgb, dtype=np.float64).reshape(3, -1).T, 0.0, None)
 
 
-def write_ply(path, vertices, faces=None, colours=None):
+def write_ply(path, vertices, faces=None, colors=None):
     """An ASCII PLY of ``vertices`` (N x 3), optional ``faces`` (M x 3) and linear ``colours``
     (N x 3, written sRGB-encoded as 8-bit), atomically."""
     lines = ['ply', 'format ascii 1.0', f'element vertex {len(vertices)}',
              'property float x', 'property float y', 'property float z']
-    if colours is not None:
+    if colors is not None:
         lines += ['property uchar red', 'property uchar green', 'property uchar blue']
-        rgb8 = to_srgb8(np.asarray(colours, dtype=np.float32).reshape(-1, 1, 3)).reshape(-1, 3)
+        rgb8 = to_srgb8(np.asarray(colors, dtype=np.float32).reshape(-1, 1, 3)).reshape(-1, 3)
     if faces is not None:
         lines += [f'element face {len(faces)}', 'property list uchar int vertex_indices']
     lines.append('end_header')
     body = []
     for i, v in enumerate(vertices):
         row = f'{v[0]:.7g} {v[1]:.7g} {v[2]:.7g}'
-        if colours is not None:
+        if colors is not None:
             row += ' {} {} {}'.format(*rgb8[i])
         body.append(row)
     if faces is not None:
@@ -256,14 +256,14 @@ def write_ply(path, vertices, faces=None, colours=None):
         f.write('\n'.join(lines + body) + '\n')
 
 
-def write_proxy_usd(path, vertices, faces, colours):
+def write_proxy_usd(path, vertices, faces, colors):
     """The proxy mesh as ``path`` (a USD layer with a default prim /proxy)."""
     from pxr import Usd  # deferred: usd-core is the optional extra [export]
     with atomic_write_path(path) as tmp:      # a UTF-8 name: USD takes no other bytes
-        _write_proxy_usd(Usd.Stage.CreateNew(tmp), vertices, faces, colours)
+        _write_proxy_usd(Usd.Stage.CreateNew(tmp), vertices, faces, colors)
 
 
-def _write_proxy_usd(stage, vertices, faces, colours):
+def _write_proxy_usd(stage, vertices, faces, colors):
     from pxr import UsdGeom, Vt  # deferred: usd-core is the optional extra [export]
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     mesh = UsdGeom.Mesh.Define(stage, '/proxy')
@@ -275,9 +275,9 @@ def _write_proxy_usd(stage, vertices, faces, colours):
     # right-handed: reverse the triangles so their normals point out of the surface.
     mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray.FromNumpy(
         np.ascontiguousarray(np.asarray(faces)[:, ::-1], dtype=np.int32).ravel()))
-    colour = mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
+    color = mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
     # displayColor is linear by USD's convention.
-    colour.Set(Vt.Vec3fArray.FromNumpy(np.asarray(colours, np.float32)))
+    color.Set(Vt.Vec3fArray.FromNumpy(np.asarray(colors, np.float32)))
     stage.GetRootLayer().Save()
 
 
@@ -395,15 +395,15 @@ def _write_export(model, meta, dataset, out, resolution, density, warn) -> list[
                                                dataset.train.cameras[0]), sfm)
     written = []
     try:
-        vertices, faces, colours = proxy_mesh(model, resolution, density)
+        vertices, faces, colors = proxy_mesh(model, resolution, density)
     except NoSurfaceError as e:
         warn(f'warning: export: no proxy mesh: {e}; the cameras are exported')
         proxy = None
     else:
         if sfm is not None and len(vertices):
             vertices = np.stack([sfm.to_world_point(v) for v in vertices])
-        write_ply(os.path.join(out, 'proxy.ply'), vertices, faces, colours)
-        write_proxy_usd(os.path.join(out, 'proxy.usda'), vertices, faces, colours)
+        write_ply(os.path.join(out, 'proxy.ply'), vertices, faces, colors)
+        write_proxy_usd(os.path.join(out, 'proxy.usda'), vertices, faces, colors)
         written += [os.path.join(out, 'proxy.ply'), os.path.join(out, 'proxy.usda')]
         proxy = 'proxy.usda'
     written.append(write_usd(out, cameras, video, proxy))

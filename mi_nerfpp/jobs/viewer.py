@@ -700,7 +700,7 @@ class Viewer:
     def _plot_held_out(self):
         """One plot per kind of held-out point, PSNR against step (uPlot draws nothing of a
         series with gaps as viser sends them, so the kinds are not put on one x axis)."""
-        for kind, label, colour in (('all', 'all held-out views', 'orange'),
+        for kind, label, color in (('all', 'all held-out views', 'orange'),
                                     ('preview', 'the preview view', 'steelblue')):
             points = [p for p in self.stats.held_out if p[2] == kind]
             if not points:
@@ -715,7 +715,7 @@ class Viewer:
             with self._plot_folder:
                 self.psnr_plots[kind] = self._plot_gui.add_uplot(
                     data=data, series=({'label': 'step'},
-                                       {'label': label, 'stroke': colour, 'width': 2,
+                                       {'label': label, 'stroke': color, 'width': 2,
                                         'points': {'show': True}}),
                     scales={'x': {'time': False}}, aspect=2.0)
 

@@ -62,7 +62,7 @@ class OpaqueSphere:
         self.radius = float(radius)
         self.background = mi.Color3f(*[float(v) for v in background])
 
-    def render(self, o, d):
+    def radiance(self, o, d):
         """Colour of each ray (Color3f)."""
         x, _, hit = sphere_hit(o, d, self.center, self.radius)
         ray = dr.arange(mi.UInt32, dr.width(hit))
@@ -78,7 +78,7 @@ class OpaqueSphere:
         for s in range(0, len(o), chunk):
             oc = mi.Point3f(*[mi.Float(o[s:s + chunk, i]) for i in range(3)])
             dc = mi.Vector3f(*[mi.Float(d[s:s + chunk, i]) for i in range(3)])
-            out.append(np.array(self.render(oc, dc), dtype=np.float32).T)   # (3, n) -> (n, 3)
+            out.append(np.array(self.radiance(oc, dc), dtype=np.float32).T)   # (3, n) -> (n, 3)
         return np.concatenate(out).reshape(camera.height, camera.width, 3)
 
 
@@ -102,7 +102,7 @@ def fit_radiance(sphere, rays, iterations, batch_rays=4096, lr_mlp=optim.LR_MLP,
         batch, gt = rays.batch(rng.integers(0, rays.size, batch_rays))
         for k in opt.keys():
             field.params[k] = opt[k]
-        rgb = sphere.render(batch.o, batch.d)
+        rgb = sphere.radiance(batch.o, batch.d)
         loss = optim.mse(rgb, gt)
         dr.backward(loss)
         opt.step()

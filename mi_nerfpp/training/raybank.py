@@ -131,7 +131,7 @@ class RayBank:
         rays = Rays(mi.Point3f(*[mi.Float(c) for c in o]),
                     mi.Vector3f(*[mi.Float(c / norm) for c in d]), image=image,
                     footprint=self.footprint(index) if footprint else None)
-        return rays, mi.Color3f(*self._colour(image, x, y))
+        return rays, mi.Color3f(*self._color(image, x, y))
 
     def footprint(self, index):
         """The pixel footprint of the rays ``index``: the width of their pixel at this level
@@ -163,7 +163,7 @@ class RayBank:
                     dr.minimum(total, value) if least else total + value)
         return mi.Float(total) / (255.0 * (1 if least else f * f))
 
-    def _colour(self, image, x, y):
+    def _color(self, image, x, y):
         """The colour (three Floats) of this level's pixels ``(x, y)`` of ``image``: the mean
         of the stored F x F block, summed in Float64 (integers exactly) and rounded once."""
         n, h, w, kind, scale = self.layout

@@ -52,16 +52,16 @@ def test_holes_take_their_known_neighbours_colour_without_edges():
     texels much larger than the known data's own."""
     h, w = 32, 64
     lon = np.linspace(0, 2 * np.pi, w, endpoint=False)
-    colour = np.stack([0.5 + 0.4 * np.sin(lon), 0.5 + 0.4 * np.cos(lon), np.full(w, 0.3)], -1)
+    color = np.stack([0.5 + 0.4 * np.sin(lon), 0.5 + 0.4 * np.cos(lon), np.full(w, 0.3)], -1)
     counts = np.zeros((h, w))
     counts[20:] = 3                                   # the lower rows seen, the upper not
-    sums = np.broadcast_to(colour, (h, w, 3)) * counts[..., None]
+    sums = np.broadcast_to(color, (h, w, 3)) * counts[..., None]
     filled = fill_holes(sums, counts)
-    np.testing.assert_allclose(filled[20:], np.broadcast_to(colour, (h - 20, w, 3)))
-    assert filled.min() >= colour.min() - 1e-9 and filled.max() <= colour.max() + 1e-9
+    np.testing.assert_allclose(filled[20:], np.broadcast_to(color, (h - 20, w, 3)))
+    assert filled.min() >= color.min() - 1e-9 and filled.max() <= color.max() + 1e-9
     # (a harmonic extension of the known row is as steep across as the row is along it;
     # push-pull alone leaves steps of 1.7 times that)
-    known_step = np.abs(np.diff(colour, axis=0)).max()
+    known_step = np.abs(np.diff(color, axis=0)).max()
     steps = max(np.abs(np.diff(filled[:21], axis=0)).max(),
                 np.abs(np.diff(filled[:20], axis=1)).max())
     assert steps <= 1.1 * known_step
@@ -89,15 +89,15 @@ def test_a_ring_of_cameras_sees_the_horizon_and_paints_the_sky_with_its_colours(
     np.testing.assert_allclose(seen[horizon], 1.0, atol=1e-3)    # (softened at the edges)
     np.testing.assert_allclose(seen[poles], 0.0, atol=1e-3)
     linear = srgb_eotf(greys)
-    colour = fill.colour.reshape(-1, 3)
-    assert np.all(colour >= linear.min() - 1e-6) and np.all(colour <= linear.max() + 1e-6)
+    color = fill.color.reshape(-1, 3)
+    assert np.all(color >= linear.min() - 1e-6) and np.all(color <= linear.max() + 1e-6)
     # Every other camera of the ring: near camera 0's axis (-x) only it looks, 60 degrees
     # from the next; those texels hold its grey.
     sparse = CoverageFill.of_views(RING[::2], images[::2], 'srgb', resolution=64,
-                                   colour_resolution=64)
+                                   color_resolution=64)
     near_axis = texel_of([[-1, 0, 0], [-1, 0.1, 0.1], [-1, -0.1, -0.1], [-1, 0.1, -0.1]], 64)
     np.testing.assert_allclose(sparse.seen.ravel()[near_axis], 0.5, atol=1e-3)
-    np.testing.assert_allclose(sparse.colour.reshape(-1, 3)[near_axis], linear[0], rtol=1e-5)
+    np.testing.assert_allclose(sparse.color.reshape(-1, 3)[near_axis], linear[0], rtol=1e-5)
 
 
 def _rays(directions, origin=(0.0, 0.0, 0.0)):
@@ -141,7 +141,7 @@ def test_the_fill_round_trips_through_the_checkpoint_and_the_integrator_can_turn
     save_checkpoint(tmp_path / 'model.npz', model)
     loaded, _, _ = load_checkpoint(tmp_path / 'model.npz')
     np.testing.assert_array_equal(loaded.coverage.seen, model.coverage.seen)
-    np.testing.assert_array_equal(loaded.coverage.colour, model.coverage.colour)
+    np.testing.assert_array_equal(loaded.coverage.color, model.coverage.color)
     without = tiny_model()
     save_checkpoint(tmp_path / 'plain.npz', without)
     assert load_checkpoint(tmp_path / 'plain.npz')[0].coverage is None

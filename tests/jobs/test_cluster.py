@@ -55,7 +55,7 @@ def test_killed_worker_still_yields_every_frame(tiny_run, cluster, tmp_path):
     frames, reference = tmp_path / 'video_frames', tmp_path / 'reference'
     for folder in (frames, reference):
         prepare_frames_dir(str(folder), job)
-    FrameWorker(checkpoint).render(dict(enumerate(cameras)), str(reference), exr=True)
+    FrameWorker(checkpoint).render_frames(dict(enumerate(cameras)), str(reference), exr=True)
 
     pool = FramePool(checkpoint, workers=2, cpus=1)
     pids = pool.pids()
@@ -67,7 +67,7 @@ def test_killed_worker_still_yields_every_frame(tiny_run, cluster, tmp_path):
             killed.append(pids[0])
 
     try:
-        pool.render(cameras, range(8), str(frames), exr=True, chunk=1, on_frames=kill_a_worker)
+        pool.render_frames(cameras, range(8), str(frames), exr=True, chunk=1, on_frames=kill_a_worker)
         assert killed and pool.pids()[0] != pids[0]     # Ray restarted the killed worker
     finally:
         pool.close()

@@ -129,12 +129,12 @@ def test_proxy_mesh_of_a_reconstructed_sphere_is_in_world_coordinates(tmp_path):
     norm = Normalization(center=(1.0, -2.0, 3.0), scale=0.25)
     model = NeRFPPModel(AnalyticField(ball, (0.5, 0.25, 0.125)), None, normalization=norm,
                         color_space='linear')
-    vertices, faces, colours = export.proxy_mesh(model, resolution=64)
+    vertices, faces, colors = export.proxy_mesh(model, resolution=64)
     radius = np.linalg.norm((vertices - norm.center_array) * norm.scale, axis=1)
     np.testing.assert_allclose(radius, 0.5, atol=2.0 / 63)
-    np.testing.assert_allclose(colours, np.broadcast_to([0.5, 0.25, 0.125], colours.shape),
+    np.testing.assert_allclose(colors, np.broadcast_to([0.5, 0.25, 0.125], colors.shape),
                                atol=1e-6)
-    export.write_ply(tmp_path / 'p.ply', vertices, faces, colours)
+    export.write_ply(tmp_path / 'p.ply', vertices, faces, colors)
     header = open(tmp_path / 'p.ply').read().split('end_header')[0]
     assert f'element vertex {len(vertices)}' in header and f'element face {len(faces)}' in header
     with pytest.raises(ValueError, match='never reaches'):

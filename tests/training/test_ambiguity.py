@@ -53,7 +53,7 @@ def test_rays_that_miss_see_the_background_and_colour_depends_on_direction():
     d = mi.Vector3f([0, 0, 0], [0, 0, 0.6], [1, 1, 0.8])
     x, _, _ = sphere_hit(o, d, (0, 0, 0), 1.0)
     np.testing.assert_allclose(np.array(x)[:, 1:], [[0, 0], [0, 0], [-1, -1]], atol=1e-6)
-    rgb = np.array(sphere.render(o, d))          # (3 channels, 3 rays)
+    rgb = np.array(sphere.radiance(o, d))          # (3 channels, 3 rays)
     np.testing.assert_allclose(rgb[:, 0], [0.25, 0.5, 0.75])
     assert not np.allclose(rgb[:, 1], rgb[:, 2])
     with pytest.raises(ValueError, match='radius'):

@@ -168,7 +168,7 @@ def test_matte_iou():
 
 
 def test_masked_pixels_do_not_colour_the_coverage_fill(capture):
-    from mi_nerfpp.core.coverage import mean_colours
+    from mi_nerfpp.core.coverage import mean_colors
     split = with_masks(load_dataset(capture).train, seed=4)
     painted = []
     for image, mask in zip(split.images, split.masks):
@@ -176,7 +176,7 @@ def test_masked_pixels_do_not_colour_the_coverage_fill(capture):
         changed[mask == 0] = [1.0, 0.0, 1.0]
         painted.append(changed)
     weights = [m / 255.0 for m in split.masks]
-    ours = mean_colours(split.cameras, painted, 'srgb', 16, weights)
-    np.testing.assert_allclose(ours, mean_colours(split.cameras, list(split.images), 'srgb', 16,
+    ours = mean_colors(split.cameras, painted, 'srgb', 16, weights)
+    np.testing.assert_allclose(ours, mean_colors(split.cameras, list(split.images), 'srgb', 16,
                                                   weights), atol=1e-12)
-    assert not np.allclose(ours, mean_colours(split.cameras, painted, 'srgb', 16))
+    assert not np.allclose(ours, mean_colors(split.cameras, painted, 'srgb', 16))

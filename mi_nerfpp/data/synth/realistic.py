@@ -232,9 +232,9 @@ def _degrade(src, stem, K, pose, index, r: Realism, rng, radius, blur, transient
         linear = _weather(linear, layers['depth.Z'], r, rng, view)
     if transient:
         mask = _transient_mask(h, w, rng)
-        colour = rng.uniform(0.02, 0.6, 3)
+        color = rng.uniform(0.02, 0.6, 3)
         shade = np.linspace(1.3, 0.6, h)[:, None, None]     # lit from above
-        linear = np.where(mask[..., None], colour * shade, linear)
+        linear = np.where(mask[..., None], color * shade, linear)
         os.makedirs(os.path.join(out, 'transients'), exist_ok=True)
         iio.imwrite(os.path.join(out, 'transients', stem + '.png'),
                     mask.astype(np.uint8) * 255)

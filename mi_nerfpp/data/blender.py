@@ -45,6 +45,7 @@ from mi_nerfpp.data.dataset import Dataset, Frame, make_dataset, make_splits
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.images import image_size
 from mi_nerfpp.data.undistort import CACHE_INDEX, View, undistort_views
+from mi_nerfpp.files.readers import read_json
 
 SPLIT_FILES = {'train': 'transforms_train.json', 'validation': 'transforms_val.json',
                'test': 'transforms_test.json'}
@@ -117,11 +118,8 @@ def read_transforms(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
 def _read_frames(json_path: str, sort: bool = False) -> list[Frame]:
     """Frames of one transforms JSON file whose images exist (sorted by image path if
     ``sort``), those with lens distortion undistorted."""
-    try:
-        with open(json_path) as f:
-            meta = json.load(f)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DatasetError(f'{json_path}: cannot read JSON ({e})') from e
+    meta = read_json(json_path, what='JSON cameras file', remedy='fix the file or export the '
+                     'dataset again', expect=None, error=DatasetError)
     if not isinstance(meta, dict) or not isinstance(meta.get('frames'), list):
         raise DatasetError(f'{json_path}: expected an object with a "frames" list')
     shared = _camera_params(meta, json_path)
@@ -244,10 +242,16 @@ def _camera_params(entry: dict, source: str) -> dict:
                                f'distortion) is not supported: mi-nerfpp reads perspective and '
                                f'OpenCV fisheye cameras; convert the images to perspective '
                                f'views first')
-    try:
-        params = {k: float(entry[k]) for k in NUMERIC_KEYS if k in entry}
-    except (TypeError, ValueError) as e:
-        raise DatasetError(f'{source}: intrinsics must be numbers ({e})') from e
+    params = {}
+    for key in NUMERIC_KEYS:
+        if key in entry:
+            try:
+                params[key] = float(entry[key])
+            except (TypeError, ValueError, OverflowError):
+                shown = json.dumps(entry[key])
+                shown = shown if len(shown) <= 40 else shown[:37] + '...'
+                raise DatasetError(f'{source}: intrinsics must be numbers: "{key}" is '
+                                   f'{shown}') from None
     if model is not None:
         params['camera_model'] = model
     if 'is_fisheye' in entry:
@@ -283,8 +287,9 @@ def _pose_matrix(value, source: str) -> np.ndarray:
     """4x4 matrix of a ``transform_matrix`` (a 3x4 one gets the row 0 0 0 1)."""
     try:
         matrix = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as e:
-        raise DatasetError(f'{source}: transform_matrix is not a numeric matrix ({e})') from e
+    except (TypeError, ValueError, OverflowError):
+        raise DatasetError(f'{source}: transform_matrix must be a 4x4 (or 3x4) matrix of '
+                           f'numbers') from None
     if matrix.shape == (3, 4):
         matrix = np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
     if matrix.shape != (4, 4):

@@ -17,6 +17,7 @@ import numpy as np
 from mi_nerfpp.data import masks
 from mi_nerfpp.data.dataset import Dataset, Frame, make_dataset, make_splits
 from mi_nerfpp.data.errors import DatasetError
+from mi_nerfpp.files.readers import FileReadError, read_npy
 
 POSES_FILE = 'poses_bounds.npy'
 IMAGE_FOLDER = 'images'
@@ -66,19 +67,14 @@ def read_llff(path, downscale: int | None = 1, background=(1.0, 1.0, 1.0),
     expected = ('an N x 17 float array (3x5 pose + 2 bounds per image) saved with numpy.save, '
                 "as LLFF's imgs2poses.py writes it")
     try:
-        # Mapped, then copied: a header that declares more data than the file holds is
-        # refused (ValueError) instead of allocated.
-        poses_bounds = np.load(poses_path, allow_pickle=False, mmap_mode='r')
-        if isinstance(poses_bounds, np.ndarray):
-            poses_bounds = np.array(poses_bounds)
-    except FileNotFoundError:
-        raise DatasetError(f'{poses_path}: not found') from None
-    except (OSError, ValueError, EOFError, MemoryError) as e:
-        raise DatasetError(f'{poses_path}: not a NumPy array file ({type(e).__name__}); expected '
+        poses_bounds = read_npy(poses_path, what='camera poses')
+    except FileReadError as e:
+        if e.detail == 'not found':
+            raise DatasetError(f'{poses_path}: not found') from None
+        raise DatasetError(f'{poses_path}: not a NumPy array file ({e.detail}); expected '
                            f'{expected}') from None
-    if not isinstance(poses_bounds, np.ndarray) or not np.issubdtype(poses_bounds.dtype,
-                                                                      np.number):
-        raise DatasetError(f'{poses_path}: holds {getattr(poses_bounds, "dtype", "no")} data; '
+    if not np.issubdtype(poses_bounds.dtype, np.number):
+        raise DatasetError(f'{poses_path}: holds {poses_bounds.dtype} data; '
                            f'expected {expected}')
     if poses_bounds.ndim != 2 or poses_bounds.shape[1] != 17:
         raise DatasetError(f'{poses_path}: expected an N x 17 array (3x5 pose + 2 bounds per '

@@ -47,6 +47,7 @@ from mi_nerfpp.data.colmap import colmap_frames, pinhole_model, with_masks
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.nerfpp import write_camera
 from mi_nerfpp.files.atomic import remove_entries
+from mi_nerfpp.files.readers import FileReadError, read_json
 
 PHOTO_EXTENSIONS = ('.jpg', '.jpeg', '.png', '.tif', '.tiff')
 MATCHING = ('exhaustive', 'sequential')
@@ -97,9 +98,8 @@ def _fingerprint(photos: str, names: list[str]) -> list:
 def read_report(out) -> dict | None:
     """``OUT/sfm.json``, or None if there is none (or it is unreadable)."""
     try:
-        with open(os.path.join(os.fspath(out), SFM_FILE)) as f:
-            report = json.load(f)
-    except (OSError, ValueError):
+        report = read_json(os.path.join(os.fspath(out), SFM_FILE), what='SfM report')
+    except FileReadError:       # none, or damaged: the photos are solved again
         return None
     return report if report.get('format') == SFM_FORMAT else None
 

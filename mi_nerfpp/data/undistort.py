@@ -45,6 +45,7 @@ from tqdm import tqdm
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.images import _read_exr, _read_ldr
 from mi_nerfpp.files.atomic import atomic_write_path
+from mi_nerfpp.files.readers import FileReadError, read_json
 
 # The index of a transforms.json undistortion cache (written last: its time stamps the cache).
 CACHE_INDEX = 'cameras.json'
@@ -193,17 +194,13 @@ def undistort_views(views: list[View], out: str, sources: Iterable[str] = (),
     sources = list(sources) + [view.image_path for view in views]
     entries = [_entry(view, out) for view in views]
     cached = _read_index(index_path) if is_fresh([index_path], sources) else None
-    if cached is not None and cached.get('pycolmap') == pycolmap.__version__ and all(
-            cached['images'].get(view.name, {}).get('source') == entry['source']
-            and cached['images'][view.name].get('distorted') == entry['distorted']
-            and 'pinhole' in cached['images'][view.name]
-            and os.path.isfile(os.path.join(out, view.name))
-            for view, entry in zip(views, entries)):
+    held = (_cached_pinholes(cached, views, entries, out)
+            if cached is not None and cached.get('pycolmap') == pycolmap.__version__ else None)
+    if held is not None:
         if progress:
             print(f'{what}: lens distortion ({models}) in {len(views)} images: reading them '
                   f'undistorted to pinhole cameras from {out}/')
-        return [_pinhole(out, view.name, cached['images'][view.name]['pinhole'])
-                for view in views]
+        return held
 
     if progress:
         print(f'{what}: lens distortion ({models}) in {len(views)} images: undistorting them '
@@ -252,14 +249,28 @@ def _entry(view: View, out: str) -> dict:
                       'params': [float(p) for p in camera.params]}}))
 
 
+def _cached_pinholes(cached: dict, views, entries, out: str) -> list | None:
+    """The pinhole cameras of ``views`` that the cache index ``cached`` holds, or None where
+    it does not hold them all, or holds them damaged: then they are made again."""
+    try:
+        images = cached['images']
+        if not all(images.get(view.name, {}).get('source') == entry['source']
+                   and images[view.name].get('distorted') == entry['distorted']
+                   and 'pinhole' in images[view.name]
+                   and os.path.isfile(os.path.join(out, view.name))
+                   for view, entry in zip(views, entries)):
+            return None
+        return [_pinhole(out, view.name, images[view.name]['pinhole']) for view in views]
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError):
+        return None
+
+
 def _read_index(path: str) -> dict | None:
     try:
-        with open(path) as f:
-            index = json.load(f)
-        return index if isinstance(index, dict) and isinstance(index.get('images'), dict) \
-            else None
-    except (OSError, ValueError):
+        index = read_json(path, what='undistortion cache index')
+    except FileReadError:       # none, or damaged: the images are undistorted again
         return None
+    return index if isinstance(index.get('images'), dict) else None
 
 
 def kept_share(distorted, pinhole, samples: int = 64) -> float:
@@ -313,7 +324,7 @@ def check_kept(view: View, pinhole, what: str = ''):
 
 
 def _pinhole(out: str, name: str, camera: dict) -> Pinhole:
-    fx, fy, cx, cy = camera['params']
+    fx, fy, cx, cy = (float(v) for v in camera['params'])
     return Pinhole(os.path.join(out, name), np.array([[fx, 0.0, cx], [0.0, fy, cy],
                                                       [0.0, 0.0, 1.0]]),
                    int(camera['width']), int(camera['height']))

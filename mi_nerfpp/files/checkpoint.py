@@ -41,8 +41,6 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
-
 import numpy as np
 
 from mi_nerfpp.core.arrays import owned
@@ -53,6 +51,7 @@ from mi_nerfpp.core.occupancy import OccupancyGrid
 from mi_nerfpp.core.render import SKIPPING, Sampling
 from mi_nerfpp.core.coverage import CoverageFill
 from mi_nerfpp.files.atomic import atomic_write_path
+from mi_nerfpp.files.readers import FileReadError, decode_json, read_npz
 
 FORMAT = 'mi-nerfpp-checkpoint'
 VERSION = 4
@@ -147,34 +146,40 @@ def save_checkpoint(path, model, meta=None, state=None):
         os.fsync(f.fileno())
 
 
-def _read(path):
+# What to do about a checkpoint that cannot be read.
+REMEDY = 'restore it from a copy, or train the model again'
+
+
+def _read(path, keys=None):
+    """``{name: array}`` of the checkpoint ``path`` (those of ``keys`` only, when given);
+    :class:`CheckpointError` for a file that is missing, empty or not an ``.npz`` archive."""
     if not os.path.isfile(path):
         raise CheckpointError(f'{path}: checkpoint not found')
     if os.path.getsize(path) == 0:
         raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint: the file is empty (0 bytes)')
     try:
-        z = np.load(path, allow_pickle=False)
-        if not isinstance(z, np.lib.npyio.NpzFile):     # a bare .npy array
-            raise ValueError('a NumPy array file, not an .npz archive')
-        with z:
-            return {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, TypeError,
-            UnicodeDecodeError, NotImplementedError) as e:
-        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): '
-                              f'{e or type(e).__name__}') from None
+        return read_npz(path, what='checkpoint', keys=keys)
+    except FileReadError as e:
+        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): {e.detail}: '
+                              f'{REMEDY}') from None
+
+
+def _config(z, path) -> dict:
+    """The config stored in the checkpoint ``path`` (its arrays ``z``), decoded."""
+    if 'config' not in z:
+        raise CheckpointError(f"{path}: not a mi-nerfpp checkpoint (no 'config' entry)")
+    return decode_json(str(z['config']), path, what='checkpoint config', remedy=REMEDY,
+                       error=CheckpointError)
 
 
 def read_meta(path) -> dict:
     """The ``meta`` a checkpoint was saved with (its training config, iteration, ...), read
     without building its model; errors as :func:`load_checkpoint`'s."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise CheckpointError(f'{path}: checkpoint not found')
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return json.loads(str(z['config'])).get('meta', {})
-    except (zipfile.BadZipFile, ValueError, OSError, KeyError) as e:
-        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): {e}') from None
+    meta = _config(_read(path, keys=('config',)), path).get('meta', {})
+    if not isinstance(meta, dict):
+        raise CheckpointError(f'{path}: invalid config: its "meta" is not an object: {REMEDY}')
+    return meta
 
 
 def load_checkpoint(path, seed=0):
@@ -191,8 +196,9 @@ def load_checkpoint(path, seed=0):
     if version not in READABLE_VERSIONS:
         raise CheckpointError(f'{path}: checkpoint version {version}, this mi-nerfpp reads '
                               f'{", ".join(map(str, READABLE_VERSIONS))}')
+    config = _config(z, path)
     try:
-        config = migrate_config(json.loads(str(z['config'])), version)
+        config = migrate_config(config, version)
         fg = make_field(config['fg'], seed=seed)
         bg = make_field(config['bg'], seed=seed + 1) if config.get('bg') else None
         occupancy = {k: OccupancyGrid(density=z[f'occupancy/{k}'], **c)
@@ -210,7 +216,7 @@ def load_checkpoint(path, seed=0):
         fill = {k[len('coverage/'):]: v for k, v in z.items() if k.startswith('coverage/')}
         if fill:
             model.coverage = CoverageFill.from_arrays(fill)
-    except (KeyError, ValueError, TypeError) as e:
+    except (KeyError, ValueError, TypeError, AttributeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None
 
     expected = model.parameters()
@@ -237,11 +243,12 @@ def read_version(path) -> int:
     """The format version a checkpoint was written with (1 when it does not say); errors as
     :func:`read_meta`'s."""
     path = os.fspath(path)
+    z = _read(path, keys=('version',))
     try:
-        with np.load(path, allow_pickle=False) as z:
-            return int(z['version']) if 'version' in z.files else 1
-    except (zipfile.BadZipFile, ValueError, OSError, TypeError) as e:
-        raise CheckpointError(f'{path}: not a mi-nerfpp checkpoint (.npz archive): {e}') from None
+        return int(z['version']) if 'version' in z else 1
+    except (TypeError, ValueError):
+        raise CheckpointError(f"{path}: not a mi-nerfpp checkpoint (no integer 'version' "
+                              f"entry)") from None
 
 
 def _sampling(config):

@@ -61,6 +61,7 @@ from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.data.colmap import read_model
 from mi_nerfpp.data.sfm import read_report
 from mi_nerfpp.files.atomic import atomic_write_path, check_writable_folder
+from mi_nerfpp.files.readers import FileReadError, read_json
 from mi_nerfpp.jobs.run import open_run
 from mi_nerfpp.output.video import orbit_cameras
 
@@ -360,8 +361,7 @@ def finish_swap(out):
         shutil.rmtree(staging, ignore_errors=True)
         shutil.rmtree(old, ignore_errors=True)
         return
-    with open(manifest) as f:
-        new = json.load(f)['files']
+    new = _manifest_files(manifest, remedy=f'delete the folder {staging} and export again')
     os.makedirs(old, exist_ok=True)
     for name in _previous_export(out):
         if name not in new:                    # the new export overwrites the others
@@ -379,10 +379,21 @@ def finish_swap(out):
 def _previous_export(out) -> list[str]:
     """The files the last export into ``out`` wrote (its manifest)."""
     try:
-        with open(os.path.join(out, MANIFEST)) as f:
-            return list(json.load(f)['files'])
-    except (OSError, ValueError, KeyError, TypeError):
+        return _manifest_files(os.path.join(out, MANIFEST))
+    except FileReadError:       # none (no export before), or damaged: nothing to move aside
         return []
+
+
+def _manifest_files(path, remedy=None) -> list[str]:
+    """The names an export's manifest lists; :class:`FileReadError` for one that cannot be
+    read or does not list names."""
+    manifest = read_json(path, what='export manifest', remedy=remedy)
+    names = manifest.get('files')
+    if not isinstance(names, list) or not all(isinstance(name, str) and name and
+                                              os.path.basename(name) == name for name in names):
+        raise FileReadError(f'{path}: cannot read export manifest (its "files" is not a list of '
+                            f'file names)' + (f': {remedy}' if remedy else ''))
+    return names
 
 
 def _write_export(model, meta, dataset, out, resolution, density, warn) -> list[str]:

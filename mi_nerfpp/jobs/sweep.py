@@ -11,7 +11,6 @@ tasks (:func:`mi_nerfpp.jobs.cluster.run_tasks`).
 """
 from __future__ import annotations
 
-import json
 import os
 import re
 import time
@@ -19,6 +18,7 @@ from dataclasses import dataclass
 
 from mi_nerfpp.core import budget
 from mi_nerfpp.errors import error_line
+from mi_nerfpp.files.readers import read_json
 from mi_nerfpp.jobs import run
 from mi_nerfpp.jobs.cluster import set_threads
 from mi_nerfpp.training.config import TrainConfig
@@ -80,8 +80,8 @@ def run_job(job: SweepJob, threads=None) -> dict:
         done = finished(job.out) and not job.overwrite
         if not done:
             _train(job)
-        with open(metrics_path) as f:
-            metrics = json.load(f)
+        metrics = read_json(metrics_path, what='metrics file', remedy='evaluate the run again '
+                            f'(mi-nerfpp evaluate {job.out})')
         test = metrics.get('test', {})
         row.update(status='finished before' if done else 'ok', psnr=test.get('psnr'),
                    ssim=test.get('ssim'), iterations=metrics.get('iterations'),

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import json
 import math
 import os
 import socket
@@ -51,6 +50,7 @@ from mi_nerfpp.core.color import to_srgb8
 from mi_nerfpp.data import Camera
 from mi_nerfpp.files.checkpoint import load_checkpoint
 from mi_nerfpp.files.preview import depth_to_png
+from mi_nerfpp.files.readers import FileReadError, read_json
 from mi_nerfpp.jobs.run import RunObserver, open_run
 from mi_nerfpp.output.camera_path import (CameraPath, Pose, camera_pose,
                                           intrinsics, pose_camera, read_path,
@@ -793,12 +793,10 @@ def open_viewer(run_dir, host='127.0.0.1', port=8080, max_width=DEFAULT_MAX_WIDT
     model, meta, _, splits = open_run(run_dir)
     viewer = Viewer(model, splits, run_dir, host, port, max_width=max_width,
                     color_space=splits.color_space)
-    metrics = None
     try:
-        with open(os.path.join(run_dir, 'metrics.json')) as f:
-            metrics = json.load(f)
-    except (OSError, ValueError):
-        pass
+        metrics = read_json(os.path.join(run_dir, 'metrics.json'), what='metrics file')
+    except FileReadError:       # none yet (a run being trained), or damaged: not shown
+        metrics = None
     viewer.stats_from_meta(meta, metrics)
     return viewer
 

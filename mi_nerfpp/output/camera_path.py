@@ -35,12 +35,18 @@ from scipy.spatial.transform import Rotation
 
 from mi_nerfpp.data import Camera
 from mi_nerfpp.files.atomic import atomic_write_path
+from mi_nerfpp.files.readers import read_json
 
 FORMAT = 'mi-nerfpp-camera-path'
 VERSION = 1
 DEFAULT_FPS = 24
 DEFAULT_SECONDS = 4.0
 DEFAULT_RESOLUTION = (640, 360)
+# The most frames sampled from the keyframes (seconds x fps): 11.5 hours at 24 fps.
+MAX_FRAMES = 1_000_000
+# What to do about a camera path file that is not one.
+PATH_REMEDY = ('fix the file, or write it again (the viewer\'s path editor, video '
+               '--write-path)')
 # Fields of view a pinhole camera of the path may have (degrees, vertical).
 FOV_RANGE = (1.0, 170.0)
 
@@ -222,14 +228,21 @@ def _pose(data, where):
     return Pose(c2w, fov)
 
 
+def _positive(value) -> bool:
+    """Whether ``value`` is a finite positive JSON number (not true or false)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return 0 < float(value) < math.inf
+    except OverflowError:       # an integer beyond floats
+        return False
+
+
 def read_path(filename) -> CameraPath:
     """Read a camera path file; raises :class:`CameraPathError` naming the file and what is
     wrong. A file without frames has them sampled from its keyframes."""
-    try:
-        with open(filename) as f:
-            data = json.load(f)
-    except json.JSONDecodeError as e:
-        raise CameraPathError(f'{filename}: not a camera path file (not JSON: {e})') from None
+    data = read_json(filename, what='camera path file', remedy=PATH_REMEDY, expect=None,
+                     error=CameraPathError)
     try:
         if not isinstance(data, dict) or data.get('format') != FORMAT:
             raise ValueError(f'not a camera path file (no "format": "{FORMAT}")')
@@ -243,15 +256,21 @@ def read_path(filename) -> CameraPath:
                 or not all(isinstance(v, int) and v > 0 for v in resolution)):
             raise ValueError(f'resolution must be [width, height] in pixels, got {resolution!r}')
         fps = data.get('fps', DEFAULT_FPS)
-        if not isinstance(fps, (int, float)) or not fps > 0:
+        if not _positive(fps):
             raise ValueError(f'fps must be a positive number, got {fps!r}')
+        for key in ('keyframes', 'frames'):
+            if not isinstance(data.get(key, []), list):
+                raise ValueError(f'"{key}" must be a list of poses')
         keyframes = [_pose(k, f'keyframe {i}') for i, k in enumerate(data.get('keyframes', []))]
         frames = [_pose(k, f'frame {i}') for i, k in enumerate(data.get('frames', []))]
         seconds = data.get('seconds')
         if seconds is None:
             seconds = len(frames) / fps if frames else DEFAULT_SECONDS
-        if not isinstance(seconds, (int, float)) or not seconds > 0:
+        if not _positive(seconds):
             raise ValueError(f'seconds must be a positive number, got {seconds!r}')
+        if not frames and not float(seconds) * float(fps) <= MAX_FRAMES:
+            raise ValueError(f'seconds x fps is {float(seconds) * float(fps):g} frames; a path '
+                             f'sampled from its keyframes has at most {MAX_FRAMES:,}')
         path = CameraPath(keyframes, frames, tuple(resolution), float(fps),
                           bool(data.get('loop', False)), float(seconds))
         if not frames:

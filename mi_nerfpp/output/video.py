@@ -9,7 +9,6 @@ function that renders frames to files, in one process or on each worker of a clu
 from __future__ import annotations
 
 import importlib.util
-import json
 import os
 
 import imageio.v2 as iio2
@@ -22,6 +21,7 @@ from mi_nerfpp.files.atomic import (check_writable_folder,
                                     remove_stale_temporaries, write_json)
 from mi_nerfpp.files.exr import write_exr
 from mi_nerfpp.files.preview import write_linear_png
+from mi_nerfpp.files.readers import read_json
 from mi_nerfpp.output.views import rgb
 
 
@@ -153,8 +153,8 @@ def prepare_frames_dir(frames_dir, job: dict):
     check_writable_folder(frames_dir, what='frames folder')
     manifest = os.path.join(frames_dir, MANIFEST)
     if os.path.exists(manifest):
-        with open(manifest) as f:
-            held = json.load(f)
+        held = read_json(manifest, what='frames manifest',
+                         remedy=f'remove the folder {frames_dir} or choose another --frames-dir')
         if held != job:
             changed = ', '.join(f'{k} {held.get(k)!r} -> {job.get(k)!r}'
                                 for k in list(job) + [k for k in held if k not in job]

@@ -85,6 +85,7 @@ from mi_nerfpp.data.synth.trajectories import (DEFAULT_FOV, DEFAULT_RADIUS,
                                                make_cameras, parse_res)
 from mi_nerfpp.files.atomic import atomic_write_path, readable_path
 from mi_nerfpp.files.exr import read_exr, write_exr
+from mi_nerfpp.files.readers import FileReadError, read_json
 
 CAPTURE_FILE = 'capture.json'
 CAPTURE_FORMAT = 'mi-nerfpp-synth'
@@ -188,11 +189,10 @@ def _expected_files(out: str, counts: dict[str, int]) -> list[str]:
 
 def _read_capture(out: str) -> dict | None:
     try:
-        with open(os.path.join(out, CAPTURE_FILE)) as f:
-            info = json.load(f)
-    except (OSError, ValueError):
+        info = read_json(os.path.join(out, CAPTURE_FILE), what='capture description')
+    except FileReadError:       # none, or damaged: not a capture
         return None
-    return info if isinstance(info, dict) and info.get('format') == CAPTURE_FORMAT else None
+    return info if info.get('format') == CAPTURE_FORMAT else None
 
 
 def _write_capture(out: str, info: dict) -> None:

@@ -54,13 +54,13 @@ Everything is deterministic for a given ``seed`` (which also seeds Mitsuba's sam
 """
 from __future__ import annotations
 
-import json
 from importlib import resources
 
 import numpy as np
 
 from mi_nerfpp.data.cameras import Camera
 from mi_nerfpp.data.dataset import SPLITS
+from mi_nerfpp.files.readers import read_json
 
 TRAJECTORIES = ('orbit', 'truck', 'hemisphere', 'arc')
 
@@ -188,8 +188,10 @@ def orbit_cameras(views: int, res, seed: int = DEFAULT_SEED, fov: float = DEFAUL
 
 def _read_truck(split: str) -> list[tuple[str, np.ndarray, np.ndarray, tuple[int, int]]]:
     """(name, K 3x3, c2w 4x4 OpenCV, (W, H)) of one Truck camera file, sorted by name."""
-    path = resources.files('mi_nerfpp') / 'trajectories' / TRUCK_FILES[split]
-    data = json.loads(path.read_text())
+    resource = resources.files('mi_nerfpp') / 'trajectories' / TRUCK_FILES[split]
+    with resources.as_file(resource) as path:
+        data = read_json(path, what='camera file of the package',
+                         remedy='install mi-nerfpp again')
     out = []
     for name in sorted(data):
         entry = data[name]

@@ -28,6 +28,7 @@ def _setup():
     register()
 
 
+variant.catch_interrupt_while_starting()    # Ctrl-C from here to the command: one line, 130
 try:
     _setup()
 except (LLVMNotFoundError, VariantError) as e:

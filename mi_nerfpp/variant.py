@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import ctypes
 import os
+import signal
 import sys
+import threading
 import traceback
 
 from mi_nerfpp import _llvm
@@ -178,6 +180,39 @@ def option_value(argv) -> str | None:
         elif word.startswith('--variant='):
             value = word.partition('=')[2]
     return value
+
+
+def _interrupted_while_starting(signum, frame):
+    """SIGINT while the command line starts: end the process as an interrupted command does."""
+    try:
+        sys.stdout.flush()
+    except Exception:     # noqa: BLE001 - a closed or broken stream: exit all the same
+        pass
+    try:
+        print('interrupted', file=sys.stderr, flush=True)
+    finally:
+        os._exit(130)
+
+
+def catch_interrupt_while_starting(argv=None) -> None:
+    """On the command line, let Ctrl-C while the package and the command are imported (Mitsuba,
+    Dr.Jit, LLVM, viser: seconds, before :func:`mi_nerfpp.commands.cli.main` and its handler
+    run) end the process with ``interrupted`` and status 130, not an import traceback (or an
+    ImportError of an extension whose start-up the KeyboardInterrupt broke). The command's own
+    handling takes over in :func:`end_of_start`. A SIGINT that is ignored (a background job)
+    or handled by the caller is left as it is; a library's import is left alone."""
+    if not command_line(argv)[0] or threading.current_thread() is not threading.main_thread():
+        return
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _interrupted_while_starting)
+
+
+def end_of_start() -> None:
+    """The command runs: Ctrl-C raises KeyboardInterrupt again (its status 130 then comes from
+    the command line's boundary, which may save a checkpoint first)."""
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGINT) is _interrupted_while_starting:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def exit_if_command_line(error: ImportError, argv=None) -> None:

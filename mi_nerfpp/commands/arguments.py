@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 
 from mi_nerfpp.data.synth import parse_res
 
@@ -56,22 +57,39 @@ def whole_between(low: int, high: int, why: str = ''):
     return whole
 
 
-# The most threads a count may ask for: the C int that COLMAP's options take (pycolmap refused
-# 2147483648 with its own "incompatible function arguments" text).
-MAX_THREADS = 2 ** 31 - 1
+# The most threads a count may ask for, per core of this machine: a count that fits COLMAP's C
+# int but not the machine (2147483647) made the library allocate gigabytes before failing
+# (issue 63); COLMAP's work is CPU-bound: more than a few threads per core gains nothing, and
+# each extraction thread holds buffers of its own.
+THREADS_PER_CORE = 4
+
+
+def max_threads() -> int:
+    """The most threads a thread count may ask for: :data:`THREADS_PER_CORE` per core of this
+    machine."""
+    return THREADS_PER_CORE * (os.cpu_count() or 1)
 
 
 def thread_count(value: str) -> int:
     """argparse type of thread counts: -1 (every core) or a whole number from 1 to
-    :data:`MAX_THREADS`."""
+    :func:`max_threads`."""
     try:
         number = int(value)
     except ValueError:
         number = 0
-    if number != -1 and not 1 <= number <= MAX_THREADS:
-        raise argparse.ArgumentTypeError(f"expects -1 (every core) or a whole number from 1 "
-                                         f"to {MAX_THREADS}, got '{value}'")
+    high = max_threads()
+    if number != -1 and not 1 <= number <= high:
+        raise argparse.ArgumentTypeError(
+            f"expects -1 (every core) or a whole number from 1 to {high} ({THREADS_PER_CORE} "
+            f"per core of this machine's {os.cpu_count() or 1}), got '{value}'")
     return number
+
+
+# The ports a server may listen on: 1 to 65535 (0 would be any free port, and the URL printed
+# would not be known in advance). A port beyond reached socket.bind's OverflowError (issue 63).
+MAX_PORT = 65535
+
+port = whole_between(1, MAX_PORT, 'a TCP port')
 
 
 def positive_float(value: str) -> float:

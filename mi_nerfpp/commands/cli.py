@@ -132,6 +132,7 @@ def main(argv=None, *, replace=None):
     process by one that selects it (default: when ``argv`` is None, i.e. main is the program;
     ``optimize.py`` passes True)."""
     print_any_path()
+    variant.end_of_start()      # Ctrl-C raises KeyboardInterrupt again, handled below
     args = build_parser().parse_args(argv)
     try:
         run_in_variant(args, sys.argv[1:] if argv is None else list(argv),

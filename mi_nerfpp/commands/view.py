@@ -12,7 +12,7 @@ import contextlib
 import signal
 import threading
 
-from mi_nerfpp.commands.arguments import positive_int
+from mi_nerfpp.commands.arguments import port, positive_int
 from mi_nerfpp.jobs.viewer import DEFAULT_MAX_WIDTH, open_viewer
 
 DEFAULT_PORT = 8080
@@ -20,7 +20,7 @@ DEFAULT_PORT = 8080
 
 def add_port_options(p, prefix=''):
     """``--[view-]port`` and ``--[view-]host`` (shared with ``optimize --view``)."""
-    p.add_argument(f'--{prefix}port', type=positive_int, default=DEFAULT_PORT,
+    p.add_argument(f'--{prefix}port', type=port, default=DEFAULT_PORT,
                    help=f'the port to serve the viewer on (default {DEFAULT_PORT}; a busy port '
                         f'is refused)')
     p.add_argument(f'--{prefix}host', default='127.0.0.1',

@@ -218,9 +218,9 @@ class VolumeSizes:
     """One volume of a run as it sizes arrays: its ``domain`` (``'ball'`` or
     ``'inverted_sphere'``), the ``kind`` of its field and, for a grid field, the resolutions of its
     dense ``levels``, its ``planes`` and its ``sparse`` levels, and (in the inverted sphere) its
-    ``s_ratios``, one per level (an MLP field has none of these). ``levels_by``, ``planes_by``:
-    the size that sets its levels and planes (a key of :attr:`Sizing.flags`; volumes that share
-    it are sized together)."""
+    ``s_ratios``, one per level (an MLP field has none of these). ``levels_by``, ``planes_by``,
+    ``sparse_by``: the size that sets its levels, planes and sparse levels (a key of
+    :attr:`Sizing.flags`; volumes that share it are sized together)."""
     domain: str
     kind: str
     levels: tuple = ()
@@ -229,6 +229,7 @@ class VolumeSizes:
     s_ratios: tuple = ()
     levels_by: str = ''
     planes_by: str = ''
+    sparse_by: str = ''
 
 
 @dataclass(frozen=True)
@@ -276,8 +277,7 @@ class Sizing:
             return levels[:i] + (value,) + levels[i + 1:]
         return replace(self, volumes=tuple(
             replace(v, **{part: finest_at(getattr(v, part))
-                          for part, by in (('levels', v.levels_by), ('planes', v.planes_by))
-                          if by == name and getattr(v, part)})
+                          for part, by in _parts(v) if by == name and getattr(v, part)})
             for v in self.volumes))
 
     def size(self, name: str) -> int:
@@ -286,15 +286,21 @@ class Sizing:
         if name in _SCALAR_SIZES:
             return getattr(self, name)
         sets = [max(getattr(v, part)) for v in self.volumes
-                for part, by in (('levels', v.levels_by), ('planes', v.planes_by))
-                if by == name and getattr(v, part)]
+                for part, by in _parts(v) if by == name and getattr(v, part)]
         if not sets:
             raise ValueError(f"no size '{name}' in this run")
         return sets[0]
 
     def sets_levels(self, name: str) -> bool:
         """Whether size ``name`` sets grid levels or planes (a resolution) of some volume."""
-        return any(name in (v.levels_by, v.planes_by) for v in self.volumes)
+        return any(name in (v.levels_by, v.planes_by, v.sparse_by) for v in self.volumes)
+
+    def sparse_step(self, name: str) -> int:
+        """The step of the resolutions of the sparse levels that size ``name`` sets (their
+        bricks are the occupancy cells: multiples of the cells along Y); 1 for another size."""
+        steps = [grid_shape(v.domain, self.occupancy_res)[1] for v in self.volumes
+                 if v.sparse_by == name and v.sparse]
+        return steps[0] if steps else 1
 
     def color_parameters(self) -> int:
         """Weights of the colour MLPs of the grid fields (:class:`~.fields.GridField`: the
@@ -314,6 +320,11 @@ class Sizing:
         """Hidden units of the colour MLPs (width x layers); none without a grid field."""
         grid = any(v.kind == 'grid' for v in self.volumes)
         return self.color_width * self.color_layers if grid else 0
+
+
+def _parts(v: VolumeSizes):
+    """``(part, the size that sets it)`` of a volume's resolutions."""
+    return (('levels', v.levels_by), ('planes', v.planes_by), ('sparse', v.sparse_by))
 
 
 # The sizes that are one number of the run (the others are volumes' levels and planes).
@@ -373,17 +384,32 @@ def sparse_resolution(footprint: float, finest: int, occupancy_res: int) -> int 
     return r if 2.0 / r >= SPARSE_PIXELS * footprint else None
 
 
+def sparse_brick_shapes(sizing: Sizing, domain) -> list[tuple]:
+    """Texels (Z, Y, X) of one brick of each sparse level of one volume: the level's texels
+    over the occupancy cells (:class:`~.bricks.BrickGrid`; in the inverted sphere one texel
+    along s)."""
+    v = sizing.volume(domain)
+    if v is None:
+        return []
+    _, cells_y, cells_x = grid_shape(domain, sizing.occupancy_res)
+    if domain == 'ball':
+        return [(r // cells_y,) * 3 for r in v.sparse]
+    return [(1, r // cells_y, 2 * r // cells_x) for r in v.sparse]
+
+
 def sparse_level_entries(sizing: Sizing, domain) -> list[int]:
     """Entries of each sparse level of one volume's grid field at most
-    (:class:`~.bricks.BrickGrid`): its bricks up to ``sparse_entries``, or all of them when
-    fewer; empty without a grid field or sparse levels."""
+    (:class:`~.bricks.BrickGrid`): its bricks up to ``sparse_entries`` (one brick at least),
+    or all of them when fewer; empty without a grid field or sparse levels."""
     v, limit, channels = sizing.volume(domain), sizing.sparse_entries, sizing.grid_channels
     if v is None:
         return []
-    if domain == 'ball':
-        return [min(limit, r ** 3 * channels) for r in v.sparse]
-    along_s = grid_shape(domain, sizing.occupancy_res)[0]
-    return [min(limit, along_s * r * 2 * r * channels) for r in v.sparse]
+    cells = math.prod(grid_shape(domain, sizing.occupancy_res))
+    out = []
+    for brick in sparse_brick_shapes(sizing, domain):
+        per_brick = max(math.prod(brick) * channels, 1)
+        out.append(min(cells * per_brick, max(limit // per_brick, 1) * per_brick))
+    return out
 
 
 def occupancy_cells(sizing: Sizing) -> list[int]:
@@ -456,6 +482,18 @@ def _exceeded(s: Sizing, machine: Machine):
                                      f'{n:,} entries (--grid-channels {s.grid_channels}), '
                                      f'{array}')
     for v in s.volumes:
+        # A level keeps one brick however large (issue 63: a resolution of 65,536 made one
+        # brick of 1024^3 texels, gigabytes, while the plan counted --sparse-entries).
+        behind = 'background ' if v.domain != 'ball' else ''
+        for r, brick in zip(v.sparse, sparse_brick_shapes(s, v.domain)):
+            n = math.prod(brick) * s.grid_channels
+            if n > s.sparse_entries:
+                return (v.sparse_by, f'one brick of a {behind}sparse level of resolution {r:,} '
+                                     f'(an occupancy cell) holds {"x".join(map(str, brick))} '
+                                     f'texels, {n:,} entries (--grid-channels '
+                                     f'{s.grid_channels}), more than '
+                                     f'{s.flags.get("sparse_entries", "--sparse-entries")} '
+                                     f'lets a sparse level hold')
         for n in sparse_level_entries(s, v.domain):
             if n > MAX_ARRAY_ENTRIES:
                 return 'sparse_entries', f'a sparse level of {n:,} entries is {array}'
@@ -519,7 +557,7 @@ def largest_that_fits(sizing: Sizing, size: str, machine: Machine) -> int:
     while low < high:                                # the largest value that fits, by bisection
         mid = (low + high + 1) // 2
         low, high = (mid, high) if ok(mid) else (low, mid - 1)
-    return low
+    return low - low % sizing.sparse_step(size)      # sparse levels: multiples of the cells
 
 
 @dataclass(frozen=True)

@@ -182,6 +182,27 @@ def read_meta(path) -> dict:
     return meta
 
 
+def _set_bricks(model, z, path) -> None:
+    """Allocate the sparse levels' bricks stored in ``z`` (``bricks/<volume>.sparse<i>``):
+    each a list of whole, distinct brick indices within its level, as many as its parameter's
+    pool holds; anything else (a damaged file) is a :class:`CheckpointError` naming the entry
+    (a float or text list was read as indices, issue 63)."""
+    for key in [k for k in z if k.startswith('bricks/')]:
+        name, bricks = key[len('bricks/'):], np.asarray(z[key])
+        if bricks.ndim != 1 or bricks.dtype.kind not in 'iu':
+            raise CheckpointError(f'{path}: {key} is not a list of whole brick indices (shape '
+                                  f'{bricks.shape}, {bricks.dtype}): {REMEDY}')
+        pool = z.get(f'param/{name}') if hasattr(z, 'get') else None
+        if pool is not None and np.ndim(pool) >= 1 and \
+                np.shape(pool)[0] != max(bricks.size, 1):
+            raise CheckpointError(f'{path}: {key} lists {bricks.size} bricks, its parameter '
+                                  f'param/{name} holds {np.shape(pool)[0]}: {REMEDY}')
+        try:
+            model.set_bricks({name: bricks})
+        except ValueError as e:
+            raise CheckpointError(f'{path}: {key}: {e}: {REMEDY}') from None
+
+
 def load_checkpoint(path, seed=0):
     """Read a checkpoint. Returns ``(model, meta, state)``; errors name the path and the problem."""
     path = os.fspath(path)
@@ -211,11 +232,12 @@ def load_checkpoint(path, seed=0):
                             pose_images=int(config.get('pose_images', 0)),
                             embedding_images=int(config.get('embedding_images', 0)),
                             sampling=_sampling(config))
-        model.set_bricks({k[len('bricks/'):]: v for k, v in z.items()
-                          if k.startswith('bricks/')})
+        _set_bricks(model, z, path)
         fill = {k[len('coverage/'):]: v for k, v in z.items() if k.startswith('coverage/')}
         if fill:
             model.coverage = CoverageFill.from_arrays(fill)
+    except CheckpointError:
+        raise
     except (KeyError, ValueError, TypeError, AttributeError) as e:
         raise CheckpointError(f'{path}: invalid config: {e}') from None
 

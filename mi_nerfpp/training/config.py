@@ -47,6 +47,12 @@ DEFAULT_JOB_EVAL_AT = (2.0, 5.0)
 # The largest --seed: the background field is seeded with seed + 1, and Dr.Jit's generators
 # take 64-bit seeds.
 MAX_SEED = 2 ** 64 - 2
+# The most --pyramid fractions: n of them start training at 1/2^n of the image size, where the
+# step sums each ray's 2^n x 2^n block of stored pixels in its kernel (unrolled: 16 x 16 on a
+# 32x24 capture took 97 s for 3 steps against 6 s, and a real capture's coarsest level many
+# times more; issue 63). The level is also never coarser than leaves the images a pixel
+# (RayBank.max_factor).
+MAX_PYRAMID_LEVELS = 3
 # Options that shape the colour MLP are bounded by sense rather than memory: each layer is
 # traced into the step's kernels (thousands of layers compile for hours), and direction
 # frequencies 2^k beyond float32's 24-bit mantissa are noise.
@@ -537,6 +543,11 @@ class ScheduleOptions(_Options):
         for name in ('pyramid', 'sparse_at'):
             if not all(_finite(f) and 0 < f < 1 for f in getattr(self, name)):
                 self._bad(name, 'fractions between 0 and 1')
+        if len(self.pyramid) > MAX_PYRAMID_LEVELS:
+            self._bad('pyramid', f'at most {MAX_PYRAMID_LEVELS} fractions (the first level '
+                                 f'averages 2^n x 2^n stored pixels per ray inside the training '
+                                 f'step, whose compilation takes minutes beyond '
+                                 f'{1 << MAX_PYRAMID_LEVELS} x {1 << MAX_PYRAMID_LEVELS})')
 
 
 @dataclass
@@ -754,13 +765,15 @@ class TrainConfig:
                 sparse=m.sparse(domain) if grid else (),
                 s_ratios=(m.value_of('s_ratio', domain) or ()) if grid else (),
                 levels_by=m.option_of('resolutions', domain),
-                planes_by=m.option_of('planes', domain)))
+                planes_by=m.option_of('planes', domain),
+                sparse_by=m.option_of('sparse', domain) if grid else ''))
         sizes = dict(grid_channels=m.grid_channels, color_width=m.color_width,
                      batch_rays=schedule.batch_rays, occupancy_res=s.occupancy_res,
                      sparse_entries=schedule.sparse_entries)
         flags = {name: _as_flag(name, self.effective(name))
                  for name in [*sizes] + [v.levels_by for v in volumes]
-                 + [v.planes_by for v in volumes]}
+                 + [v.planes_by for v in volumes]
+                 + [v.sparse_by for v in volumes if v.sparse_by]}
         flags['samples_per_ray'] = (f'{self.flag("fg_samples")} {s.fg_samples} {s.bg_samples} '
                                     f'{s.fine_samples}')
         default = type(self)()

@@ -133,7 +133,12 @@ class ErrorMap:
         """Take the map of a checkpoint's ``state`` if it has one of this map's tiles (a run
         resumed with another ``--error-tile`` starts its map anew)."""
         stored = state.get('error_map')
-        if stored is None or np.size(stored) != self.error.size:
+        if stored is None:
+            return
+        damage = _damage(state)
+        if damage:
+            raise ValueError(f'its error map is damaged: {damage}')
+        if np.size(stored) != self.error.size:
             return
         self.error[:] = np.asarray(stored, np.float64).ravel()
         self.visited[:] = np.asarray(state['error_map.visited'], bool).ravel()
@@ -144,6 +149,40 @@ class ErrorMap:
         else:       # a map from before the medians (a checkpoint of 54450a8 or older)
             self._take_reference()
             self.updates = 1
+
+
+def _number_array(value) -> np.ndarray | None:
+    """``value`` as a float64 array when it holds real numbers (booleans, integers, floats)."""
+    value = np.asarray(value)
+    return value.astype(np.float64) if value.dtype.kind in 'biuf' else None
+
+
+def _damage(state: dict) -> str:
+    """What is wrong with the error map stored in a checkpoint's ``state`` ('' when nothing):
+    the arrays :meth:`ErrorMap.state` writes, of real numbers, the tiles' errors and the
+    images' medians finite and above 0, as many visited flags as tiles, a whole count of
+    updates."""
+    error = _number_array(state['error_map'])
+    if error is None or error.ndim != 1 or error.size == 0:
+        return f'state/error_map is not a list of numbers (shape {np.shape(state["error_map"])}, ' \
+               f'{np.asarray(state["error_map"]).dtype})'
+    if not np.all(np.isfinite(error) & (error > 0)):
+        return 'state/error_map holds NaN, infinite, zero or negative tile errors'
+    visited = _number_array(state.get('error_map.visited', np.zeros(0)))
+    if visited is None or visited.ndim != 1 or visited.size != error.size or \
+            not np.all((visited == 0) | (visited == 1)):
+        return (f'state/error_map.visited is not {error.size} flags, one per tile of '
+                f'state/error_map')
+    reference = state.get('error_map.reference')
+    if reference is not None:
+        reference = _number_array(reference)
+        if reference is None or reference.ndim != 1 or \
+                not np.all(np.isfinite(reference) & (reference > 0)):
+            return 'state/error_map.reference is not a list of positive finite numbers'
+        updates = np.asarray(state.get('error_map.updates', -1))
+        if updates.shape != () or updates.dtype.kind not in 'iu' or int(updates) < 0:
+            return 'state/error_map.updates is not a whole number of 0 or more'
+    return ''
 
 
 def _span(tile_index, tile, factor, size):

@@ -46,7 +46,8 @@ from mi_nerfpp.core.profiling import stage
 from mi_nerfpp.core.render import RenderOptions, render_rays
 from mi_nerfpp.errors import interrupt_in
 from mi_nerfpp.files.atomic import remove_stale_temporaries
-from mi_nerfpp.files.checkpoint import (NonFiniteStateError, load_checkpoint,
+from mi_nerfpp.files.checkpoint import REMEDY as CHECKPOINT_REMEDY
+from mi_nerfpp.files.checkpoint import (CheckpointError, NonFiniteStateError, load_checkpoint,
                                         migration_notes, read_version, save_checkpoint)
 from mi_nerfpp.training import choices, optim, priors
 from mi_nerfpp.training.config import RETIRED_AFTER, TrainConfig, per_volume
@@ -144,7 +145,11 @@ class Trainer:
         self.error_map = (ErrorMap(*self.rays.layout[:3], s.error_tile, s.error_rays)
                           if s.error_rays > 0 else None)
         if self.error_map is not None:
-            self.error_map.restore(state)
+            try:
+                self.error_map.restore(state)
+            except ValueError as e:     # a damaged file: one line, not NumPy's (issue 63)
+                raise CheckpointError(f'{self.checkpoint_path}: {e}: {CHECKPOINT_REMEDY}, or '
+                                      f'resume with --error-rays 0') from None
         self._tiles = None          # the error map's tiles of this step's rays
         self.signs = CaptureSigns(len(self.train))
         self.signs.restore(state)

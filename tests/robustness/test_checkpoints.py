@@ -130,3 +130,86 @@ def test_a_checkpoint_whose_version_is_not_a_number_is_refused(tmp_path):
     np.savez(path, format=np.array('mi-nerfpp-checkpoint'), version=np.array(['x', 'y']))
     with pytest.raises(CheckpointError, match="no integer 'version' entry"):
         load_checkpoint(path)
+
+
+@pytest.fixture(scope='module')
+def error_map_run(capture, tmp_path_factory):
+    """A tiny run trained with the error map (``--error-rays 0.5``): its folder."""
+    from mi_nerfpp.commands.cli import main
+    out = tmp_path_factory.mktemp('error_map') / 'run'
+    assert main(['optimize', str(capture), '--out', str(out), *TINY, '--error-rays', '0.5']) == 0
+    return out
+
+
+def _damaged_copy(run, tmp_path, change):
+    import shutil
+    copy = tmp_path / 'run'
+    shutil.copytree(run, copy)
+    arrays = dict(np.load(copy / 'model.npz'))
+    change(arrays)
+    np.savez(copy / 'model.npz', **arrays)
+    return copy
+
+
+def _set(name, value):
+    return lambda arrays: arrays.__setitem__(f'state/{name}', value(arrays[f'state/{name}']))
+
+
+@pytest.mark.parametrize('change, damage', [
+    (_set('error_map', lambda v: np.where(np.arange(v.size) == 0, np.nan, v)),
+     'state/error_map holds NaN, infinite, zero or negative tile errors'),
+    (_set('error_map', lambda v: -v), 'state/error_map holds NaN, infinite, zero or negative'),
+    (_set('error_map', lambda v: np.full(v.size, 'a')), 'state/error_map is not a list of '
+                                                        'numbers'),
+    (_set('error_map.visited', lambda v: v[:3]), 'state/error_map.visited is not 64 flags'),
+    (_set('error_map.reference', lambda v: np.zeros_like(v)),
+     'state/error_map.reference is not a list of positive finite numbers'),
+    (_set('error_map.updates', lambda v: np.array([1, 2])),
+     'state/error_map.updates is not a whole number of 0 or more'),
+], ids=['nan', 'negative', 'text', 'visited-shape', 'reference-zero', 'updates-shape'])
+def test_a_damaged_error_map_is_refused_on_resume(capsys, capture, error_map_run, tmp_path,
+                                                  change, damage):
+    """A stored error map of another shape, NaN or negative values ended with NumPy's text, 'a
+    bug' (TypeError) or was trained on (issue 63): now one line naming the file and the entry."""
+    run = _damaged_copy(error_map_run, tmp_path, change)
+    status, _, err = _train(capsys, capture, run, '--resume', '--iterations', '4',
+                            '--error-rays', '0.5')
+    line = error_line(err, 'optimize')
+    assert status == 1 and line.startswith(f'{run / "model.npz"}: its error map is damaged: '
+                                           f'{damage}'), line
+    assert line.endswith('restore it from a copy, or train the model again, or resume with '
+                         '--error-rays 0')
+
+
+@pytest.mark.parametrize('bricks, message', [
+    (lambda b: b + 0.4, 'bricks/fg.sparse0 is not a list of whole brick indices (shape (4,), '
+                        'float64)'),
+    (lambda b: b.astype(str), 'bricks/fg.sparse0 is not a list of whole brick indices (shape '
+                              '(4,), <U21)'),
+    (lambda b: np.ones(b.size, bool), 'bricks/fg.sparse0 is not a list of whole brick indices'),
+    (lambda b: b.reshape(2, 2), 'bricks/fg.sparse0 is not a list of whole brick indices (shape '
+                                '(2, 2), int64)'),
+    (lambda b: b[:3], 'bricks/fg.sparse0 lists 3 bricks, its parameter param/fg.sparse0 holds 4'),
+    (lambda b: np.array([0, 5, 21, 64]), 'bricks/fg.sparse0: brick indices must be distinct and '
+                                         'in [0, 64)'),
+    (lambda b: np.array([0, 5, 21, -1]), 'bricks/fg.sparse0: brick indices must be distinct'),
+    (lambda b: np.array([0, 5, 5, 21]), 'bricks/fg.sparse0: brick indices must be distinct'),
+], ids=['float', 'text', 'bool', 'two-dimensional', 'count', 'out-of-range', 'negative',
+        'duplicate'])
+def test_damaged_sparse_bricks_are_refused_by_name(tmp_path, bricks, message):
+    """Float or text brick lists were read as indices and the model rendered; the others said
+    'invalid config' or NumPy's text (issue 63): one CheckpointError naming the entry."""
+    from mi_nerfpp.core.fields import grid_field
+    from mi_nerfpp.core.model import NeRFPPModel
+    model = NeRFPPModel(grid_field('ball', resolutions=(4,), channels=4, sparse=(16,),
+                                   sparse_blocks=(4, 4, 4), seed=1), None)
+    model.set_bricks({'fg.sparse0': np.array([0, 5, 21, 63])})
+    path = tmp_path / 'model.npz'
+    save_checkpoint(path, model)
+    arrays = dict(np.load(path))
+    arrays['bricks/fg.sparse0'] = bricks(arrays['bricks/fg.sparse0'])
+    np.savez(path, **arrays)
+    with pytest.raises(CheckpointError) as e:
+        load_checkpoint(path)
+    assert str(e.value).startswith(f'{path}: {message}'), str(e.value)
+    assert str(e.value).endswith('restore it from a copy, or train the model again')

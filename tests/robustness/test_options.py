@@ -2,10 +2,12 @@
 options that size arrays are checked against Dr.Jit's 2^32-entry arrays and the memory before
 Dr.Jit sees them, naming the largest value that fits; the command-line boundary turns any
 error into one line (the traceback only with --debug)."""
+import os
 import re
 
 import pytest
 
+from mi_nerfpp.commands.arguments import THREADS_PER_CORE, max_threads
 from mi_nerfpp.core import budget
 from mi_nerfpp.training.config import MAX_SEED, TrainConfig
 from tests.robustness.common import TINY, one_clear_line, run_cli
@@ -36,6 +38,12 @@ GIB = 1 << 30
                                    'into the training kernels), got 100000'),
     (['--dir-octaves', '64'], '--dir-octaves must be 0 or more and at most 24 (frequencies 2^k '
                               'beyond float32 precision are noise), got 64'),
+    # 1/256 of the images: each ray summed 256 x 256 stored pixels in the step's kernel, which
+    # took minutes to compile (issue 63).
+    (['--pyramid', '0.1', '0.2', '0.3', '0.4', '0.5', '0.6', '0.7', '0.8'],
+     '--pyramid must be at most 3 fractions (the first level averages 2^n x 2^n stored pixels '
+     'per ray inside the training step, whose compilation takes minutes beyond 8 x 8), got '
+     '0.1 0.2 0.3 0.4 0.5 0.6 0.7 0.8'),
     # Crashed the process (SIGSEGV) once the corrections started (issue 49, item 5).
     (['--refine-poses', '--lr-poses', '1e10'], '--lr-poses must be at most 1 (an Adam step '
                                                'moves each camera correction by about the '
@@ -346,10 +354,22 @@ def test_the_step_sizes_are_every_learning_rate_and_loss_weight():
 
 @pytest.mark.parametrize('argv, message', [
     (['colmap', 'photos', '--out', 'data', '--threads', '-5'],
-     "--threads: expects -1 (every core) or a whole number from 1 to 2147483647, got '-5'"),
-    (['colmap', 'photos', '--out', 'data', '--threads', '2147483648'],
-     "--threads: expects -1 (every core) or a whole number from 1 to 2147483647, got "
-     "'2147483648'"),
+     f"--threads: expects -1 (every core) or a whole number from 1 to {max_threads()} "
+     f"({THREADS_PER_CORE} per core of this machine's {os.cpu_count()}), got '-5'"),
+    # 2147483647 fit COLMAP's C int, and the library allocated gigabytes before failing
+    # (issue 63): the count is bounded by the machine.
+    (['colmap', 'photos', '--out', 'data', '--threads', '2147483647'],
+     f"--threads: expects -1 (every core) or a whole number from 1 to {max_threads()} "
+     f"({THREADS_PER_CORE} per core of this machine's {os.cpu_count()}), got '2147483647'"),
+    (['colmap', 'photos', '--out', 'data', '--threads', str(max_threads() + 1)],
+     f"--threads: expects -1 (every core) or a whole number from 1 to {max_threads()} "),
+    # A port beyond 65535 reached socket.bind's OverflowError, "a bug" (issue 63).
+    (['view', 'run', '--port', '70000'],
+     "argument --port: expects a whole number from 1 to 65535 (a TCP port), got '70000'"),
+    (['view', 'run', '--port', '0'],
+     "argument --port: expects a whole number from 1 to 65535 (a TCP port), got '0'"),
+    (['optimize', '--view', '--view-port', '65536'],
+     "argument --view-port: expects a whole number from 1 to 65535 (a TCP port), got '65536'"),
     (['export', 'run', '--out', 'x', '--density', '-1'],
      "--density: expects a finite number above 0, got '-1'"),
     (['export', 'run', '--out', 'x', '--density', 'nan'],
@@ -412,3 +432,42 @@ def test_a_video_frame_beyond_memory_names_res(capsys, tiny_run, tmp_path, monke
         f'{budget.memory_text(budget.images_budget())} available; a frame fits with at most '
         f'{pixels:,} pixels')
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize('option, flag, brick', [
+    (['--grid-sparse', '65536'], '--grid-sparse 65536', '1024x1024x1024'),
+    (['--grid-sparse', '128', '6464'], '--grid-sparse 128 6464', '101x101x101'),
+    (['--bg-grid-sparse', '131072'], '--bg-grid-sparse 131072', '1x4096x4096'),
+])
+def test_a_sparse_level_whose_brick_outgrows_its_entries_names_the_largest(capsys, tmp_path,
+                                                                           option, flag,
+                                                                           brick):
+    """A sparse level keeps one brick (an occupancy cell) however large, while the memory plan
+    counted --sparse-entries: --grid-sparse 65536 made a brick of 1024^3 texels, 16 GB, before
+    the first step (issue 63). Refused before any work, naming the largest resolution whose
+    brick fits (a multiple of the occupancy cells)."""
+    status, _, err = run_cli(capsys, 'optimize', tmp_path, '--out', tmp_path / 'run', *option)
+    line = one_clear_line(err)
+    assert status == 1, line
+    assert line.startswith(f'error: optimize: {flag} is too large: one brick '), line
+    assert f'holds {brick} texels' in line and 'more than --sparse-entries 4000000' in line
+    best = int(re.search(r'fits at resolution ([\d,]+) at most$', line).group(1).replace(',', ''))
+    cells = 64 if option[0] == '--grid-sparse' else 32       # --occupancy-res 64
+    assert best % cells == 0
+    entries = (best // 64) ** 3 * 4 if option[0] == '--grid-sparse' else \
+        (best // 32) * (2 * best // 64) * 4
+    assert entries <= 4_000_000 < (
+        ((best + 64) // 64) ** 3 * 4 if option[0] == '--grid-sparse'
+        else ((best + 32) // 32) * (2 * (best + 32) // 64) * 4)
+    assert not (tmp_path / 'run').exists()
+
+
+def test_a_sparse_level_is_planned_as_its_whole_bricks():
+    """The plan counts a sparse level as the whole bricks that --sparse-entries holds (what
+    SparseAllocation keeps), not --sparse-entries itself; the largest resolution fits."""
+    from mi_nerfpp.core.budget import sparse_level_entries
+    sizing = TrainConfig.from_options(grid_sparse=(640,), grid_levels=(4, 8),
+                                      sparse_entries=9000).sizing()
+    assert sparse_level_entries(sizing, 'ball') == [2 * 10 ** 3 * 4]  # two bricks of 10^3
+    budget.check(budget.plan(TrainConfig.from_options(grid_sparse=(6400,),
+                                                      grid_levels=(4, 8)).sizing()))

@@ -35,3 +35,36 @@ def test_sigterm_and_sigint_save_a_checkpoint(capture, tmp_path, sig, inherited)
     assert stopped.group(2) == str(out / 'model.npz')
     _, meta, _ = load_checkpoint(out / 'model.npz')
     assert meta['iteration'] == int(stopped.group(1)) >= 2
+
+
+# The child: `python -m mi_nerfpp view RUN` as runpy runs it, with SIGINT sent to itself when
+# the module named in argv[1] starts being imported (a Ctrl-C at that moment of the start-up).
+INTERRUPTED_START = '''
+import os, runpy, signal, sys
+target, run = sys.argv[1], sys.argv[2]
+
+class Interrupt:
+    def find_spec(self, name, path=None, target_=None):
+        if name == target:
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+
+sys.meta_path.insert(0, Interrupt())
+sys.argv = ['-m', 'view', run, '--port', '1']
+runpy.run_module('mi_nerfpp', run_name='__main__', alter_sys=True)
+'''
+
+
+@pytest.mark.parametrize('module', ['mitsuba', 'mi_nerfpp.integrator', 'mi_nerfpp.jobs.viewer'],
+                         ids=['variant', 'integrator', 'viewer'])
+def test_ctrl_c_while_the_command_starts_ends_with_one_line(tiny_run, module):
+    """Ctrl-C in the seconds the package and the viewer are imported (before the command's
+    handler) printed a KeyboardInterrupt traceback, or an ImportError of an extension whose
+    start-up it broke (issue 63): now 'interrupted' and status 130, as in the command."""
+    import subprocess
+    import sys
+    proc = subprocess.run([sys.executable, '-c', INTERRUPTED_START, module, tiny_run],
+                          capture_output=True, text=True, timeout=300,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr == 'interrupted\n' and proc.stdout == ''

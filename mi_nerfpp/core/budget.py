@@ -45,7 +45,7 @@ from dataclasses import dataclass, field, replace
 import drjit as dr
 
 from mi_nerfpp.core.arrays import llvm_backend
-from mi_nerfpp.core.encodings import plane_shapes
+from mi_nerfpp.core.encodings import plane_shapes, sparse_shape
 from mi_nerfpp.core.occupancy import grid_shape
 
 # Dr.Jit 1.x: "jit_var_counter(): tried to create an array with N entries, which exceeds the
@@ -391,10 +391,9 @@ def sparse_brick_shapes(sizing: Sizing, domain) -> list[tuple]:
     v = sizing.volume(domain)
     if v is None:
         return []
-    _, cells_y, cells_x = grid_shape(domain, sizing.occupancy_res)
-    if domain == 'ball':
-        return [(r // cells_y,) * 3 for r in v.sparse]
-    return [(1, r // cells_y, 2 * r // cells_x) for r in v.sparse]
+    blocks = grid_shape(domain, sizing.occupancy_res)
+    return [tuple(n // b for n, b in zip(sparse_shape(domain, r, blocks), blocks))
+            for r in v.sparse]
 
 
 def sparse_level_entries(sizing: Sizing, domain) -> list[int]:

@@ -51,6 +51,16 @@ def plane_shapes(domain, r):
     return [(a, (n[j], n[i])) for a, (i, j) in PLANE_AXES.items()]
 
 
+def sparse_shape(domain, r, blocks, s=None):
+    """Texels (Z, Y, X) of a sparse level at resolution ``r`` cut into ``blocks`` bricks per
+    axis: ``r³`` in the ball; in the inverted sphere ``2r`` along longitude, ``r`` along
+    colatitude and ``s`` (by default one texel per brick) along ``s``: fine angles, depth from
+    the occupied bricks."""
+    if domain == 'ball':
+        return (r, r, r)
+    return (s or blocks[0], r, 2 * r)
+
+
 def _inside(c, cells):
     """Coordinate ``c`` kept half a cell inside ``[0, 1]`` (off the wrap of a periodic
     texture, for the axes that are not periodic)."""
@@ -244,13 +254,8 @@ class SparseLevels(Levels):
             self.params[f'sparse{i}'] = mi.TensorXf(np.zeros(grid.pool_shape(), np.float32))
 
     def shape(self, level):
-        """Texels (Z, Y, X) of ``level``: ``r³`` in the ball; in the inverted sphere ``2r``
-        along longitude, ``r`` along colatitude and ``s`` (by default one texel per brick)
-        along ``s``: fine angles, depth from the occupied bricks."""
-        r = self.resolutions[level]
-        if self.domain == 'ball':
-            return (r, r, r)
-        return (self.s or self.blocks[0], r, 2 * r)
+        """Texels (Z, Y, X) of ``level`` (:func:`sparse_shape`)."""
+        return sparse_shape(self.domain, self.resolutions[level], self.blocks, self.s)
 
     @property
     def config(self):

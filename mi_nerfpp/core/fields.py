@@ -432,10 +432,13 @@ class GridField(Field):
             width = None
         density = mi.Float(self.density_bias)
         features = []
+        at = {}         # coordinates and widths by ``warped``: dense and plane levels share them
         for lv in self.levels:
             if not len(lv):
                 continue
-            for g in lv.lookup(*self._coordinates(x, width, lv.warped)):
+            if lv.warped not in at:
+                at[lv.warped] = self._coordinates(x, width, lv.warped)
+            for g in lv.lookup(*at[lv.warped]):
                 density += g[0]
                 features += g[1:]
         return density, features

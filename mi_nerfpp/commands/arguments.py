@@ -6,6 +6,7 @@ import math
 import os
 
 from mi_nerfpp.data.synth import parse_res
+from mi_nerfpp.output.tracked_camera import parse_frame_range
 
 
 def resolution(value: str) -> tuple[int, int]:
@@ -116,3 +117,11 @@ def float_between(low: float, high: float, unit: str = ''):
                                              f"{high:g}{unit}, got '{value}'")
         return number
     return number_in
+
+
+def frame_range(value: str) -> tuple[int, int]:
+    """argparse type of ``FIRST-LAST`` frame ranges (or one frame number)."""
+    try:
+        return parse_frame_range(value)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None

@@ -1,4 +1,10 @@
-"""``python -m mi_nerfpp render SCENE.xml``: a scene to a multi-layer EXR (and a PNG preview)."""
+"""``python -m mi_nerfpp render SCENE.xml``: a scene to a multi-layer EXR (and a PNG preview).
+
+``--camera FILE [--frame N]`` renders through one frame of a tracked camera (USD, Nuke ``.chan``,
+nerfstudio's ``camera_path.json``: :mod:`mi_nerfpp.output.tracked_camera`) in place of the
+scene's sensor, placed in the frame of ``export``'s files; the scene's film gives its width (and
+height, where the file gives no aspect) and its sampler the samples per pixel.
+"""
 from __future__ import annotations
 
 import os
@@ -6,9 +12,15 @@ import time
 
 import mitsuba as mi
 
+from mi_nerfpp.core.frame import SCENE_NEAR_CLIP
+from mi_nerfpp.data import mitsuba_sensor_dict
 from mi_nerfpp.files.atomic import check_writable_folder, readable_path
 from mi_nerfpp.files.preview import write_linear_png
+from mi_nerfpp.integrator import NeRFPPIntegrator
+from mi_nerfpp.output.camera_path import DEFAULT_RESOLUTION
 from mi_nerfpp.output.deep import render_deep_to_file
+from mi_nerfpp.output.tracked_camera import (capture_normalizations,
+                                             read_shot)
 from mi_nerfpp.output.views import render_to_files
 
 
@@ -24,6 +36,15 @@ def add_parser(sub):
     p.add_argument('--seed', type=int, default=0, help='sampler seed')
     p.add_argument('-D', '--define', action='append', metavar='NAME=VALUE',
                    help='set a <default> parameter of the scene (repeatable)')
+    p.add_argument('--camera', metavar='FILE',
+                   help="render through a tracked camera in place of the scene's sensor: USD "
+                        "(.usd/.usda/.usdc/.usdz), Nuke .chan or nerfstudio's camera_path.json, "
+                        "in the frame of export's files (the scene's film gives the width)")
+    p.add_argument('--frame', type=int, metavar='N',
+                   help="with --camera: the file's frame N (default: its first)")
+    p.add_argument('--camera-name', metavar='NAME',
+                   help='with --camera FILE.usd: the camera to render, of several (its prim name, '
+                        "its parent's, as Blender names the object, or its path)")
     p.set_defaults(func=run)
     return p
 
@@ -55,13 +76,19 @@ def run(args):
     t0 = time.perf_counter()
     with readable_path(args.scene) as readable:      # Mitsuba takes UTF-8 names only
         scene = mi.load_file(readable, **_defines(args.define))
-    check_sensor(scene, args.scene)
+    if args.camera:
+        sensor = tracked_sensor(scene, args)
+    else:
+        check_sensor(scene, args.scene)
+        sensor = None
     if args.deep:
-        _, _, beauty = render_deep_to_file(scene, args.output, spp=args.spp, seed=args.seed)
+        _, _, beauty = render_deep_to_file(scene, args.output, spp=args.spp, seed=args.seed,
+                                           sensor=sensor)
         if args.preview:
             write_linear_png(args.preview, beauty)
     else:
-        render_to_files(scene, args.output, spp=args.spp, preview=args.preview, seed=args.seed)
+        render_to_files(scene, args.output, spp=args.spp, preview=args.preview, seed=args.seed,
+                        sensor=sensor)
     print(f'wrote {args.output}' + (f' and {args.preview}' if args.preview else '')
           + f' in {time.perf_counter() - t0:.1f} s')
 
@@ -93,6 +120,32 @@ def check_arguments(args):
                              f'ending in {ext}{hint}')
     if not 0 <= args.seed <= MAX_SEED:
         raise ValueError(f'--seed must be a whole number from 0 to {MAX_SEED}, got {args.seed}')
+    if not args.camera:
+        for flag, value in (('--frame', args.frame), ('--camera-name', args.camera_name)):
+            if value is not None:
+                raise ValueError(f'{flag} picks from a tracked camera: give it with --camera FILE')
+    elif not os.path.isfile(args.camera):
+        raise ValueError(f'--camera {args.camera}: camera file not found')
+
+
+def tracked_sensor(scene, args):
+    """The sensor of frame ``--frame`` (default: the first) of the tracked camera ``--camera``
+    (module docs), in the scene's world: the dataset's frame of the integrator's model."""
+    integrator = scene.integrator()
+    if not isinstance(integrator, NeRFPPIntegrator):
+        raise ValueError(f"{args.scene}: the scene's integrator is not 'nerfpp': --camera "
+                         f"places the camera through a model's normalization")
+    shot = read_shot(args.camera, args.camera_name)
+    number = shot.frames[0].number if args.frame is None else shot.frame(args.frame).number
+    sensors = scene.sensors()
+    film = tuple(sensors[0].film().crop_size()) if sensors else DEFAULT_RESOLUTION
+    width, height = shot.image_size(*film)
+    camera = shot.within((number, number)).cameras(
+        width, height, capture_normalizations(integrator.meta.get('dataset')))[number]
+    spp = sensors[0].sampler().sample_count() if sensors else 1
+    desc = mitsuba_sensor_dict(camera, spp=spp)
+    desc['near_clip'] = integrator.model.normalization.to_world_distance(SCENE_NEAR_CLIP)
+    return mi.load_dict(desc)
 
 
 def check_sensor(scene, path):

@@ -30,7 +30,7 @@ import drjit as dr
 
 from mi_nerfpp.core.arrays import llvm_backend
 from mi_nerfpp.files.checkpoint import load_checkpoint
-from mi_nerfpp.output.video import render_frames
+from mi_nerfpp.output.video import FRAME_NAME, render_frames
 from mi_nerfpp.output.views import ViewRenderer
 
 INSTALL_HINT = "pip install -e '.[cluster]'"
@@ -202,12 +202,15 @@ class FrameWorker:
     def pid(self):
         return os.getpid()
 
-    def render_frames(self, cameras, frames_dir, exr=False, checkpoint_data=None, on_frame=None):
-        """:func:`mi_nerfpp.output.video.render_frames` of ``cameras`` (index -> camera)."""
+    def render_frames(self, cameras, frames_dir, exr=False, checkpoint_data=None, on_frame=None,
+                      name=FRAME_NAME):
+        """:func:`mi_nerfpp.output.video.render_frames` of ``cameras`` (index -> camera), the
+        files named by ``name``."""
         if not os.path.isdir(frames_dir):
             raise RuntimeError(f'{frames_dir} is not visible on node {socket.gethostname()}: '
                                f'write the frames to storage every node shares')
-        return render_frames(self.load(checkpoint_data), cameras, frames_dir, exr, on_frame)
+        return render_frames(self.load(checkpoint_data), cameras, frames_dir, exr, on_frame,
+                             name)
 
 
 class FramePool:
@@ -228,9 +231,11 @@ class FramePool:
         """The process ids of the workers (after they started)."""
         return self.ray.get([a.pid.remote() for a in self.actors])
 
-    def render_frames(self, cameras, indices, frames_dir, exr=False, chunk=None, on_frames=None):
-        """Render frames ``indices`` of ``cameras`` to ``frames_dir`` across the workers, in
-        chunks of ``chunk`` frames (default: about four chunks per worker, at most 8 frames);
+    def render_frames(self, cameras, indices, frames_dir, exr=False, chunk=None, on_frames=None,
+                      name=FRAME_NAME):
+        """Render frames ``indices`` of ``cameras`` (a list, or a dict of index -> camera) to
+        ``frames_dir`` (files named by ``name``) across the workers, in chunks of ``chunk``
+        frames (default: about four chunks per worker, at most 8 frames);
         ``on_frames(n)`` after each chunk. A worker that dies for good leaves its chunks to
         the others; RuntimeError when none is left."""
         ray = self.ray
@@ -246,7 +251,7 @@ class FramePool:
             while queue and idle:
                 actor, part = idle.pop(), queue.pop(0)
                 ref = actor.render_frames.remote({i: cameras[i] for i in part}, frames_dir, exr,
-                                          self.data)
+                                          self.data, None, name)
                 running[ref] = (actor, part)
 
         submit()

@@ -71,8 +71,9 @@ FILM_BACK_MM = 36.0
 VIDEO_FRAMES, VIDEO_FPS = 60, 24
 
 
-def _undo_sfm(dataset_root):
-    """The normalization ``structure from motion`` applied to a photo run's dataset, or None."""
+def sfm_normalization(dataset_root):
+    """The normalization structure from motion applied to a photo run's dataset (which the
+    export undoes, and a tracked camera in applies again), or None."""
     report = read_report(dataset_root) if dataset_root else None
     if not report or 'normalization' not in report:
         return None
@@ -398,7 +399,7 @@ def _manifest_files(path, remedy=None) -> list[str]:
 
 def _write_export(model, meta, dataset, out, resolution, density, warn) -> list[str]:
     """The export's files, written into ``out``; their names."""
-    sfm = _undo_sfm(meta.get('dataset'))
+    sfm = sfm_normalization(meta.get('dataset'))
     cameras = {name: world_cameras(model, split.cameras, sfm) for name, split in
                (('train', dataset.train), ('validation', dataset.validation),
                 ('test', dataset.test))}

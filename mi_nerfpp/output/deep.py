@@ -177,8 +177,8 @@ def merge_pixel_events(pixel, kind, z, w, rgb, n_pixels):
     return counts, {k: v.astype(np.float32) for k, v in samples.items()}
 
 
-def render_deep(scene, spp=0, seed=0, chunk_pixels=4096, progress=False):
-    """Deep samples of ``scene``'s first sensor (module docs). Returns ``(counts, samples,
+def render_deep(scene, spp=0, seed=0, chunk_pixels=4096, progress=False, sensor=None):
+    """Deep samples of ``scene``'s first sensor, or of ``sensor`` (module docs). Returns ``(counts, samples,
     beauty)``: samples per pixel (H x W), the :data:`DEEP_CHANNELS` of all samples
     (pixel-major, front to back), and the flat beauty of the same rays (H x W x 3)."""
 
@@ -186,7 +186,7 @@ def render_deep(scene, spp=0, seed=0, chunk_pixels=4096, progress=False):
     if not isinstance(integrator, NeRFPPIntegrator):
         raise ValueError("the scene's integrator is not 'nerfpp': use "
                          "<integrator type=\"nerfpp\"> for deep output")
-    sensor = scene.sensors()[0]
+    sensor = sensor or scene.sensors()[0]
     k = max(1, int(round(np.sqrt(spp or sensor.sampler().sample_count()))))
     width, height = (int(v) for v in sensor.film().crop_size())
     check_film((width, height), k * k, integrator.max_samples)
@@ -277,11 +277,13 @@ def flatten(counts, samples):
     return out.reshape(*counts.shape, 4)
 
 
-def render_deep_to_file(scene, out, spp=0, seed=0, progress=True):
-    """Render ``scene``'s first sensor and write a deep EXR (module docs) with the header
-    attributes of a flat render. Returns ``(counts, samples, beauty)`` (:func:`render_deep`)."""
-    counts, samples, beauty = render_deep(scene, spp, seed, progress=progress)
-    attributes = exr_attributes(scene.sensors()[0])
+def render_deep_to_file(scene, out, spp=0, seed=0, progress=True, sensor=None):
+    """Render ``scene``'s first sensor (or ``sensor``) and write a deep EXR (module docs) with
+    the header attributes of a flat render. Returns ``(counts, samples, beauty)``
+    (:func:`render_deep`)."""
+    sensor = sensor or scene.sensors()[0]
+    counts, samples, beauty = render_deep(scene, spp, seed, progress=progress, sensor=sensor)
+    attributes = exr_attributes(sensor)
     attributes['depthConvention'] = ('Z, ZBack: camera-space z of the front and back of each '
                                      'deep sample (distance along the view axis, world units)')
     write_deep_exr(out, counts, samples, attributes)

@@ -1,7 +1,9 @@
 """Novel-view videos of a trained model: an orbit around the scene, or the dataset's test path.
 
 A video is rendered as frame files first (``frame_NNNNN.png``, and the multi-layer
-``frame_NNNNN.exr`` on request), each written atomically, then assembled. A frame whose files
+``frame_NNNNN.exr`` on request; a tracked camera's frames carry the file's name and frame
+numbers, ``shot.1001.png``: :mod:`mi_nerfpp.output.tracked_camera`), each written atomically,
+then assembled. A frame whose files
 exist is done, so an interrupted job resumes where it stopped. :func:`render_frames` is the one
 function that renders frames to files, in one process or on each worker of a cluster
 (:mod:`mi_nerfpp.jobs.cluster`).
@@ -134,16 +136,23 @@ FRAME_NAME = 'frame_{:05d}'
 MANIFEST = 'frames.json'
 
 
-def frame_files(frames_dir, index, exr=False):
-    """The final files of frame ``index``: its PNG, and its EXR (all layers) with ``exr``."""
-    base = os.path.join(frames_dir, FRAME_NAME.format(index))
+def frame_files(frames_dir, index, exr=False, name=FRAME_NAME):
+    """The final files of frame ``index``: its PNG, and its EXR (all layers) with ``exr``;
+    ``name``: the pattern of their name (``str.format`` of the index, no extension)."""
+    base = os.path.join(frames_dir, name.format(index))
     return [base + '.png'] + ([base + '.exr'] if exr else [])
 
 
-def pending_frames(frames_dir, count, exr=False):
-    """The indices of the ``count`` frames whose files are not all written yet."""
-    return [i for i in range(count)
-            if not all(os.path.exists(p) for p in frame_files(frames_dir, i, exr))]
+def _indices(frames):
+    """Frame indices: ``range(frames)`` of a count, else the indices given."""
+    return range(frames) if isinstance(frames, int) else list(frames)
+
+
+def pending_frames(frames_dir, frames, exr=False, name=FRAME_NAME):
+    """The indices of the frames (a count: ``0 .. frames - 1``, or the indices) whose files
+    are not all written yet."""
+    return [i for i in _indices(frames)
+            if not all(os.path.exists(p) for p in frame_files(frames_dir, i, exr, name))]
 
 
 def prepare_frames_dir(frames_dir, job: dict):
@@ -165,13 +174,15 @@ def prepare_frames_dir(frames_dir, job: dict):
     remove_stale_temporaries(frames_dir)
 
 
-def render_frames(renderer, cameras: dict, frames_dir, exr=False, on_frame=None):
+def render_frames(renderer, cameras: dict, frames_dir, exr=False, on_frame=None,
+                  name=FRAME_NAME):
     """Render the frames ``cameras`` (index -> camera) whose files are missing with
     ``renderer`` (a :class:`~mi_nerfpp.output.views.ViewRenderer`), writing each atomically: the EXR
-    with all layers first (with ``exr``), then the PNG. Returns the indices rendered."""
+    with all layers first (with ``exr``), then the PNG (named by ``name``, :func:`frame_files`).
+    Returns the indices rendered."""
     done = []
     for index in sorted(cameras):
-        files = frame_files(frames_dir, index, exr)
+        files = frame_files(frames_dir, index, exr, name)
         if not all(os.path.exists(p) for p in files):
             layers, attributes = renderer.render(cameras[index], with_attributes=True)
             if exr:
@@ -183,6 +194,7 @@ def render_frames(renderer, cameras: dict, frames_dir, exr=False, on_frame=None)
     return done
 
 
-def read_frames(frames_dir, count):
-    """The PNG frames, in order, as uint8 arrays (to assemble the video)."""
-    return [iio.imread(frame_files(frames_dir, i)[0]) for i in range(count)]
+def read_frames(frames_dir, frames, name=FRAME_NAME):
+    """The PNG frames (a count, or the indices), in order, as uint8 arrays (to assemble the
+    video)."""
+    return [iio.imread(frame_files(frames_dir, i, name=name)[0]) for i in _indices(frames)]

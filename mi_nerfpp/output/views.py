@@ -84,8 +84,9 @@ def exr_attributes(sensor) -> dict:
     return dict(compositing_attributes(), **camera_attributes(sensor))
 
 
-def render_to_files(scene, out, spp=0, preview=None, seed=0, progress=True):
-    """Render ``scene``'s first sensor and write a multi-layer EXR (and a PNG preview).
+def render_to_files(scene, out, spp=0, preview=None, seed=0, progress=True, sensor=None):
+    """Render ``scene``'s first sensor (or ``sensor``) and write a multi-layer EXR (and a PNG
+    preview).
 
     Returns the image as a dict of channel name -> HxW float32 array.
     """
@@ -94,8 +95,8 @@ def render_to_files(scene, out, spp=0, preview=None, seed=0, progress=True):
         raise ValueError("the scene's integrator is not 'nerfpp': use "
                          "<integrator type=\"nerfpp\"> for layered output")
     integrator.show_progress = progress
-    sensor = scene.sensors()[0]
-    channels = render_layers(mi.render(scene, spp=spp, seed=seed), integrator)
+    sensor = sensor or scene.sensors()[0]
+    channels = render_layers(mi.render(scene, sensor=sensor, spp=spp, seed=seed), integrator)
     write_exr(out, channels, attributes=exr_attributes(sensor))
     if preview:
         write_linear_png(preview, rgb(channels))

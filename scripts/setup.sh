@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Idempotent set-up of what the main job needs: libLLVM >= 17 (Dr.Jit's CPU backend), a virtual
-# environment in .venv, and this package installed in it (editable). `scripts/setup.sh --test`
-# adds what the tests use: oiiotool (the compositing tests composite the EXR layers with it),
-# Blender (the export test builds its camera from the USD headless), Blender 4.2 as a Python
-# module in .venv-bpy (its USD importer, which Debian's Blender lacks, reads the export), Chromium
-# and its driver (the viewer tests open the page headless) and the package's test, cluster,
-# export and viewer extras (the Ray, usd-core and viser tests run).
+# environment in .venv, and this package installed in it (editable) with its dependencies from
+# pyproject.toml (among them pycolmap and PyAV, for photos and videos in: wheels that bring COLMAP
+# and FFmpeg). `scripts/setup.sh --test` adds what the tests use: oiiotool (the compositing tests
+# composite the EXR layers with it), Blender (the export test builds its camera from the USD
+# headless), Blender 4.2 as a Python module in .venv-bpy (its USD importer, which Debian's Blender
+# lacks, reads the export), Chromium and its driver (the viewer tests open the page headless) and
+# the package's test, cluster, export and viewer extras (the Ray, usd-core and viser tests run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 tests=0

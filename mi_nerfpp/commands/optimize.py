@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 
+from mi_nerfpp.commands.colmap import add_frames_option
 from mi_nerfpp.commands.view import add_port_options
 from mi_nerfpp.core import budget
 from mi_nerfpp.jobs import run as runs
@@ -24,9 +25,12 @@ def add_parser(sub):
     p = sub.add_parser('optimize', help='fit both volumes to a posed-image dataset',
                        description=__doc__)
     p.add_argument('data', nargs='?', help='dataset folder (NeRF++ layout, transforms.json, '
-                   'LLFF or COLMAP) or a folder of photos without poses (structure from motion '
-                   'runs first, cached in OUT/sfm); default: synthesize and cache the embedded '
-                   f'default scene and train it for {DEFAULT_JOB_MINUTES:g} minutes')
+                   'LLFF or COLMAP), a folder of photos without poses, or a video or folder of '
+                   'videos (structure from motion runs first, cached in OUT/sfm; of a video, '
+                   'the sharpest frames: docs/data.md, "Video in"); default: synthesize and '
+                   'cache the embedded default scene and train it for '
+                   f'{DEFAULT_JOB_MINUTES:g} minutes')
+    add_frames_option(p)
     p.add_argument('--out', help='run folder (default: runs/<dataset name>)')
     p.add_argument('--resume', action='store_true', help='continue from OUT/model.npz')
     p.add_argument('--overwrite', action='store_true',
@@ -72,7 +76,7 @@ def train(args, observer):
         config = TrainConfig.from_options(**options)
     # Errors (TrainingError and the others) end the command at its boundary (mi_nerfpp.commands.cli).
     result = runs.optimize(data, config, args.out, resume=args.resume, overwrite=args.overwrite,
-                           observer=observer, plan=plan)
+                           observer=observer, plan=plan, frames=args.frames)
     if not result.finished:
         print(f'interrupted at iteration {result.trainer.iteration}: checkpoint saved to '
               f'{result.trainer.checkpoint_path}; continue with --resume', file=sys.stderr)

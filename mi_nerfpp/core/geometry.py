@@ -19,8 +19,11 @@ For origins inside the sphere this reduces to NeRF++ exactly (``s_max = 1``).
 """
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 
 def closest_approach(o, d):
@@ -162,3 +165,25 @@ def pixel_footprint(ray):
     dx = dr.normalize(mi.Vector3f(dr.detach(ray.d_x))) - d
     dy = dr.normalize(mi.Vector3f(dr.detach(ray.d_y))) - d
     return dr.sqrt(dr.norm(dr.cross(dx, dy)))
+
+
+# ----------------------------------------------------------------------------- Nuke
+
+def nuke_rotation(c2w_gl):
+    """Euler angles (degrees) of a camera-to-world rotation for Nuke's rotation order ZXY
+    (``R = Ry·Rx·Rz``, column vectors)."""
+    R = np.asarray(c2w_gl, dtype=np.float64)[:3, :3]
+    rx = math.asin(max(-1.0, min(1.0, -R[1, 2])))
+    ry = math.atan2(R[0, 2], R[2, 2])
+    rz = math.atan2(R[1, 0], R[1, 1])
+    return np.degrees([rx, ry, rz])
+
+
+def rotation_zxy(rx, ry, rz):
+    """The rotation matrix of Nuke's ZXY order from degrees (the inverse of
+    :func:`nuke_rotation`)."""
+    x, y, z = np.radians([rx, ry, rz])
+    Rx = np.array([[1, 0, 0], [0, math.cos(x), -math.sin(x)], [0, math.sin(x), math.cos(x)]])
+    Ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
+    Rz = np.array([[math.cos(z), -math.sin(z), 0], [math.sin(z), math.cos(z), 0], [0, 0, 1]])
+    return Ry @ Rx @ Rz

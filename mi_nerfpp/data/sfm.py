@@ -27,6 +27,10 @@
 the registered and unregistered photos, the timings and the normalization, ``x_model =
 (x_colmap - center) * scale``, so renders can be placed back in the COLMAP frame. A second run
 with the same photos and parameters finds it and does nothing.
+
+:func:`run_sfm_on_videos` takes videos instead: the sharpest frames of each
+(:mod:`mi_nerfpp.data.video`, kept in ``OUT/video_frames/``) are solved with one shared camera
+(COLMAP's single camera mode, for frames of one size) and sequential matching.
 """
 from __future__ import annotations
 
@@ -42,7 +46,7 @@ from tqdm import tqdm
 
 from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.data.cameras import Camera
-from mi_nerfpp.data import masks
+from mi_nerfpp.data import masks, video
 from mi_nerfpp.data.colmap import colmap_frames, pinhole_model, with_masks
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.nerfpp import write_camera
@@ -85,6 +89,27 @@ def list_photos(folder) -> list[str]:
 def is_photo_folder(path) -> bool:
     """Whether ``path`` is a folder holding photos directly (the input of :func:`run_sfm`)."""
     return os.path.isdir(path) and bool(list_photos(path))
+
+
+def video_inputs(path) -> list[str] | None:
+    """The videos that ``path`` stands for: itself (a video file), or the videos directly in
+    it (a folder holding videos and no photos); None for anything else.
+
+    Raises:
+        DatasetError: a folder holding both photos and videos.
+    """
+    path = os.fspath(path)
+    if video.is_video(path):
+        return [path]
+    if not os.path.isdir(path):
+        return None
+    videos = video.list_videos(path)
+    if not videos:
+        return None
+    if list_photos(path):
+        raise DatasetError(f'{path}: holds both photos and videos ({", ".join(videos[:3])}); '
+                           f'put the videos in a folder of their own')
+    return [os.path.join(path, name) for name in videos]
 
 
 def _fingerprint(photos: str, names: list[str]) -> list:
@@ -158,6 +183,9 @@ def run_sfm(photos, out, matching: str = 'exhaustive', camera: str = 'auto',
         if not COLMAP_MINIMUMS[name] <= value <= COLMAP_MAX_INT:
             raise ValueError(f'{name} must be from {COLMAP_MINIMUMS[name]} to {COLMAP_MAX_INT} '
                              f"(COLMAP's largest count), got {value}")
+    if os.path.isfile(photos):
+        raise SfmError(f'{photos}: a file, not a folder of photos or a video '
+                       f'({", ".join(video.VIDEO_EXTENSIONS)})')
     if not os.path.isdir(photos):
         raise SfmError(f'{photos}: no such folder')
     names = list_photos(photos)
@@ -320,6 +348,29 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
     return dict(report, cached=False)
 
 
+def run_sfm_on_videos(videos, out, frames: int | None = None, matching: str = 'sequential',
+                      camera: str | None = None, progress: bool = True, **options) -> dict:
+    """Poses for the sharpest frames of ``videos``, written as a NeRF++ dataset to ``out``.
+
+    The frames (``frames`` per video, None: :func:`~mi_nerfpp.data.video.default_count`) are
+    chosen and kept in ``OUT/video_frames/`` (:func:`~mi_nerfpp.data.video.extract_frames`,
+    reused by a second run), then solved by :func:`run_sfm` with sequential matching and
+    ``camera`` None: one shared camera ('single') when the frames have one size, else
+    'per-image'. ``options``: the other arguments of :func:`run_sfm`.
+
+    Raises:
+        DatasetError: a video that cannot be read or is too short; and as :func:`run_sfm`.
+    """
+    out = os.fspath(out)
+    _check_output(out, read_report(out) is not None)   # before any frame is written there
+    record = video.extract_frames(videos, os.path.join(out, video.FOLDER), frames,
+                                  progress=progress)
+    if camera is None:
+        camera = 'single' if len(video.frame_sizes(record)) == 1 else 'per-image'
+    return run_sfm(os.path.join(out, video.FOLDER), out, matching=matching, camera=camera,
+                   progress=progress, **options)
+
+
 ADVICE = ('To register more photos: take them with more overlap (every part of the scene in '
           'three or more photos, neighbouring photos 10-20 degrees apart), keep the scene '
           'still, the exposure fixed and the photos sharp; avoid textureless, shiny or '
@@ -339,11 +390,17 @@ def _one_camera(image_dir: str, names: list[str]) -> bool:
     return len(keys) == 1
 
 
-def _prepare_output(out: str, has_report: bool) -> None:
-    """Clear an earlier run's output, or refuse a folder holding other files."""
-    if os.path.isdir(out) and os.listdir(out) and not has_report:
+def _check_output(out: str, has_report: bool) -> None:
+    """Refuse an output folder holding files that are not an earlier run's (its video frames
+    are)."""
+    if os.path.isdir(out) and set(os.listdir(out)) - {video.FOLDER} and not has_report:
         raise FileExistsError(f'{out}: folder holds files that are not an earlier `colmap` '
                               f'run\'s; choose an empty or new folder')
+
+
+def _prepare_output(out: str, has_report: bool) -> None:
+    """Clear an earlier run's output, or refuse a folder holding other files."""
+    _check_output(out, has_report)
     remove_entries(out, ('colmap', 'train', 'validation', 'test', SFM_FILE))
     os.makedirs(out, exist_ok=True)
 
@@ -524,3 +581,13 @@ def _print_summary(report: dict, out: str) -> None:
 
 def _percent(value):
     return 'n/a' if value is None else f'{100 * value:.0f}%'
+
+
+def sfm_normalization(dataset_root):
+    """The normalization structure from motion applied to a photo run's dataset (which the
+    export undoes, and a tracked camera in applies again), or None."""
+    report = read_report(dataset_root) if dataset_root else None
+    if not report or 'normalization' not in report:
+        return None
+    config = {k: v for k, v in report['normalization'].items() if k in ('center', 'scale')}
+    return Normalization.from_config(config)

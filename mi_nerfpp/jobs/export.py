@@ -59,7 +59,8 @@ from mi_nerfpp.core import budget
 from mi_nerfpp.core.color import to_srgb8
 from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.data.colmap import read_model
-from mi_nerfpp.data.sfm import read_report
+from mi_nerfpp.data.sfm import read_report, sfm_normalization
+from mi_nerfpp.core.geometry import nuke_rotation
 from mi_nerfpp.files.atomic import atomic_write_path, check_writable_folder
 from mi_nerfpp.files.readers import FileReadError, read_json
 from mi_nerfpp.jobs.run import open_run
@@ -69,16 +70,6 @@ from mi_nerfpp.output.video import orbit_cameras
 FILM_BACK_MM = 36.0
 # The orbit path that ``video`` renders by default.
 VIDEO_FRAMES, VIDEO_FPS = 60, 24
-
-
-def sfm_normalization(dataset_root):
-    """The normalization structure from motion applied to a photo run's dataset (which the
-    export undoes, and a tracked camera in applies again), or None."""
-    report = read_report(dataset_root) if dataset_root else None
-    if not report or 'normalization' not in report:
-        return None
-    config = {k: v for k, v in report['normalization'].items() if k in ('center', 'scale')}
-    return Normalization.from_config(config)
 
 
 def world_cameras(model, cameras, sfm=None):
@@ -281,26 +272,6 @@ def _write_proxy_usd(stage, vertices, faces, colors):
     # displayColor is linear by USD's convention.
     color.Set(Vt.Vec3fArray.FromNumpy(np.asarray(colors, np.float32)))
     stage.GetRootLayer().Save()
-
-
-def nuke_rotation(c2w_gl):
-    """Euler angles (degrees) of a camera-to-world rotation for Nuke's rotation order ZXY
-    (``R = Ry·Rx·Rz``, column vectors)."""
-    R = np.asarray(c2w_gl, dtype=np.float64)[:3, :3]
-    rx = math.asin(max(-1.0, min(1.0, -R[1, 2])))
-    ry = math.atan2(R[0, 2], R[2, 2])
-    rz = math.atan2(R[1, 0], R[1, 1])
-    return np.degrees([rx, ry, rz])
-
-
-def rotation_zxy(rx, ry, rz):
-    """The rotation matrix of Nuke's ZXY order from degrees (the inverse of
-    :func:`nuke_rotation`)."""
-    x, y, z = np.radians([rx, ry, rz])
-    Rx = np.array([[1, 0, 0], [0, math.cos(x), -math.sin(x)], [0, math.sin(x), math.cos(x)]])
-    Ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
-    Rz = np.array([[math.cos(z), -math.sin(z), 0], [math.sin(z), math.cos(z), 0], [0, 0, 1]])
-    return Ry @ Rx @ Rz
 
 
 def write_chan(path, cameras):

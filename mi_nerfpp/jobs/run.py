@@ -43,7 +43,8 @@ import matplotlib.pyplot as plt
 from mi_nerfpp.core import budget
 from mi_nerfpp.data import (AutoDownscale, DatasetError, detect_format,
                             load_dataset)
-from mi_nerfpp.data.sfm import is_photo_folder, run_sfm
+from mi_nerfpp.data import video
+from mi_nerfpp.data.sfm import is_photo_folder, run_sfm, run_sfm_on_videos, video_inputs
 from mi_nerfpp.data.synth import default_capture
 from mi_nerfpp.files.atomic import (LOCK_NAME, check_not_a_file,
                                     check_writable_folder, lock_folder)
@@ -181,11 +182,12 @@ def default_job(options: dict, progress: bool = False) -> tuple[str, dict]:
 
 def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool = False,
             overwrite: bool = False, observer: RunObserver | None = None,
-            plan: budget.Plan | None = None) -> RunInputs:
+            plan: budget.Plan | None = None, frames: int | None = None) -> RunInputs:
     """The inputs of a run, checked before any work.
 
-    ``data``: a dataset folder (NeRF++ layout, transforms.json, LLFF or COLMAP) or a folder
-    of photos without poses (structure from motion runs first, cached in ``OUT/sfm``).
+    ``data``: a dataset folder (NeRF++ layout, transforms.json, LLFF or COLMAP), a folder
+    of photos without poses, or a video or folder of videos (structure from motion runs
+    first, cached in ``OUT/sfm``; ``frames``: frames kept per video, None: the default count).
     ``out``: the run folder (default ``runs/<dataset name>``); one that holds a trained run
     is only continued (``resume``) or replaced (``overwrite``). What the config leaves to the
     capture is chosen and announced (in a copy of ``config``): the resolution
@@ -206,7 +208,10 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
     observer.planned(plan)
     if not os.path.exists(data):
         raise DatasetError(f'{data}: dataset folder not found')
-    out = out or os.path.join('runs', os.path.basename(os.path.normpath(data)))
+    name = os.path.basename(os.path.normpath(data))
+    if video.is_video(data):
+        name = os.path.splitext(name)[0]
+    out = out or os.path.join('runs', name)
     if resume and overwrite:
         raise ValueError('--resume and --overwrite exclude each other')
     check_not_a_file(out)
@@ -219,7 +224,8 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
         check_run_folder(out, resume=resume, overwrite=overwrite)
         # Masks of people and cars keep them out of the features too; silhouettes do not.
         data = photos_to_dataset(data, os.path.join(out, 'sfm'), observer,
-                                 mask_features=config.losses.masks in (None, 'ignore'))
+                                 mask_features=config.losses.masks in (None, 'ignore'),
+                                 frames=frames)
         downscale = config.data.downscale
         checkpoint = os.path.join(out, 'model.npz')
         stored = (read_meta(checkpoint).get('config') or {}
@@ -361,11 +367,21 @@ def check_run_folder(out, resume, overwrite):
 
 
 def photos_to_dataset(data: str, sfm_out: str, observer: RunObserver | None = None,
-                      mask_features: bool = True) -> str:
-    """``data`` if it is a dataset; for a folder of photos without poses, the NeRF++ dataset
-    structure from motion writes to ``sfm_out`` (run once, then reused; ``mask_features``:
-    as :func:`~mi_nerfpp.data.sfm.run_sfm`)."""
+                      mask_features: bool = True, frames: int | None = None) -> str:
+    """``data`` if it is a dataset; for a folder of photos without poses, or a video or a
+    folder of videos, the NeRF++ dataset structure from motion writes to ``sfm_out`` (run
+    once, then reused; ``mask_features``: as :func:`~mi_nerfpp.data.sfm.run_sfm`; ``frames``:
+    as :func:`~mi_nerfpp.data.sfm.run_sfm_on_videos`)."""
     observer = observer or RunObserver()
+    videos = video_inputs(data)
+    if videos:
+        observer.notice(f'{data}: {len(videos)} video(s); choosing their sharpest frames and '
+                        f'running structure from motion (COLMAP) into {sfm_out}')
+        run_sfm_on_videos(videos, sfm_out, frames=frames, progress=observer.shows_progress,
+                          mask_features=mask_features)
+        return sfm_out
+    if frames is not None:
+        raise ValueError(f'--frames: {data} is not a video or a folder of videos')
     try:
         detect_format(data)
         return data
@@ -498,13 +514,14 @@ def plot_training(history, metrics, color_loss, path):
 
 def optimize(data: str, config: TrainConfig, out: str | None = None, resume: bool = False,
              overwrite: bool = False, observer: RunObserver | None = None,
-             plan: budget.Plan | None = None) -> RunResult:
+             plan: budget.Plan | None = None, frames: int | None = None) -> RunResult:
     """A whole run: :func:`prepare`, :func:`start`, :func:`train` and, when training
     finished (not interrupted), :func:`report`. ``plan``: the run's sizing, when the caller
-    made it already (:func:`mi_nerfpp.core.budget.plan`; made here otherwise)."""
+    made it already (:func:`mi_nerfpp.core.budget.plan`; made here otherwise); ``frames``: as
+    :func:`prepare`."""
     observer = observer or RunObserver()
     inputs = prepare(data, config, out, resume=resume, overwrite=overwrite, observer=observer,
-                     plan=plan)
+                     plan=plan, frames=frames)
     try:
         trainer = start(inputs, resume=resume, observer=observer)
         t0 = time.perf_counter()

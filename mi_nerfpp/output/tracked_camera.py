@@ -51,8 +51,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mi_nerfpp.core.geometry import rotation_zxy
 from mi_nerfpp.data import Camera
 from mi_nerfpp.data.cameras import opengl_to_opencv
+from mi_nerfpp.data.sfm import sfm_normalization
 from mi_nerfpp.files.readers import FileReadError, read_json
 from mi_nerfpp.output.camera_path import DEFAULT_FPS, MAX_FRAMES, CameraPathError
 
@@ -416,8 +418,6 @@ def _read_text(path) -> str:
 
 
 def _read_chan(path, _name=None) -> Shot:
-    from mi_nerfpp.jobs.export import \
-        rotation_zxy  # deferred: the exporter's imports (marching cubes) are not needed here
     frames = []
     for line_number, line in enumerate(_read_text(path).splitlines(), 1):
         fields = line.split()
@@ -509,7 +509,5 @@ def _read_nerfstudio(path, _name=None) -> Shot:
 def capture_normalizations(dataset_root) -> list:
     """The normalizations that move a camera of ``export``'s frame into the dataset's world
     frame, in turn: structure from motion's for a run trained from photos, none otherwise."""
-    from mi_nerfpp.jobs.export import \
-        sfm_normalization  # deferred: the exporter's imports (marching cubes) are not needed here
     sfm = sfm_normalization(dataset_root)
     return [] if sfm is None else [sfm]

@@ -16,6 +16,7 @@ import pytest
 from mi_nerfpp.jobs import export
 from mi_nerfpp.data import Camera, mitsuba_sensor_dict
 from mi_nerfpp.core.frame import Normalization
+from mi_nerfpp.core.geometry import rotation_zxy
 from mi_nerfpp.core.model import NeRFPPModel
 from tests.helpers import AnalyticField
 
@@ -116,7 +117,7 @@ def test_chan_files_and_camera_table(exported):
         assert frame == entry['frame']
         np.testing.assert_allclose([tx, ty, tz], camera.center, atol=1e-5)
         # Nuke's ZXY rotation of a camera looking down -z gives back the pose.
-        R = export.rotation_zxy(rx, ry, rz) @ np.diag([1.0, -1.0, -1.0])
+        R = rotation_zxy(rx, ry, rz) @ np.diag([1.0, -1.0, -1.0])
         np.testing.assert_allclose(R, camera.c2w[:3, :3], atol=1e-6)
         assert vfov == pytest.approx(np.degrees(2 * np.arctan(12 / camera.K[1, 1])), abs=1e-5)
 

@@ -6,7 +6,8 @@
 # composite the EXR layers with it), Blender (the export test builds its camera from the USD
 # headless), Blender 4.2 as a Python module in .venv-bpy (its USD importer, which Debian's Blender
 # lacks, reads the export), Chromium and its driver (the viewer tests open the page headless) and
-# the package's test, cluster, export and viewer extras (the Ray, usd-core and viser tests run).
+# the package's test, cluster, export and viewer extras (the Ray, usd-core, xatlas and viser tests
+# run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 tests=0

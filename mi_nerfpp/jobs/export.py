@@ -8,8 +8,11 @@
                           Blender's, keep the names); the video's orbit path
                           (python -m mi_nerfpp video's default, 60 frames at 24 fps) as the
                           animated /cameras/video_orbit; the proxy referenced as /proxy
-    DIR/proxy.usda        the proxy mesh as a UsdGeom.Mesh (vertex colours: displayColor)
+    DIR/proxy.usda        the proxy mesh as a UsdGeom.Mesh (vertex colours: displayColor; UVs:
+                          primvars:st; a UsdPreviewSurface material mapping proxy_texture.png)
     DIR/proxy.ply         the same mesh as PLY (vertex colours, 8-bit sRGB)
+    DIR/proxy.obj, .mtl   the same mesh as OBJ with UVs, its material mapping the texture (map_Kd)
+    DIR/proxy_texture.png the texture of the proxy (8-bit sRGB, texture_size texels a side)
     DIR/sfm_points.ply    the structure-from-motion points, for a run trained from photos
     DIR/<split>.chan      Nuke .chan of the split's cameras, one frame per image (frame i + 1:
                           image i of DIR/cameras.json), and video_orbit.chan
@@ -31,9 +34,11 @@ Camera's film back to the aspect of the images and its rotation order to ZXY bef
 **Proxy.** Marching cubes (scikit-image) on the foreground's density on a ``resolution``³ grid
 over the unit sphere, at the density whose opacity over one grid step is 1/2 (``level``:
 ``ln 2 / step``) unless given; vertex colours are the field's radiance there seen along the
-inward normal, sRGB-encoded. A model whose density never reaches the level gets no proxy (a
-warning names the largest density reached and a ``--density`` that meshes); the cameras are
-written all the same.
+inward normal, sRGB-encoded. Its UVs and the texture baked from the model's colour (neutral
+appearance, seen from the best-facing training camera) come from
+:mod:`mi_nerfpp.output.proxy_texture`. A model whose density never reaches the level gets no
+proxy (a warning names the largest density reached and a ``--density`` that meshes); the
+cameras are written all the same.
 
 **All or nothing.** An export is written into ``DIR/.export.partial/`` and then moved into
 ``DIR`` in place of the files of the export before it (listed in ``DIR/.export.json``); an
@@ -64,10 +69,14 @@ from mi_nerfpp.core.geometry import nuke_rotation
 from mi_nerfpp.files.atomic import atomic_write_path, check_writable_folder
 from mi_nerfpp.files.readers import FileReadError, read_json
 from mi_nerfpp.jobs.run import open_run
+from mi_nerfpp.output.proxy_texture import (bake_texture, surface_color, unwrap, write_obj,
+                                            write_texture)
 from mi_nerfpp.output.video import orbit_cameras
 
 # USD film back width (mm): a full-frame sensor.
 FILM_BACK_MM = 36.0
+# The texture of the proxy: its file, and its default size (texels a side, --texture-size).
+TEXTURE, DEFAULT_TEXTURE_SIZE = 'proxy_texture.png', 1024
 # The orbit path that ``video`` renders by default.
 VIDEO_FRAMES, VIDEO_FPS = 60, 24
 
@@ -179,9 +188,10 @@ class NoSurfaceError(ValueError):
     """The foreground's density never reaches the proxy's level: nothing to mesh."""
 
 
-def proxy_mesh(model, resolution=128, level=None, chunk=1 << 18):
-    """``(vertices (world), faces, colours (linear RGB))`` of the foreground's surface (module
-    docs). Raises :class:`NoSurfaceError` when the density never reaches ``level``."""
+def model_surface(model, resolution=128, level=None, chunk=1 << 18):
+    """``(vertices, faces, outward unit normals)`` of the foreground's surface in the model's
+    frame (module docs). Raises :class:`NoSurfaceError` when the density never reaches
+    ``level``."""
     step = 2.0 / (resolution - 1)
     level = math.log(2.0) / step if level is None else float(level)
     axis = np.linspace(-1.0, 1.0, resolution)
@@ -200,30 +210,25 @@ def proxy_mesh(model, resolution=128, level=None, chunk=1 << 18):
             f'the foreground density never reaches {level:.4g} on the {resolution}^3 grid (its '
             f'largest value there is {volume.max():.4g}); --density {0.5 * volume.max():.4g} '
             f'would mesh where it is densest')
+    # scikit-image's gradient normals point towards lower values: out of the surface.
     verts, faces, normals, _ = marching_cubes(volume, level, spacing=(step, step, step))
-    verts = verts - 1.0                       # the grid starts at -1 on every axis
-    colors = _surface_color(fg, verts, normals)
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    return verts - 1.0, faces.astype(np.int64), normals    # the grid starts at -1 on every axis
+
+
+def model_to_world(model, vertices):
+    """Model-frame ``vertices`` in the world frame of the model's normalization."""
     norm = model.normalization
-    world = verts / norm.scale + norm.center_array
-    return world, faces.astype(np.int64), colors
+    return vertices / norm.scale + norm.center_array
 
 
-def _surface_color(field, points, normals):
-    """Linear radiance of ``field`` at ``points`` seen along the inward normals. (scikit-image's
-    gradient normals point towards lower values: out of the surface.)"""
-    n = len(points)
-    if n == 0:
-        return np.zeros((0, 3))
-    x = [mi.Float(points[:, i].astype(np.float32)) for i in range(3)]
-    d = -normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    d = mi.Vector3f(*[mi.Float(d[:, i].astype(np.float32)) for i in range(3)])
-    with dr.suspend_grad():
-        if getattr(field, 'deferred', False):
-            _, features = field.features(x)
-            rgb = field.color(features, d)
-        else:
-            _, rgb = field(x, d, dr.arange(mi.UInt32, n))
-    return np.clip(np.array(rgb, dtype=np.float64).reshape(3, -1).T, 0.0, None)
+def proxy_mesh(model, resolution=128, level=None, chunk=1 << 18):
+    """``(vertices (world), faces, colours (linear RGB))`` of the foreground's surface (module
+    docs): the colours are the field's radiance seen along the inward normals. Raises
+    :class:`NoSurfaceError` when the density never reaches ``level``."""
+    verts, faces, normals = model_surface(model, resolution, level, chunk)
+    colors = surface_color(model.radiance_fields()[0], verts, -normals)
+    return model_to_world(model, verts), faces, colors
 
 
 def write_ply(path, vertices, faces=None, colors=None):
@@ -249,15 +254,18 @@ def write_ply(path, vertices, faces=None, colors=None):
         f.write('\n'.join(lines + body) + '\n')
 
 
-def write_proxy_usd(path, vertices, faces, colors):
-    """The proxy mesh as ``path`` (a USD layer with a default prim /proxy)."""
+def write_proxy_usd(path, vertices, faces, colors, uvs=None, uv_faces=None, texture=None):
+    """The proxy mesh as ``path`` (a USD layer with a default prim /proxy); with ``uvs`` and
+    ``uv_faces`` (:func:`~mi_nerfpp.output.proxy_texture.unwrap`) also its ``primvars:st``,
+    and with ``texture`` (a file name beside ``path``) a material that maps it."""
     from pxr import Usd  # deferred: usd-core is the optional extra [export]
     with atomic_write_path(path) as tmp:      # a UTF-8 name: USD takes no other bytes
-        _write_proxy_usd(Usd.Stage.CreateNew(tmp), vertices, faces, colors)
+        _write_proxy_usd(Usd.Stage.CreateNew(tmp), vertices, faces, colors, uvs, uv_faces,
+                         texture)
 
 
-def _write_proxy_usd(stage, vertices, faces, colors):
-    from pxr import UsdGeom, Vt  # deferred: usd-core is the optional extra [export]
+def _write_proxy_usd(stage, vertices, faces, colors, uvs, uv_faces, texture):
+    from pxr import Sdf, UsdGeom, Vt  # deferred: usd-core is the optional extra [export]
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     mesh = UsdGeom.Mesh.Define(stage, '/proxy')
     stage.SetDefaultPrim(mesh.GetPrim())
@@ -271,7 +279,43 @@ def _write_proxy_usd(stage, vertices, faces, colors):
     color = mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
     # displayColor is linear by USD's convention.
     color.Set(Vt.Vec3fArray.FromNumpy(np.asarray(colors, np.float32)))
+    if uvs is not None:
+        st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+            'st', Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying)
+        st.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uvs, np.float32)))
+        # One UV per face corner, in the reversed winding of the faces.
+        st.SetIndices(Vt.IntArray.FromNumpy(
+            np.ascontiguousarray(np.asarray(uv_faces)[:, ::-1], dtype=np.int32).ravel()))
+    if texture is not None:
+        _bind_texture(stage, mesh, texture)
     stage.GetRootLayer().Save()
+
+
+def _bind_texture(stage, mesh, texture):
+    """A UsdPreviewSurface material under the mesh whose diffuse colour is ``texture`` (an
+    8-bit sRGB image) read through ``primvars:st``, bound to the mesh."""
+    from pxr import Sdf, UsdShade  # deferred: usd-core is the optional extra [export]
+    path = mesh.GetPath().AppendChild('material')
+    material = UsdShade.Material.Define(stage, path)
+    surface = UsdShade.Shader.Define(stage, path.AppendChild('surface'))
+    surface.CreateIdAttr('UsdPreviewSurface')
+    surface.CreateInput('roughness', Sdf.ValueTypeNames.Float).Set(1.0)
+    reader = UsdShade.Shader.Define(stage, path.AppendChild('st'))
+    reader.CreateIdAttr('UsdPrimvarReader_float2')
+    reader.CreateInput('varname', Sdf.ValueTypeNames.Token).Set('st')
+    image = UsdShade.Shader.Define(stage, path.AppendChild('texture'))
+    image.CreateIdAttr('UsdUVTexture')
+    image.CreateInput('file', Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(f'./{texture}'))
+    image.CreateInput('sourceColorSpace', Sdf.ValueTypeNames.Token).Set('sRGB')
+    for wrap in ('wrapS', 'wrapT'):
+        image.CreateInput(wrap, Sdf.ValueTypeNames.Token).Set('clamp')
+    image.CreateInput('st', Sdf.ValueTypeNames.Float2).ConnectToSource(
+        reader.ConnectableAPI(), 'result')
+    image.CreateOutput('rgb', Sdf.ValueTypeNames.Float3)
+    surface.CreateInput('diffuseColor', Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        image.ConnectableAPI(), 'rgb')
+    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), 'surface')
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
 
 
 def write_chan(path, cameras):
@@ -301,7 +345,8 @@ OLD = '.export.old'
 MANIFEST = '.export.json'
 
 
-def export_run(run, out, resolution=128, density=None, opened=None, warn=None):
+def export_run(run, out, resolution=128, density=None, opened=None, warn=None,
+               texture_size=DEFAULT_TEXTURE_SIZE):
     """Write the files of the module docs for run folder ``run`` into ``out``, all or nothing
     (module docs); returns the paths written. ``opened``: :func:`mi_nerfpp.jobs.run.open_run`
     of the run, if already read; ``warn``: how a skipped proxy is reported."""
@@ -313,7 +358,8 @@ def export_run(run, out, resolution=128, density=None, opened=None, warn=None):
     shutil.rmtree(staging, ignore_errors=True)
     os.makedirs(staging)
     try:
-        names = _write_export(model, meta, dataset, staging, resolution, density, warn)
+        names = _write_export(model, meta, dataset, staging, resolution, density, warn,
+                              texture_size)
         with atomic_write_path(os.path.join(staging, MANIFEST)) as tmp, open(tmp, 'w') as f:
             json.dump({'files': names}, f)
     except BaseException:
@@ -368,7 +414,28 @@ def _manifest_files(path, remedy=None) -> list[str]:
     return names
 
 
-def _write_export(model, meta, dataset, out, resolution, density, warn) -> list[str]:
+def _write_proxy(model, train_cameras, sfm, out, resolution, density, texture_size):
+    """The proxy's files (module docs), written into ``out``; their names. ``train_cameras``:
+    in the model's frame. Raises :class:`NoSurfaceError` when there is nothing to mesh."""
+    vertices, faces, normals = model_surface(model, resolution, density)
+    fg, _ = model.radiance_fields()
+    colors = surface_color(fg, vertices, -normals)
+    uvs, uv_faces = unwrap(vertices, faces, texture_size)
+    texture = bake_texture(model, vertices, normals, faces, uvs, uv_faces, train_cameras,
+                           texture_size)
+    vertices = model_to_world(model, vertices)
+    if sfm is not None and len(vertices):
+        vertices = np.stack([sfm.to_world_point(v) for v in vertices])
+    write_ply(os.path.join(out, 'proxy.ply'), vertices, faces, colors)
+    write_texture(os.path.join(out, TEXTURE), texture)
+    write_obj(os.path.join(out, 'proxy.obj'), vertices, faces, uvs, uv_faces, TEXTURE)
+    write_proxy_usd(os.path.join(out, 'proxy.usda'), vertices, faces, colors, uvs, uv_faces,
+                    TEXTURE)
+    return ['proxy.ply', TEXTURE, 'proxy.obj', 'proxy.mtl', 'proxy.usda']
+
+
+def _write_export(model, meta, dataset, out, resolution, density, warn,
+                  texture_size) -> list[str]:
     """The export's files, written into ``out``; their names."""
     sfm = sfm_normalization(meta.get('dataset'))
     cameras = {name: world_cameras(model, split.cameras, sfm) for name, split in
@@ -378,18 +445,13 @@ def _write_export(model, meta, dataset, out, resolution, density, warn) -> list[
                                                dataset.train.cameras[0]), sfm)
     written = []
     try:
-        vertices, faces, colors = proxy_mesh(model, resolution, density)
+        proxy = _write_proxy(model, dataset.train.cameras, sfm, out, resolution, density,
+                             texture_size)
     except NoSurfaceError as e:
         warn(f'warning: export: no proxy mesh: {e}; the cameras are exported')
-        proxy = None
-    else:
-        if sfm is not None and len(vertices):
-            vertices = np.stack([sfm.to_world_point(v) for v in vertices])
-        write_ply(os.path.join(out, 'proxy.ply'), vertices, faces, colors)
-        write_proxy_usd(os.path.join(out, 'proxy.usda'), vertices, faces, colors)
-        written += [os.path.join(out, 'proxy.ply'), os.path.join(out, 'proxy.usda')]
-        proxy = 'proxy.usda'
-    written.append(write_usd(out, cameras, video, proxy))
+        proxy = []
+    written += [os.path.join(out, name) for name in proxy]
+    written.append(write_usd(out, cameras, video, 'proxy.usda' if proxy else None))
     points = _sfm_points(meta.get('dataset'), sfm)
     if points is not None and len(points):
         write_ply(os.path.join(out, 'sfm_points.ply'), points)

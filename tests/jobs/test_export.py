@@ -34,7 +34,7 @@ def exported(tiny_run, tmp_path_factory):
     density = np.array(model.radiance_fields()[0].density([mi.Float(x[:, i]) for i in range(3)]))
     level = float(np.quantile(density, 0.98))
     assert main(['export', tiny_run, '--out', out, '--resolution', '48',
-                 '--density', str(level)]) == 0
+                 '--density', str(level), '--texture-size', '64']) == 0
     return tiny_run, out
 
 
@@ -233,7 +233,8 @@ def _files(folder):
 
 
 def _export(run, out, resolution=16, **kw):
-    return export.export_run(run, str(out), resolution=resolution, density=1e-6, **kw)
+    return export.export_run(run, str(out), resolution=resolution, density=1e-6,
+                             texture_size=32, **kw)
 
 
 def test_an_export_cut_short_at_any_write_leaves_the_earlier_export_whole(tiny_run, tmp_path,
@@ -248,7 +249,8 @@ def test_an_export_cut_short_at_any_write_leaves_the_earlier_export_whole(tiny_r
     _export(tiny_run, out)
     before = _files(out)
     assert '.export.json' in before and 'scene.usda' in before and 'proxy.ply' in before
-    writers = ['write_ply', 'write_proxy_usd', 'write_usd', 'write_chan', 'atomic_write_path']
+    writers = ['write_ply', 'write_texture', 'write_obj', 'write_proxy_usd', 'write_usd',
+               'write_chan', 'atomic_write_path']
     cut = 0
     for name in writers:
         real = getattr(export, name)
@@ -274,7 +276,7 @@ def test_an_export_cut_short_at_any_write_leaves_the_earlier_export_whole(tiny_r
     new = _files(tmp_path / 'reference')
     assert new['proxy.ply'] != before['proxy.ply']
     real_replace = os.replace
-    for k in range(1, 12):
+    for k in range(1, 16):
         moves = []
 
         def replace(a, b, _k=k):
@@ -299,7 +301,7 @@ def test_an_export_cut_short_at_any_write_leaves_the_earlier_export_whole(tiny_r
         assert not any(name.startswith('.export.partial') or name.startswith('.export.old')
                        or '.tmp' in name for name in after)
         _export(tiny_run, out)                      # back to the earlier export for the next cut
-    assert len(moves) < 11                          # every move of the swap was cut once
+    assert len(moves) < 15                          # every move of the swap was cut once
 
 
 def test_a_model_without_a_surface_exports_its_cameras_and_says_which_density_meshes(
@@ -308,10 +310,11 @@ def test_a_model_without_a_surface_exports_its_cameras_and_says_which_density_me
     item 3): the cameras are written, the mesh is skipped with a warning naming a --density."""
     warnings = []
     written = export.export_run(tiny_run, str(tmp_path / 'dcc'), resolution=16, density=1e30,
-                                warn=warnings.append)
+                                warn=warnings.append, texture_size=32)
     names = {os.path.basename(p) for p in written}
     assert {'scene.usda', 'train.chan', 'cameras.json'} <= names
-    assert not names & {'proxy.ply', 'proxy.usda'}
+    assert not names & {'proxy.ply', 'proxy.usda', 'proxy.obj', 'proxy.mtl',
+                        'proxy_texture.png'}
     assert len(warnings) == 1 and 'no proxy mesh' in warnings[0] and '--density ' in warnings[0]
     stage = Usd.Stage.Open(str(tmp_path / 'dcc' / 'scene.usda'))
     assert not stage.GetPrimAtPath('/World/proxy')

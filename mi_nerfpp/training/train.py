@@ -131,6 +131,10 @@ class Trainer:
         o, s, losses = config.optimizer, config.schedule, config.losses
         self.opt = optim.adam(self.model.parameters(), o.lr_mlp, beta_2=o.adam_beta2)
         optim.restore_adam(self.opt, state)
+        # The similarity the refined cameras may not drift by together (:func:`~mi_nerfpp.
+        # core.poses.gauge_basis`): taken out of the corrections after every step.
+        self.gauge = (poses.gauge_basis([cam.c2w[:3, 3] for cam in self.train.cameras])
+                      if self.model.poses is not None else None)
 
         # The parts that act at times of their own; a resumed run has their past behind it.
         self.occupancy = (OccupancyRefresh(config.sampling.occupancy_every)
@@ -270,6 +274,9 @@ class Trainer:
         finally:
             self.model.set_appearance(None)     # renders outside the step: the neutral code
         self._non_finite = inputs['non_finite']   # the step's guard (see parameters_finite)
+        if self.gauge is not None and inputs['phase']['refine']:
+            self.opt['poses'] = mi.TensorXf(poses.pin_gauge(self.opt['poses'].numpy(),
+                                                            self.gauge).astype(np.float32))
         # A replayed frozen step runs no Python, so the step itself cannot give the model the
         # updated parameters (previews and evaluations read them).
         optim.write_back(self.opt, self.model)

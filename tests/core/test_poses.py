@@ -245,3 +245,43 @@ def test_while_the_floor_is_wide_the_fine_levels_learn_nothing(perturbed, tmp_pa
         trainer.step()
         changed[degrees] = int(np.sum(trainer.opt[finest].numpy() != before))
     assert changed[0.0] > 1000 and changed[30.0] < 0.1 * changed[0.0], changed
+
+
+def test_the_gauge_is_a_common_similarity_of_cameras_1_on_and_pinning_takes_out_only_it():
+    """:func:`poses.gauge_basis` spans the corrections of a small similarity of cameras 1..
+    (closed form, first order: the corrections read off the moved cameras), and
+    :func:`poses.pin_gauge` removes that part and nothing else."""
+    rng = np.random.default_rng(0)
+    centres = rng.normal(size=(7, 3))
+    basis = poses.gauge_basis(centres)
+    assert basis.shape == (42, 7)
+    np.testing.assert_allclose(basis.T @ basis, np.eye(7), atol=1e-12)
+    # A real similarity x -> s·R·x + t of cameras 1..: R' = R_g·R, c' = s·R_g·c + t.
+    turn, s, t = poses.rotation_matrix([2e-4, -1e-4, 3e-4]), 1 + 2e-4, np.array([1e-4, 0, -2e-4])
+    moved = np.zeros((7, 6))
+    for i, c in enumerate(centres[1:], start=1):
+        moved[i, :3] = [2e-4, -1e-4, 3e-4]                 # exp(ω)·R = R_g·R
+        moved[i, 3:] = s * turn @ c + t - c
+    left = poses.pin_gauge(moved, basis)
+    assert np.abs(left).max() < 1e-3 * np.abs(moved).max()     # second order only
+    # Any correction keeps its part orthogonal to the gauge, image 0's row stays 0.
+    x = rng.normal(size=(7, 6))
+    x[0] = 0
+    pinned = poses.pin_gauge(x, basis)
+    np.testing.assert_allclose(basis.T @ pinned.ravel(), 0, atol=1e-12)
+    np.testing.assert_allclose(poses.pin_gauge(pinned, basis), pinned, atol=1e-12)
+    assert np.all(pinned[0] == 0)
+    free = x.ravel() - basis @ (basis.T @ x.ravel())
+    np.testing.assert_allclose(pinned.ravel(), free, atol=1e-12)
+    assert poses.gauge_basis(centres[:1]).shape == (6, 0)
+
+
+def test_refined_cameras_do_not_drift_together(perturbed, tmp_path):
+    """After refining steps the corrections have no common similarity left (the gauge of
+    :mod:`mi_nerfpp.core.poses`), and the other part moved."""
+    trainer = Trainer(load_dataset(perturbed[0]), str(tmp_path),
+                      TrainConfig.from_options(iterations=20, **EXACT))
+    trainer.run()
+    learned = trainer.model.poses.numpy().astype(np.float64).ravel()
+    assert np.abs(learned).max() > 1e-3
+    assert np.abs(trainer.gauge.T @ learned).max() < 1e-6 * np.abs(learned).max() + 1e-7

@@ -47,6 +47,17 @@ class AnalyticField:
         return self.density(x), rgb if isinstance(rgb, mi.Color3f) else mi.Color3f(*rgb)
 
 
+def blender_python() -> str:
+    """The Python of Blender 4.2 as a module (pip bpy in .venv-bpy: Debian's Blender has no USD
+    importer); the calling test fails, saying how to install it, where there is none."""
+    import pytest
+    python = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                          '.venv-bpy', 'bin', 'python')
+    if not os.path.exists(python):
+        pytest.fail('bpy 4.2 is not installed: run scripts/setup.sh --test (it makes .venv-bpy)')
+    return python
+
+
 def field_inputs(domain, n=256, seed=1):
     """Random field inputs of ``domain``: points in the ball, or (x̂, s) of the background."""
     rng = np.random.default_rng(seed)

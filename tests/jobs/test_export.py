@@ -1,10 +1,12 @@
 """Export to DCC tools (issue 35): USD cameras named after the images, in the capture's world
 frame, checked with usd-core's own camera math; Nuke .chan; a proxy mesh of the foreground;
 and a headless Blender building its camera from the USD and projecting like the EXR header."""
+import contextlib
 import glob
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -18,7 +20,7 @@ from mi_nerfpp.data import Camera, mitsuba_sensor_dict
 from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.core.geometry import rotation_zxy
 from mi_nerfpp.core.model import NeRFPPModel
-from tests.helpers import AnalyticField
+from tests.helpers import AnalyticField, blender_python
 
 from pxr import Gf, Usd, UsdGeom  # noqa: E402  (usd-core: a test dependency, setup.sh)
 
@@ -237,12 +239,26 @@ def _export(run, out, resolution=16, **kw):
                              texture_size=32, **kw)
 
 
+@contextlib.contextmanager
+def _sigterm_raises():
+    """SIGTERM raises SystemExit for the time of the ``with``, rather than end the test process
+    (its default action, which the swap holds back the same way)."""
+    def handler(signum, frame):
+        raise SystemExit(143)
+    before = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
 def test_an_export_cut_short_at_any_write_leaves_the_earlier_export_whole(tiny_run, tmp_path,
                                                                          monkeypatch):
     """A signal or a full disk during an export over an earlier one left a new proxy beside the
     old USD files and a stub .tmp.usda (issue 49, item 3). Cut at every write of the export
     (each file) and at every move of the swap: the folder holds the earlier export or the new
-    one, never a mix, a user's own file stays, and the next export completes."""
+    one, never a mix, a user's own file stays, and the next export completes. A signal during
+    the swap waits for its end (issue 63, item 5)."""
     out = tmp_path / 'dcc'
     out.mkdir()
     (out / 'notes.txt').write_text('mine')
@@ -270,37 +286,53 @@ def test_an_export_cut_short_at_any_write_leaves_the_earlier_export_whole(tiny_r
                 assert _files(out) == before, (name, k)
             monkeypatch.setattr(export, name, real)
     assert cut >= 8
-    # Cut during the swap itself, at each move: the next swap finishes it, to the new export
-    # (a finer proxy than the one before, so that a mix would show).
+    # Cut during the swap itself, at each move (a finer proxy than the one before, so that a
+    # mix would show): Ctrl-C raised there, or SIGINT / SIGTERM sent there, waits for the last
+    # move and leaves the new export (issue 63, item 5); a kill that cannot be caught (here an
+    # exception no handler expects) leaves the move begun, and the next swap finishes it.
     _export(tiny_run, tmp_path / 'reference', resolution=20)
     new = _files(tmp_path / 'reference')
     assert new['proxy.ply'] != before['proxy.ply']
     real_replace = os.replace
-    for k in range(1, 16):
-        moves = []
 
-        def replace(a, b, _k=k):
-            swap = ('.export.partial' in str(a)) != ('.export.partial' in str(b)) \
-                or '.export.old' in str(b)              # a move of the swap, not a write
-            if swap:
-                moves.append(1)
-                if len(moves) == _k:
-                    raise KeyboardInterrupt
-            return real_replace(a, b)
-        monkeypatch.setattr(export.os, 'replace', replace)
-        try:
-            _export(tiny_run, out, resolution=20)
-        except KeyboardInterrupt:
-            pass
-        monkeypatch.setattr(export.os, 'replace', real_replace)
-        export.finish_swap(str(out))
-        after = _files(out)
-        assert after['notes.txt'] == b'mine'
-        del after['notes.txt']
-        assert after == new, k
-        assert not any(name.startswith('.export.partial') or name.startswith('.export.old')
-                       or '.tmp' in name for name in after)
-        _export(tiny_run, out)                      # back to the earlier export for the next cut
+    class Killed(BaseException):
+        pass
+    for how in ('KeyboardInterrupt', 'SIGINT', 'SIGTERM', 'killed'):
+        for k in range(1, 16):
+            moves = []
+
+            def replace(a, b, _k=k, _how=how):
+                swap = ('.export.partial' in str(a)) != ('.export.partial' in str(b)) \
+                    or '.export.old' in str(b)              # a move of the swap, not a write
+                if swap:
+                    moves.append(1)
+                    if len(moves) == _k:
+                        if _how == 'KeyboardInterrupt':
+                            raise KeyboardInterrupt
+                        if _how == 'killed':
+                            raise Killed
+                        os.kill(os.getpid(), getattr(signal, _how))
+                return real_replace(a, b)
+            monkeypatch.setattr(export.os, 'replace', replace)
+            cut = False
+            try:
+                with _sigterm_raises():
+                    _export(tiny_run, out, resolution=20)
+            except (KeyboardInterrupt, SystemExit, Killed):
+                cut = True
+            monkeypatch.setattr(export.os, 'replace', real_replace)
+            assert cut == (len(moves) >= k), (how, k)
+            if how == 'killed':
+                export.finish_swap(str(out))
+            after = _files(out)
+            assert after['notes.txt'] == b'mine'
+            del after['notes.txt']
+            assert after == new, (how, k)
+            assert not any(name.startswith('.export.partial') or name.startswith('.export.old')
+                           or '.tmp' in name for name in after)
+            if not cut:
+                break
+            _export(tiny_run, out)                  # back to the earlier export for the next cut
     assert len(moves) < 15                          # every move of the swap was cut once
 
 
@@ -336,10 +368,7 @@ def test_blenders_usd_importer_keeps_one_named_camera_per_image(exported, tmp_pa
     """Blender 4.2's USD importer (pip bpy: Debian's Blender has none) flattens the prim
     hierarchy; the cameras arrived as _00000, _00000.001, ... (issue 49, item 3). Each
     arrives as <split>_<image stem>, one per image, with the USD lens."""
-    python = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(
-        __file__)))), '.venv-bpy', 'bin', 'python')
-    if not os.path.exists(python):
-        pytest.fail('bpy 4.2 is not installed: run scripts/setup.sh --test (it makes .venv-bpy)')
+    python = blender_python()
     run, out = exported
     script = tmp_path / 'import.py'
     script.write_text(BPY_IMPORT)

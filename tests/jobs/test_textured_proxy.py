@@ -16,6 +16,7 @@ from mi_nerfpp.data import Camera, mitsuba_sensor_dict
 from mi_nerfpp.jobs import export
 from mi_nerfpp.output import proxy_texture
 from mi_nerfpp.training.metrics import psnr_from_mse
+from tests.helpers import blender_python
 
 from pxr import Usd, UsdGeom, UsdShade  # noqa: E402  (usd-core: a test dependency, setup.sh)
 
@@ -140,10 +141,7 @@ def test_blender_imports_the_obj_and_the_usd_with_the_texture(textured, tmp_path
     """Blender 4.2 (pip bpy in .venv-bpy) imports proxy.obj and scene.usda: the proxy object
     has UVs and a material whose image node holds the texture (loaded, its size that of the
     PNG) and feeds the base colour."""
-    python = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(
-        __file__)))), '.venv-bpy', 'bin', 'python')
-    if not os.path.exists(python):
-        pytest.fail('bpy 4.2 is not installed: run scripts/setup.sh --test (it makes .venv-bpy)')
+    python = blender_python()
     _, out = textured
     script = tmp_path / 'texture.py'
     script.write_text(BPY_TEXTURE)

@@ -14,13 +14,11 @@ from mi_nerfpp.data import Camera, opencv_to_opengl
 from mi_nerfpp.jobs import export
 from mi_nerfpp.output.tracked_camera import (TrackedCameraError, read_shot,
                                              shot_format)
-from tests.helpers import orbit_camera
+from tests.helpers import blender_python, orbit_camera
 
 from pxr import Usd, UsdGeom  # noqa: E402  (usd-core: a test dependency, setup.sh)
 
 WIDTH, HEIGHT = 32, 24
-BPY = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-                   '.venv-bpy', 'bin', 'python')
 
 
 def known_cameras(off_centre=True):
@@ -223,12 +221,11 @@ print('SHOT ' + json.dumps(frames))
 def blender_shot(tmp_path_factory):
     """A camera keyframed in Blender 4.2 over frames 1001-1004 and exported to USD (Z-up), and
     what Blender says of each frame: matrix_world, lens, its projection matrix for 24 x 18."""
-    if not os.path.exists(BPY):
-        pytest.fail('bpy 4.2 is not installed: run scripts/setup.sh --test (it makes .venv-bpy)')
+    python = blender_python()
     folder = tmp_path_factory.mktemp('blender')
     script, usd = folder / 'shot.py', folder / 'shot.usda'
     script.write_text(BPY_SHOT)
-    done = subprocess.run([BPY, str(script), str(usd)], capture_output=True, text=True,
+    done = subprocess.run([python, str(script), str(usd)], capture_output=True, text=True,
                           timeout=300)
     line = next((x for x in done.stdout.splitlines() if x.startswith('SHOT ')), None)
     assert line and usd.exists(), done.stdout + done.stderr

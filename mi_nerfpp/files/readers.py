@@ -1,11 +1,13 @@
-"""Reading the JSON and NumPy files the package keeps or is given, one reader per kind of file: a
-missing, unreadable, empty, damaged or wrong-type file ends with one line that names the file,
-says what is wrong with it and what to do.
+"""Reading the JSON, NumPy, EXR and image files the package keeps or is given, one reader per
+kind of file: a missing, unreadable, empty, damaged or wrong-type file ends with one line that
+names the file, says what is wrong with it and what to do.
 
 * :func:`read_json` (a file) and :func:`decode_json` (JSON text kept inside another file, a
   checkpoint's config) return the decoded value, checked to be of the type the caller expects;
 * :func:`read_npz` returns the arrays of an ``.npz`` archive (all, or the ones asked for), and
-  :func:`read_npy` the array of an ``.npy`` file, never unpickling anything.
+  :func:`read_npy` the array of an ``.npy`` file, never unpickling anything;
+* :func:`read_exr` returns the header and channels of an OpenEXR file (deep ones included), and
+  :func:`read_image` the pixels of a PNG or JPEG file, as imageio gives them.
 
 Every error is the caller's ``error`` class (:class:`FileReadError` unless the caller names its
 own: ``DatasetError``, ``CameraPathError``, ...), a ``ValueError`` whose one line is
@@ -13,18 +15,26 @@ own: ``DatasetError``, ``CameraPathError``, ...), a ``ValueError`` whose one lin
 caller's (``"delete the folder X to rebuild it"``, ``"export the dataset again"``). The error
 carries the parts as attributes (``path``, ``detail``, ``remedy``), for a caller that keeps its
 own wording (the checkpoint reader's). Every JSON and NumPy read of the package goes through
-here (``tests/files/test_readers.py`` finds any other); EXR files are read by
-:mod:`mi_nerfpp.files.exr` and dataset images by :mod:`mi_nerfpp.data.images`.
+here (``tests/files/test_readers.py`` finds any other); EXR files and images are read here or
+by :mod:`mi_nerfpp.files.exr` (multi-layer renders) and :mod:`mi_nerfpp.data.images` (dataset
+images, as float RGB).
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 import re
+import sys
 import zipfile
 from typing import Any, Iterable, NoReturn
 
+import imageio.v3 as iio
 import numpy as np
+import OpenEXR
+
+from mi_nerfpp.files.atomic import readable_path
 
 FIX = 'fix or replace the file'
 _NPY_MAGIC = b'\x93NUMPY'
@@ -224,3 +234,95 @@ def read_npy(path, what: str = 'NumPy array file (.npy)', remedy: str | None = F
     # "encrypted" flag, tokenize's TokenError from a damaged header, ...): the file's fault.
     except Exception as e:  # noqa: BLE001
         _fail(error, path, what, _numpy_detail(e, 'a damaged NumPy array file'), remedy)
+
+
+# --------------------------------------------------------------------------- EXR and images
+
+_EXR_MAGIC = b'\x76\x2f\x31\x01'
+_IMAGE_MAGIC = {b'\x89PNG\r\n\x1a\n': 'PNG', b'\xff\xd8\xff': 'JPEG'}
+
+
+def _image_detail(e: BaseException, damaged: str) -> str:
+    """What an exception of a decoder (OpenEXR, Pillow, imageio) says about the file."""
+    text = ' '.join(str(e).split()).lower()
+    if isinstance(e, MemoryError):
+        return 'its header declares more pixels than memory holds'
+    if 'truncat' in text or 'premature' in text or 'end of file' in text or 'eof' in text \
+            or isinstance(e, EOFError):
+        return 'cut short: it holds less data than its header says'
+    return damaged
+
+
+def read_exr(path, what: str = 'EXR image', remedy: str | None = FIX,
+             error: type[Exception] = FileReadError,
+             separate_channels: bool = False) -> tuple[dict, dict[str, np.ndarray]]:
+    """``(header, {channel name: pixels})`` of the single-part OpenEXR file ``path``, as
+    ``OpenEXR.File(path, separate_channels=...)`` gives them (the pixels of a deep file are
+    arrays of each pixel's samples), every pixel read.
+
+    Raises:
+        error: the file is missing, a folder, unreadable, empty, not an OpenEXR file, damaged
+            or cut short, or of several parts.
+    """
+    path = _name(path)
+    head = _read_bytes(path, what, remedy, error, size=4)
+    if head != _EXR_MAGIC:
+        _fail(error, path, what, 'not an OpenEXR file: it does not start as one', remedy)
+    # OpenEXR prints "Warning: Exception raised reading pixel data ..." to sys.stdout for
+    # pixels it cannot read (and gives no part): that text is kept from the output, the
+    # error says it in words; what else is printed meanwhile is printed after.
+    printed = io.StringIO()
+    try:
+        with _printed_to(printed), readable_path(path) as readable, \
+                OpenEXR.File(readable, separate_channels=separate_channels) as f:
+            if not f.parts:
+                _fail(error, path, what, 'a damaged or cut short OpenEXR file', remedy)
+            if len(f.parts) != 1:
+                _fail(error, path, what, f'{len(f.parts)} parts where one is expected', remedy)
+            header = dict(f.header())
+            channels = {name: channel.pixels for name, channel in f.channels().items()}
+    except error:
+        raise
+    # What OpenEXR raises on bytes that are not what they should be is open-ended
+    # (RuntimeError, ValueError, MemoryError, ...): the file's fault.
+    except Exception as e:  # noqa: BLE001
+        _fail(error, path, what, _image_detail(e, 'a damaged or cut short OpenEXR file'),
+              remedy)
+    return header, channels
+
+
+@contextlib.contextmanager
+def _printed_to(buffer: io.StringIO):
+    """``sys.stdout`` into ``buffer`` for the time of the ``with``; then its lines other than
+    OpenEXR's warnings of unreadable pixels printed to the real one."""
+    try:
+        with contextlib.redirect_stdout(buffer):
+            yield
+    finally:
+        kept = [line for line in buffer.getvalue().splitlines(keepends=True)
+                if not line.startswith('Warning: Exception raised reading pixel data')]
+        if kept:
+            sys.stdout.write(''.join(kept))
+
+
+def read_image(path, what: str = 'image', remedy: str | None = FIX,
+               error: type[Exception] = FileReadError) -> np.ndarray:
+    """The pixels of the PNG or JPEG file ``path`` as ``imageio.v3.imread`` gives them
+    (``uint8`` (H, W[, C]) for an 8-bit image), every pixel read.
+
+    Raises:
+        error: the file is missing, a folder, unreadable, empty, neither a PNG nor a JPEG,
+            damaged or cut short.
+    """
+    path = _name(path)
+    head = _read_bytes(path, what, remedy, error, size=8)
+    if not any(head.startswith(magic) for magic in _IMAGE_MAGIC):
+        _fail(error, path, what, 'neither a PNG nor a JPEG image: it does not start as one',
+              remedy)
+    kind = next(name for magic, name in _IMAGE_MAGIC.items() if head.startswith(magic))
+    try:
+        return iio.imread(path)
+    # What Pillow and imageio raise on bytes that are not what they should be is open-ended
+    # (OSError, SyntaxError, ValueError, zlib.error, ...): the file's fault.
+    except Exception as e:  # noqa: BLE001
+        _fail(error, path, what, _image_detail(e, f'a damaged {kind} image'), remedy)

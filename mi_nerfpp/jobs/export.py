@@ -43,8 +43,10 @@ cameras are written all the same.
 **All or nothing.** An export is written into ``DIR/.export.partial/`` and then moved into
 ``DIR`` in place of the files of the export before it (listed in ``DIR/.export.json``); an
 export cut short (a signal, a full disk) leaves the earlier export as it was, and its partial
-folder is removed by the next export, or the move it had begun is finished. Files in ``DIR``
-that no export wrote are left alone.
+folder is removed by the next export. The move itself is a few renames during which Ctrl-C,
+SIGTERM and SIGHUP wait (they take effect once it is done), so the folder always holds one
+export or the other; only a kill that cannot be caught (SIGKILL, a power cut) can stop the move
+begun, and the next export finishes it. Files in ``DIR`` that no export wrote are left alone.
 """
 from __future__ import annotations
 
@@ -53,7 +55,9 @@ import json
 import math
 import os
 import shutil
+import signal
 import sys
+import threading
 
 import drjit as dr
 import mitsuba as mi
@@ -380,6 +384,29 @@ def finish_swap(out):
         shutil.rmtree(old, ignore_errors=True)
         return
     new = _manifest_files(manifest, remedy=f'delete the folder {staging} and export again')
+    # A few renames: Ctrl-C, SIGTERM or SIGHUP arriving meanwhile take effect once they are
+    # done, so that the folder is never left between the two exports; an interrupt raised in
+    # them all the same (a signal already pending) finishes them first. Only a kill that
+    # cannot be caught (SIGKILL, power) leaves the move begun, finished by the next export.
+    with _signals_held():
+        try:
+            _move_in(out, staging, old, new)
+        except (KeyboardInterrupt, SystemExit):
+            _move_in(out, staging, old, new)
+            _remove_staging(staging, old)
+            raise
+        _remove_staging(staging, old)
+
+
+def _remove_staging(staging, old):
+    shutil.rmtree(staging, ignore_errors=True)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _move_in(out, staging, old, new):
+    """The moves of :func:`finish_swap`; a move done already is skipped, so that they may be
+    made again after an interruption."""
+    manifest = os.path.join(staging, MANIFEST)
     os.makedirs(old, exist_ok=True)
     for name in _previous_export(out):
         if name not in new:                    # the new export overwrites the others
@@ -389,9 +416,24 @@ def finish_swap(out):
         source = os.path.join(staging, name)
         if os.path.lexists(source):
             os.replace(source, os.path.join(out, name))
-    os.replace(manifest, os.path.join(out, MANIFEST))
-    shutil.rmtree(staging, ignore_errors=True)
-    shutil.rmtree(old, ignore_errors=True)
+    if os.path.lexists(manifest):
+        os.replace(manifest, os.path.join(out, MANIFEST))
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Hold back SIGINT, SIGTERM and SIGHUP for the time of the ``with`` (in the main thread,
+    where Python handles them); they are delivered at its end."""
+    held = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+    if threading.current_thread() is not threading.main_thread() or \
+            not hasattr(signal, 'pthread_sigmask'):
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def _previous_export(out) -> list[str]:

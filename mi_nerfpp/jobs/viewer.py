@@ -42,7 +42,6 @@ import warnings
 from collections import deque
 from dataclasses import dataclass, field, replace
 
-import imageio.v3 as iio
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -50,7 +49,7 @@ from mi_nerfpp.core.color import to_srgb8
 from mi_nerfpp.data import Camera
 from mi_nerfpp.files.checkpoint import load_checkpoint
 from mi_nerfpp.files.preview import depth_to_png
-from mi_nerfpp.files.readers import FileReadError, read_json
+from mi_nerfpp.files.readers import FileReadError, read_image, read_json
 from mi_nerfpp.jobs.run import RunObserver, open_run
 from mi_nerfpp.output.camera_path import (CameraPath, Pose, camera_pose,
                                           intrinsics, pose_camera, read_path,
@@ -891,7 +890,7 @@ class ViewerObserver(RunObserver):
         held_out = trainer.validation if len(trainer.validation) else trainer.test
         if self.viewer is None or not len(held_out):
             return
-        shown = iio.imread(path)[..., :3].astype(np.float64) / 255
+        shown = read_image(path, what='preview', remedy=None)[..., :3].astype(np.float64) / 255
         photo = to_srgb8(held_out.images[0], self.viewer.color_space).astype(np.float64) / 255
         if shown.shape == photo.shape:
             mse = float(np.mean((shown - photo) ** 2))

@@ -39,8 +39,9 @@ from tqdm import tqdm
 from mi_nerfpp.core.geometry import pixel_footprint
 from mi_nerfpp.core.rays import Rays
 from mi_nerfpp.core.render import flat_index
-from mi_nerfpp.files.atomic import atomic_write_path, readable_path
+from mi_nerfpp.files.atomic import atomic_write_path
 from mi_nerfpp.files.exr import COMPRESSIONS
+from mi_nerfpp.files.readers import FileReadError, read_exr
 from mi_nerfpp.integrator import NeRFPPIntegrator
 from mi_nerfpp.integrator.parameters import check_film
 from mi_nerfpp.output.views import exr_attributes
@@ -241,18 +242,23 @@ def write_deep_exr(path, counts, samples, attributes=None, compression='zips'):
 
 def read_deep_exr(path):
     """``(counts, samples)`` of a deep scanline EXR written by :func:`write_deep_exr`."""
-    with readable_path(path) as readable, OpenEXR.File(readable) as f:
-        channels = f.channels()
-        if 'RGBA' in channels:
-            rgba = channels['RGBA'].pixels
-            per = {c: np.empty(rgba.shape, dtype=object) for c in 'RGBA'}
-            for idx in np.ndindex(rgba.shape):
-                block = np.asarray(rgba[idx], dtype=np.float32).reshape(-1, 4)
-                for j, c in enumerate('RGBA'):
-                    per[c][idx] = block[:, j]
-        else:
-            per = {c: channels[c].pixels for c in 'RGBA'}
-        per['Z'], per['ZBack'] = channels['Z'].pixels, channels['ZBack'].pixels
+    remedy = 'write the deep EXR again'
+    _, channels = read_exr(path, what='deep EXR', remedy=remedy)
+    missing = [c for c in ('Z', 'ZBack') + (() if 'RGBA' in channels else tuple('RGBA'))
+               if c not in channels]
+    if missing:
+        raise FileReadError(f'{os.fsdecode(path)}: cannot read deep EXR (no channel '
+                            f'{", ".join(missing)}): {remedy}')
+    if 'RGBA' in channels:
+        rgba = channels['RGBA']
+        per = {c: np.empty(rgba.shape, dtype=object) for c in 'RGBA'}
+        for idx in np.ndindex(rgba.shape):
+            block = np.asarray(rgba[idx], dtype=np.float32).reshape(-1, 4)
+            for j, c in enumerate('RGBA'):
+                per[c][idx] = block[:, j]
+    else:
+        per = {c: channels[c] for c in 'RGBA'}
+    per['Z'], per['ZBack'] = channels['Z'], channels['ZBack']
     shape = per['Z'].shape
     counts = np.array([len(per['Z'][idx]) for idx in np.ndindex(shape)]).reshape(shape)
     samples = {c: np.concatenate([np.asarray(per[c][idx], np.float32).ravel()

@@ -10,6 +10,7 @@ function that renders frames to files, in one process or on each worker of a clu
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 
@@ -19,11 +20,11 @@ import numpy as np
 
 from mi_nerfpp.data import Camera
 from mi_nerfpp.output.camera_path import DEFAULT_FPS, cameras_path
-from mi_nerfpp.files.atomic import (check_writable_folder,
+from mi_nerfpp.files.atomic import (atomic_write_path, check_writable_folder,
                                     remove_stale_temporaries, write_json)
 from mi_nerfpp.files.exr import write_exr
 from mi_nerfpp.files.preview import write_linear_png
-from mi_nerfpp.files.readers import read_json
+from mi_nerfpp.files.readers import read_image, read_json
 from mi_nerfpp.output.views import rgb
 
 
@@ -119,17 +120,86 @@ def check_video_path(path):
                            f'(pip install imageio-ffmpeg), or ask for a .gif')
 
 
+class VideoWriteError(RuntimeError):
+    """The encoder could not write a video: its one line names the file, what went wrong and
+    what to do; the earlier file at that path, if any, is left as it was."""
+
+
 def write_video(path, frames, fps=24):
-    """Write uint8 frames to ``.mp4`` (needs imageio-ffmpeg) or ``.gif``."""
+    """Write uint8 frames to ``.mp4`` (needs imageio-ffmpeg) or ``.gif``, atomically: the
+    frames are encoded into a temporary file beside ``path``, checked (not empty; an MP4 that
+    starts as one), and moved onto ``path`` only then, so that an earlier video stays whole
+    until its successor is complete, whatever stops the encoder. The temporary files of this
+    video that a killed writer left are removed first.
+
+    Raises:
+        VideoWriteError: the encoder failed or wrote no video (nothing is left behind).
+    """
     check_video_path(path)
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    if os.path.splitext(path)[1].lower() == '.gif':
-        iio.imwrite(path, np.stack(frames), duration=1000 / fps, loop=0)
+    gif = os.path.splitext(path)[1].lower() == '.gif'
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(folder):       # what a writer killed before (SIGKILL) left of this video
+        remove_stale_temporaries(folder, os.path.basename(path))
+    with atomic_write_path(path) as tmp:
+        try:
+            _encode(tmp, frames, fps, gif)
+        except MemoryError:
+            raise
+        # What imageio and ffmpeg raise is open-ended (RuntimeError, ValueError, an OSError
+        # without a number for a broken pipe to ffmpeg, imageio's own errors, ...): the
+        # encoder failed; an OSError with a number is the system's (a full disk).
+        except Exception as e:  # noqa: BLE001
+            detail = e.strerror if isinstance(e, OSError) and e.errno and e.strerror else \
+                f'the encoder failed: {_one_line(e)}'
+            raise VideoWriteError(_encoder_failed(path, detail)) from e
+        problem = _not_a_video(tmp, gif)
+        if problem:
+            raise VideoWriteError(_encoder_failed(path, problem))
+
+
+def _encode(tmp, frames, fps, gif):
+    if gif:
+        # iio.imwrite, with the file at hand: imageio's Pillow plugin keeps the frames of a save
+        # that failed and tries it again when it is collected (a second error, printed at
+        # exit), so they are dropped.
+        file = iio.imopen(tmp, 'w', legacy_mode=False)
+        try:
+            file.write(np.stack(frames), duration=1000 / fps, loop=0)
+            file.close()
+        except BaseException:
+            getattr(file, 'images_to_write', []).clear()
+            with contextlib.suppress(Exception):
+                file.close()
+            raise
         return
-    with iio2.get_writer(path, fps=fps, codec='libx264', quality=8,
+    with iio2.get_writer(tmp, fps=fps, codec='libx264', quality=8,
                          macro_block_size=1) as writer:
         for f in frames:
             writer.append_data(f)
+
+
+def _one_line(error: BaseException) -> str:
+    text = ' '.join(str(error).split()) or type(error).__name__
+    return text if len(text) <= 200 else text[:197] + '...'
+
+
+def _encoder_failed(path, detail) -> str:
+    return (f'{path}: cannot write the video ({detail}); the earlier file, if any, is kept: '
+            f'check the free disk space and the imageio-ffmpeg install, or ask for a .gif')
+
+
+def _not_a_video(tmp, gif) -> str | None:
+    """What is wrong with the file the encoder wrote, or None: empty, or not of its format."""
+    size = os.path.getsize(tmp) if os.path.exists(tmp) else 0
+    if size == 0:
+        return 'the encoder wrote nothing, 0 bytes'
+    with open(tmp, 'rb') as f:
+        head = f.read(12)
+    if gif and not head.startswith((b'GIF87a', b'GIF89a')):
+        return 'the encoder wrote a file that is not a GIF'
+    if not gif and head[4:8] != b'ftyp':
+        return 'the encoder wrote a file that is not an MP4'
+    return None
 
 
 FRAME_NAME = 'frame_{:05d}'
@@ -197,4 +267,6 @@ def render_frames(renderer, cameras: dict, frames_dir, exr=False, on_frame=None,
 def read_frames(frames_dir, frames, name=FRAME_NAME):
     """The PNG frames (a count, or the indices), in order, as uint8 arrays (to assemble the
     video)."""
-    return [iio.imread(frame_files(frames_dir, i, name=name)[0]) for i in _indices(frames)]
+    remedy = 'delete it and run the video again (it is rendered again)'
+    return [read_image(frame_files(frames_dir, i, name=name)[0], what='video frame',
+                       remedy=remedy) for i in _indices(frames)]

@@ -5,8 +5,8 @@ that names the file, or reads.
 * The source scan (``ast``, nothing imported) fails on a direct ``json.load``, a ``json.loads``
   of anything but ``json.dumps(...)`` (a deep copy), ``np.load``, an ``OpenEXR.File`` that reads
   (one argument: a path; writes pass a header and the pixels) or an ``imread`` outside the
-  modules that read that kind of file. The EXR and image reads not yet behind one reader are
-  listed in :data:`SCATTERED`, each one named; a listed site that is gone must leave the list.
+  modules that read that kind of file. Reads not yet behind one reader would be listed in
+  :data:`SCATTERED`, each one named; a listed site that is gone must leave the list.
 * The property tests damage one file :data:`CASES` times per kind, seeded (the same cases every
   run): cut short at a random byte, random bytes flipped, random bytes (not UTF-8) in its place,
   bytes that are not UTF-8 put inside it, a JSON value of another type in its place, a value
@@ -28,7 +28,8 @@ import pytest
 from PIL import Image
 
 from mi_nerfpp.commands.cli import describe
-from mi_nerfpp.files.readers import FileReadError, read_json, read_npy, read_npz
+from mi_nerfpp.files.readers import (FileReadError, read_exr, read_image, read_json,
+                                     read_npy, read_npz)
 
 ROOT = Path(__file__).resolve().parent.parent.parent
 PACKAGE = ROOT / 'mi_nerfpp'
@@ -39,18 +40,11 @@ READERS = {
     'json.load': {'files/readers.py'},
     'json.loads': {'files/readers.py'},
     'np.load': {'files/readers.py'},
-    'OpenEXR.File': {'files/exr.py', 'data/images.py'},
-    'imread': {'data/images.py'},
+    'OpenEXR.File': {'files/readers.py', 'files/exr.py', 'data/images.py'},
+    'imread': {'files/readers.py', 'data/images.py'},
 }
 # Reads not yet behind their kind's reader (issue 63, item 1: to move behind one).
-SCATTERED = {
-    ('OpenEXR.File', 'output/deep.py'),         # read_deep_exr: a deep EXR's samples
-    ('imread', 'jobs/viewer.py'),               # a preview PNG shown in the viewer
-    ('imread', 'output/video.py'),              # the frames of a video, to encode
-    ('imread', 'data/synth/realistic.py'),      # a capture's own PNGs, to degrade
-    ('imread', 'data/synth/degrade.py'),        # a capture's own PNGs, to degrade
-}
-
+SCATTERED = set()
 
 def _dotted(node) -> str:
     """``a.b.c`` of a call's function (Name / Attribute chain), '' for anything else."""
@@ -327,6 +321,47 @@ def test_read_npz_and_npy_property(tmp_path):
     np.save(npy, np.array([{'a': 1}], dtype=object), allow_pickle=True)
     with pytest.raises(FileReadError, match=r'Python objects \(pickled data\)'):
         read_npy(npy)
+
+
+def test_read_exr_and_read_image_property(tmp_path, capsys):
+    """EXR (flat and deep), PNG and JPEG: damaged as the other binary files, and a file of
+    another type in the place of each (a PNG for an EXR, an EXR for a PNG); OpenEXR's own
+    warnings of unreadable pixels are not printed."""
+    from mi_nerfpp.files.exr import write_exr
+    from mi_nerfpp.output.deep import write_deep_exr
+    rng = np.random.default_rng(7)
+    flat, deep = tmp_path / 'template.exr', tmp_path / 'template_deep.exr'
+    write_exr(flat, {c: rng.random((6, 8)) for c in 'RGBA'})
+    counts = rng.integers(0, 3, (4, 5))
+    n = int(counts.sum())
+    write_deep_exr(deep, counts, {c: np.sort(rng.random(n)).astype(np.float32)
+                                  for c in ('R', 'G', 'B', 'A', 'Z', 'ZBack')})
+    png, jpg = tmp_path / 'template.png', tmp_path / 'template.jpg'
+    pixels = (rng.random((12, 16, 3)) * 255).astype(np.uint8)
+    Image.fromarray(pixels).save(png)
+    Image.fromarray(pixels).save(jpg, quality=90)
+    header, channels = read_exr(flat, separate_channels=True)
+    assert sorted(channels) == list('ABGR') and channels['R'].dtype == np.float32
+    assert np.array_equal(read_image(png), pixels) and read_image(jpg).shape == (12, 16, 3)
+    start = time.perf_counter()
+    for template, read, kind in ((flat, read_exr, 'EXR image'), (deep, read_exr, 'EXR image'),
+                                 (png, read_image, 'image'), (jpg, read_image, 'image')):
+        path = tmp_path / f'file{template.suffix}'
+        found = run_cases(template, path, read, FileReadError, BINARY_DAMAGE,
+                          template.name, pattern=re.escape(f'{path}: cannot read {kind} (') +
+                          r'.+\): fix or replace the file')
+        _every_damage_refused_some(found)
+    assert time.perf_counter() - start < 20
+    assert capsys.readouterr().out == ''
+    for read, other in ((read_exr, png), (read_image, flat), (read_image, npz_file(tmp_path))):
+        with pytest.raises(FileReadError, match=r'\(not an OpenEXR file|\(neither a PNG nor'):
+            read(other)
+
+
+def npz_file(folder: Path) -> Path:
+    path = folder / 'other.npz'
+    np.savez(path, a=np.zeros(3))
+    return path
 
 
 # ------------------------------------------------------------------- the files it reads

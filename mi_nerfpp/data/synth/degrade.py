@@ -19,6 +19,7 @@ from mi_nerfpp.core.color import srgb_eotf, to_srgb8
 from mi_nerfpp.core.poses import corrected_c2w
 from mi_nerfpp.data.nerfpp import _read_matrix, _write_matrix
 from mi_nerfpp.files.atomic import atomic_write_path
+from mi_nerfpp.files.readers import read_image
 
 APPEARANCE_FILE = 'appearance.json'
 
@@ -62,7 +63,8 @@ def vary_exposure(src, out, stops: float = 0.5, white_balance: float = 0.1, seed
             if split == 'train' and i == 0:
                 g = np.ones(3)
             path = os.path.join(folder, name)
-            image = iio.imread(path)[..., :3].astype(np.float64) / 255.0
+            image = read_image(path, what='capture image', remedy='write the capture '
+                               'again')[..., :3].astype(np.float64) / 255.0
             iio.imwrite(path, to_srgb8(np.clip(srgb_eotf(image) * g, 0.0, 1.0)))
             gains[split].append([float(v) for v in g])
     with atomic_write_path(os.path.join(out, APPEARANCE_FILE)) as tmp, open(tmp, 'w') as f:

@@ -45,6 +45,7 @@ from mi_nerfpp.data.nerfpp import _read_matrix
 from mi_nerfpp.data.undistort import _pixel_map, warp
 from mi_nerfpp.files.atomic import atomic_write_path, remove_entries
 from mi_nerfpp.files.exr import read_exr
+from mi_nerfpp.files.readers import read_image
 
 REALISTIC_FILE = 'realistic.json'
 # Where ``synth --realistic`` keeps the clean capture the stand-in is made from, inside DATA.
@@ -177,7 +178,9 @@ def realistic_copy(src, out, realism: Realism = Realism(), seed: int = 0,
                                              i in blurred, i in transient, out)
                 ext = '.jpg' if realism.jpeg_quality > 0 else '.png'
             else:   # the clean ground truth at its true pose
-                image = iio.imread(os.path.join(src, split, 'rgb', stem + '.png'))[..., :3]
+                image = read_image(os.path.join(src, split, 'rgb', stem + '.png'),
+                                   what='capture image',
+                                   remedy='write the capture again')[..., :3]
                 view, ext = {}, '.png'
             name = os.path.join('images', split, stem + ext)
             _write_image(os.path.join(out, name), image, realism.jpeg_quality)

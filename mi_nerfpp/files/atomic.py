@@ -113,7 +113,7 @@ def remove_stale_temporaries(folder: str | os.PathLike, name: str | None = None)
 
 
 @contextlib.contextmanager
-def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
+def atomic_write_path(path: str | os.PathLike, utf8: bool = True) -> Iterator[str]:
     """Yield a temporary path next to ``path``; move it onto ``path`` on success.
 
     The parent directory is created if needed. Readers never see a partially
@@ -121,7 +121,9 @@ def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
     names no file (a full disk while writing) is given ``path``. The temporary path is UTF-8
     whatever ``path`` is (its name ASCII, its folder :func:`folder_path`), so that the
     libraries that refuse other bytes (OpenEXR, Mitsuba, USD) write it; the move onto
-    ``path`` takes any name.
+    ``path`` takes any name. ``utf8=False`` yields the temporary file's own path in the folder
+    as it is named, for a writer in another process (ffmpeg), which takes any bytes but not
+    this process's ``/proc/self/fd`` descriptors.
     """
     path = os.fsdecode(path)
     directory = os.path.dirname(os.path.abspath(path))
@@ -132,8 +134,11 @@ def atomic_write_path(path: str | os.PathLike) -> Iterator[str]:
     name = _temporary_name(base, ext, uuid.uuid4().hex)
     tmp = os.path.join(directory, name)
     try:
-        with folder_path(directory) as safe:
-            yield os.path.join(safe, name)
+        if utf8:
+            with folder_path(directory) as safe:
+                yield os.path.join(safe, name)
+        else:
+            yield tmp
         os.replace(tmp, path)
     except BaseException as e:
         with contextlib.suppress(FileNotFoundError):

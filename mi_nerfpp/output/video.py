@@ -140,7 +140,7 @@ def write_video(path, frames, fps=24):
     folder = os.path.dirname(os.path.abspath(path))
     if os.path.isdir(folder):       # what a writer killed before (SIGKILL) left of this video
         remove_stale_temporaries(folder, os.path.basename(path))
-    with atomic_write_path(path) as tmp:
+    with atomic_write_path(path, utf8=gif) as tmp:      # ffmpeg writes an MP4 in its own process
         try:
             _encode(tmp, frames, fps, gif)
         except MemoryError:

@@ -113,6 +113,10 @@ class NeRFPPModel:
             raise ValueError(f'fields with appearance_dims {dims} need appearance embeddings')
         if embedding_images:
             self.embedding = zero_embeddings(embedding_images, dims)
+        # The code renders use unless a training image's is asked for (``appearance_dims``
+        # Python floats; None: the zero, neutral code): a held-out photo's fitted code
+        # (:mod:`mi_nerfpp.training.appearance_fit`) while that photo is scored.
+        self.render_code = None
         # Per-training-image camera pose corrections (:mod:`.poses`); None: off.
         self.poses = None
         if pose_images:

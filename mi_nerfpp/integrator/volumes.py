@@ -48,10 +48,11 @@ class VolumeRenderer:
         if not camera:      # path segments that leave a surface: from their origin on
             sampling = dataclasses.replace(sampling, near=0.0)
         keep_samples = record is not None and camera and transform
-        # The colour networks' appearance code: a training image's when asked, else neutral.
+        # The colour networks' appearance code: a training image's when asked, else the
+        # model's render code (neutral unless a held-out photo's fitted code is set).
         chosen = ig.appearance_image >= 0 and transform and model.embedding is not None
         model.set_appearance(image_code(model.embedding, ig.appearance_image) if chosen
-                             else None)
+                             else model.render_code if transform else None)
         # 1-3. Sample both volumes, quadrature, Eq. 4 (a recorded render keeps its samples).
         o, d = rays.o, rays.d
         model_o, model_d = norm.to_model_rays(o, d)

@@ -59,6 +59,8 @@ from mi_nerfpp.output.views import ViewRenderer, rgb
 
 # The layers the viewer shows, by the name in its menu.
 LAYERS = ('beauty', 'foreground', 'background', 'depth', 'alpha')
+# The 'Appearance' menu's first entry: the model's own colour (no training photo's).
+NEUTRAL = 'neutral'
 # Pixels across of a view rendered while the camera moves, and of the refinements after it
 # stands still (each at most the canvas's width and the viewer's max_width).
 MOVING_WIDTH = 320
@@ -238,6 +240,7 @@ class Viewer:
         self.training, self.max_width = training, int(max_width)
         self.color_space = color_space
         self.normalization = model.normalization
+        self.appearance_image = -1      # the training photo whose appearance is shown (-1: neutral)
         self._make_renderers(model)
         self.lock = threading.RLock()
         self.wake = threading.Event()
@@ -331,9 +334,29 @@ class Viewer:
         """The renderers of ``model``: :attr:`renderer` with its own samples (refinements, and
         a view with no refinement to come) and :attr:`moving_renderer` for moving views
         (:data:`MOVING_FINE_SAMPLES`)."""
-        self.renderer = ViewRenderer(model, chunk_rays=CHUNK_RAYS)
+        image = self.appearance_image
+        if image >= max(model.appearance_images, model.embedding_images):
+            image = self.appearance_image = -1      # a reloaded model without that photo's
+        self.renderer = ViewRenderer(model, chunk_rays=CHUNK_RAYS, appearance_image=image)
         sampling = replace(model.render_settings.sampling, fine_samples=MOVING_FINE_SAMPLES)
-        self.moving_renderer = ViewRenderer(model, sampling=sampling, chunk_rays=CHUNK_RAYS)
+        self.moving_renderer = ViewRenderer(model, sampling=sampling, chunk_rays=CHUNK_RAYS,
+                                            appearance_image=image)
+
+    def appearance_choices(self) -> list[str]:
+        """What the 'Appearance' menu offers: 'neutral', then each training photo that has an
+        appearance of its own (``--appearance``, ``--appearance-embedding``) by its name."""
+        n = max(self.model.appearance_images, self.model.embedding_images)
+        names = [os.path.basename(p) for p in self.splits.train.image_paths][:n]
+        names += [f'photo {i}' for i in range(len(names), n)]
+        return [NEUTRAL] + [f'{i}: {name}' for i, name in enumerate(names)]
+
+    def show_appearance(self, choice: str):
+        """Render with the appearance of a choice of :meth:`appearance_choices`."""
+        image = -1 if choice == NEUTRAL else int(choice.split(':', 1)[0])
+        with self.lock:
+            self.appearance_image = image
+            self._make_renderers(self.model)
+        self._invalidate()
 
     def _warm_up(self, camera):
         """Render the first camera once at :data:`MOVING_WIDTH` with both renderers (the
@@ -360,7 +383,12 @@ class Viewer:
             self.layer = gui.add_dropdown('Layer', LAYERS, initial_value='beauty')
             self.show_cameras = gui.add_checkbox('Cameras', True)
             self.show_sphere = gui.add_checkbox('Unit sphere', True)
+            choices = self.appearance_choices()
+            self.appearance = (gui.add_dropdown('Appearance', choices, initial_value=NEUTRAL)
+                               if len(choices) > 1 else None)
             self.status = gui.add_markdown('waiting for the page')
+        if self.appearance is not None:
+            self.appearance.on_update(lambda _: self.show_appearance(self.appearance.value))
         self.layer.on_update(lambda _: self._invalidate())
         self.show_cameras.on_update(self._toggle_cameras)
         self.show_sphere.on_update(lambda e: setattr(self.sphere, 'visible',

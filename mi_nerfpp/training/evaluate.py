@@ -22,6 +22,7 @@ from mi_nerfpp.files.exr import write_exr
 from mi_nerfpp.files.preview import write_linear_png
 from mi_nerfpp.output.scene_xml import write_render_xml
 from mi_nerfpp.output.views import ViewRenderer, encoded_rgb, rgb
+from mi_nerfpp.training.appearance_fit import fit_code
 from mi_nerfpp.training.metrics import (SOFT_ALPHA, SOFT_ALPHA_WARNING, masked_psnr, psnr,
                                         psnr_from_mse, soft_alpha_fraction, ssim)
 
@@ -79,13 +80,23 @@ def evaluate_split(model, split, out_dir, sampling: Sampling | None = None, name
                 view['matte_iou'] = matte_iou(layers['fg.A'], inside)
         if fit_appearance:
             view['psnr_neutral'], view['ssim_neutral'] = view['psnr'], view['ssim']
+            linear = rgb(layers)
+            if model.embedding is not None:     # NeRF-W: the code fitted on the left half
+                view['code'] = fit_code(model, split.cameras[i], gt, seed=i)
+                model.render_code = view['code']
+                try:
+                    linear = rgb(renderer.render(split.cameras[i]))
+                finally:
+                    model.render_code = None
             view['psnr'], view['ssim'], view['gain'], view['bias'] = _fitted_right_half(
-                rgb(layers), gt, model.color_space)
+                linear, gt, model.color_space)
         views.append(view)
     seconds = time.perf_counter() - t0
     result = {'views': views, 'render_seconds': seconds}
     if fit_appearance:
-        result['scoring'] = 'appearance fitted on the left half of each view, right half scored'
+        result['scoring'] = ('appearance fitted on the left half of each view (its '
+                             + ('code, then ' if model.embedding is not None else '')
+                             + 'colour transform), right half scored')
     for key in ('psnr', 'ssim', 'psnr_neutral', 'ssim_neutral', 'soft_alpha', 'psnr_masked',
                 'matte_iou'):
         scores = [v[key] for v in views if key in v and np.isfinite(v[key])]

@@ -259,3 +259,36 @@ def test_embeddings_need_grid_fields():
         TrainConfig.from_options(field='nerf', appearance_embedding=4)
     with pytest.raises(ValueError, match='--appearance-embedding must be a whole number'):
         TrainConfig.from_options(appearance_embedding=-1)
+
+
+def test_a_held_out_photos_code_is_fitted_on_its_left_half(tmp_path):
+    """NeRF-W scoring: the code fitted on the left half of a view rendered with a training
+    image's code brings the *right* half (never seen by the fit) close to that render; the
+    model's render code is what the integrator renders with, and the fit leaves it neutral."""
+    from mi_nerfpp.output.views import ViewRenderer, encoded_rgb
+    from mi_nerfpp.training.appearance_fit import fit_code
+    from tests.helpers import orbit_camera
+    model = embedded_model()
+    table = np.zeros((4, 3), np.float32)
+    table[2] = [1.5, -2.0, 0.7]
+    model.embedding = mi.TensorXf(table)
+    camera = orbit_camera(0.3, 0.2, 2.5, 24, 16)
+    renderer = ViewRenderer(model)
+    neutral = encoded_rgb(renderer.render(camera), model.color_space)
+    model.render_code = list(table[2])
+    target = encoded_rgb(renderer.render(camera), model.color_space)
+    model.render_code = None
+    assert np.abs(target - neutral).max() > 0.05       # the code changes the view
+
+    code = fit_code(model, camera, target, steps=60, rays=192)
+    assert len(code) == 3 and model.fg.appearance_code is None
+    np.testing.assert_array_equal(encoded_rgb(renderer.render(camera), model.color_space),
+                                  neutral)            # the fit left the model neutral
+    model.render_code = code
+    fitted = encoded_rgb(renderer.render(camera), model.color_space)
+    model.render_code = None
+    right = slice(12, None)
+
+    def mse(a):
+        return float(np.mean((a[:, right] - target[:, right]) ** 2))
+    assert mse(fitted) < 0.1 * mse(neutral), (mse(fitted), mse(neutral), code)

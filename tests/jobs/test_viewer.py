@@ -169,6 +169,42 @@ def test_a_moving_view_renders_coarse_and_is_refined_once_it_settled(tiny_run):
         viewer.close()
 
 
+
+def test_the_viewer_shows_a_training_photos_appearance(capture, tiny_run, tmp_path):
+    """A run with per-photo appearance offers 'neutral' and each training photo in its
+    'Appearance' menu; choosing a photo renders with its code, 'neutral' with none; a run
+    without has no menu."""
+    import mitsuba as mi
+    from tests.helpers import TINY_RUN
+    out = str(tmp_path / 'run')
+    assert main(['optimize', capture, '--out', out, '--appearance-embedding', '3',
+                 *TINY_RUN]) == 0
+    viewer = open_viewer(out, port=free_port(), max_width=320)
+    try:
+        choices = viewer.appearance_choices()
+        names = [os.path.basename(p) for p in viewer.splits.train.image_paths]
+        assert choices == ['neutral'] + [f'{i}: {n}' for i, n in enumerate(names)]
+        assert viewer.appearance is not None and viewer.appearance.value == 'neutral'
+        table = np.zeros((len(names), 3), np.float32)
+        table[2] = [2.0, -2.0, 1.5]
+        viewer.model.embedding = mi.TensorXf(table)
+        camera = viewer.splits.train.cameras[2]
+        neutral = viewer.renderer.render(camera)['R']
+        viewer.show_appearance(choices[3])
+        assert viewer.renderer.scene.integrator().appearance_image == 2
+        assert viewer.moving_renderer.scene.integrator().appearance_image == 2
+        assert np.abs(viewer.renderer.render(camera)['R'] - neutral).max() > 1e-3
+        viewer.show_appearance('neutral')
+        np.testing.assert_array_equal(viewer.renderer.render(camera)['R'], neutral)
+    finally:
+        viewer.close()
+    plain = open_viewer(tiny_run, port=free_port(), max_width=320)
+    try:
+        assert plain.appearance_choices() == ['neutral'] and plain.appearance is None
+    finally:
+        plain.close()
+
+
 # ------------------------------------------------------------------------------- the browser
 
 needs_browser = pytest.mark.skipif(NO_BROWSER, reason='MI_NERFPP_NO_BROWSER is set')

@@ -2,7 +2,7 @@
 (``--masks object``).
 
     python benchmarks/masks.py make CLEAN --out WORK [--transient-share 0.25]
-    python benchmarks/masks.py train WORK --minutes 2
+    python benchmarks/masks.py train WORK --minutes 2 [--cases LABEL ...]
     python benchmarks/masks.py score WORK [--name NAME] [--note T]
 
 ``make`` writes, from the clean synthetic capture ``CLEAN`` (``python -m mi_nerfpp synth``):
@@ -12,7 +12,8 @@ same photos shipping masks that leave the transients out), ``WORK/clean`` (the s
 without transients) and ``WORK/object`` (the clean capture with each view's object silhouette
 as its mask, from the ground truth's ``fg.A``). ``train`` trains them one after the other,
 alone, into ``WORK/runs/<case>``, with their default ``--masks`` (ignore where there are
-masks) and the object capture also with ``--masks none``. ``score`` reports, per run, the
+masks), the transients capture also with ``--transients 3`` (no masks: what the other photos
+of a point say) and the object capture also with ``--masks none``. ``score`` reports, per run, the
 held-out PSNR and soft matte share; for the transient cases the PSNR of the transients' pixels
 in renders of their training views against the clean photos (the trace a transient leaves);
 for the object cases the matte's intersection over union with the held-out masks. It writes a
@@ -43,6 +44,7 @@ from mi_nerfpp.training.metrics import masked_psnr
 TRANSIENT_CASES = ('transients', 'masked', 'clean')
 # Every training case: (label, data folder, options).
 RUNS = (('transients', 'transients', []), ('masked', 'masked', []), ('clean', 'clean', []),
+        ('transients, --transients 3', 'transients', ['--transients', '3']),
         ('object, --masks none', 'object', ['--masks', 'none']),
         ('object, --masks object', 'object', ['--masks', 'object']))
 
@@ -60,11 +62,14 @@ def make(args):
 
 
 def _run_dir(work, label):
-    return os.path.join(work, 'runs', label.replace(', --masks ', '-'))
+    return os.path.join(work, 'runs', label.replace(', --masks ', '-').replace(', --', '-')
+                        .replace(' ', ''))
 
 
 def train(args):
     for label, data, options in RUNS:
+        if label not in args.cases:
+            continue
         out = _run_dir(args.work, label)
         command = [sys.executable, 'optimize.py', os.path.join(args.work, data), '--out', out,
                    '--overwrite', '--minutes', str(args.minutes), '--seed', str(args.seed),
@@ -157,7 +162,9 @@ def main(argv=None):
     p.add_argument('--transient-share', type=float, default=0.25)
     p.add_argument('--seed', type=int, default=0)
     p.set_defaults(func=make)
-    bench.add_train_command(sub, train, minutes=2.0)
+    p = bench.add_train_command(sub, train, minutes=2.0)
+    p.add_argument('--cases', nargs='*', choices=[label for label, _, _ in RUNS],
+                   default=[label for label, _, _ in RUNS], help='the runs to train (all)')
     bench.add_score_command(sub, score, 'masks')
     args = parser.parse_args(argv)
     args.func(args)

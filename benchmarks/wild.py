@@ -14,7 +14,8 @@ held-out PSNR against the clean views as ``metrics.json`` has it (with per-photo
 NeRF-W's: each view's colour transform fitted on its left half, the right half scored) and
 neutral (whole views, nothing fitted); the soft matte share; and the PSNR of the transients'
 pixels in renders of their training views, from the true cameras, against the clean renders
-(the trace a passer-by leaves). Results: ``benchmarks/results/<--name>.json``.
+(the trace a passer-by leaves); and a figure of the photo with the largest passer-by, as given
+and as each run renders its view. Results: ``benchmarks/results/<--name>.json``.
 """
 import argparse
 import json
@@ -66,7 +67,9 @@ def score(args):
     views = [i for i, v in enumerate(record['views']['train']) if 'transient_pixels' in v]
     stems = [v['name'] for v in record['views']['train']]
     cameras = {frame.name: frame for frame in _split_frames(os.path.join(clean, 'train'))}
-    rows = []
+    # The figure's view: the training photo with the largest passer-by.
+    shown = max(views, key=lambda i: record['views']['train'][i]['transient_pixels'])
+    rows, renders = [], {}
     for label in sorted(os.listdir(os.path.join(args.work, 'runs'))):
         run = os.path.join(args.work, 'runs', label)
         with open(os.path.join(run, 'metrics.json')) as f:
@@ -85,6 +88,8 @@ def score(args):
             region = iio.imread(os.path.join(args.work, 'data', 'transients',
                                              stems[i] + '.png')) > 127
             errors.append(np.mean((render[region] - photo[region]) ** 2))
+            if i == shown:
+                renders[label] = render
         trace = round(float(-10 * np.log10(np.mean(errors))), 2)
         rows.append([label, metrics['iterations'], round(test['psnr'], 2),
                      round(test.get('psnr_neutral', test['psnr']), 2),
@@ -98,8 +103,27 @@ def score(args):
                          'soft matte (% of held-out pixels)',
                          "transients' pixels in their training views, true cameras, against "
                          'the clean renders (PSNR, dB)'], rows, note=args.note)
-    path = bench.write_results(args.name, 'A photo collection in the wild', [table])
+    figure = _figure(args.work, stems[shown], renders)
+    path = bench.write_results(args.name, 'A photo collection in the wild', [table],
+                               figures=[figure])
     print(f'wrote {path}')
+
+
+def _figure(work, stem, renders):
+    """The training photo ``stem`` as given (with its passer-by), then each run's render of
+    its view (``renders``: label -> image), 2x, in one row: ``WORK/transient_view.png``."""
+    folder = os.path.join(work, 'data', 'images', 'train')
+    name = next(n for n in sorted(os.listdir(folder)) if os.path.splitext(n)[0] == stem)
+    photo = iio.imread(os.path.join(folder, name))[..., :3] / 255.0
+    gap = np.ones((photo.shape[0], 4, 3))
+    row = [photo]
+    for image in renders.values():
+        row += [gap, image]
+    row = np.repeat(np.repeat(np.concatenate(row, axis=1), 2, axis=0), 2, axis=1)
+    path = os.path.join(work, 'transient_view.png')
+    iio.imwrite(path, (np.clip(row, 0, 1) * 255).round().astype(np.uint8))
+    print(f'figure (the photo given, then {", ".join(renders)}): {path}')
+    return path
 
 
 def main(argv=None):

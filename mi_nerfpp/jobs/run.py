@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import matplotlib
 import matplotlib.pyplot as plt
+import numpy as np
 
 from mi_nerfpp.core import budget
 from mi_nerfpp.data import (AutoDownscale, DatasetError, detect_format,
@@ -266,7 +267,9 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
 # ``--overwrite`` replaces. The folder's ``sfm/`` (structure from motion of its photos, an
 # input) and a sweep's ``optimize.log`` stay.
 RUN_OUTPUTS = ('model.npz', 'metrics.json', 'render.xml', 'training.png', 'test', 'preview',
-               'video.mp4', 'video.gif', 'video_frames')
+               'video.mp4', 'video.gif', 'video_frames', 'transients')
+# The folder of what --transients weighed down, per training photo (write_transient_masks).
+TRANSIENT_MASKS = 'transients'
 EVALUATION_PREFIX = 'test_at_'
 # Where --overwrite moves the old run's outputs before deleting them (see replace_run).
 REPLACED = '.replaced'
@@ -475,11 +478,27 @@ def report(trainer, progress: list, observer: RunObserver | None = None) -> dict
                           'coverage_fill': fill,
                           'capture_signs': trainer.signs.summary(
                               [os.path.basename(p) for p in trainer.train.image_paths],
-                              error_map=trainer.error_map)},
+                              error_map=trainer.error_map),
+                          **({'transients': write_transient_masks(trainer)}
+                             if trainer.transients is not None else {})},
                          progress=observer.track)
     plot_training(trainer.history, metrics, trainer.cfg.losses.color_loss,
                   os.path.join(trainer.out, 'training.png'))
     return metrics
+
+
+def write_transient_masks(trainer) -> dict:
+    """Write what ``--transients`` weighed down, per training photo, as
+    ``RUN/transients/<photo>.png`` (white: kept, black: left out of the colour loss) and return
+    ``{'share': the share of the training pixels weighed below one half, 'masks': folder}``."""
+    weights = trainer.transients.masks()
+    folder = os.path.join(trainer.out, TRANSIENT_MASKS)
+    os.makedirs(folder, exist_ok=True)
+    for path, mask in zip(trainer.train.image_paths, trainer.transients.pixel_masks(weights)):
+        stem = os.path.splitext(os.path.basename(path))[0]
+        write_linear_png(os.path.join(folder, stem + '.png'), np.repeat(mask[..., None], 3, 2))
+    return {'share': round(trainer.transients.transient_share(weights), 4),
+            'masks': TRANSIENT_MASKS + '/'}
 
 
 def plot_training(history, metrics, color_loss, path):
@@ -577,6 +596,11 @@ def summary(result: RunResult) -> tuple[list[str], list[str]]:
                      f'{fill["psnr_fill"]:.2f} dB with it, {fill["psnr_volume"]:.2f} dB with the '
                      f'background volume')
     warnings = sign_lines(metrics.get('capture_signs') or {})
+    transient = metrics.get('transients')
+    if transient:
+        lines.append(f'transients: {100 * transient["share"]:.1f} % of the training pixels '
+                     f'weighed below one half in the colour loss (masks in '
+                     f'{os.path.join(out, transient["masks"])})')
     if 'test' in metrics:
         test = metrics['test']
         lines.append(f'held-out views: PSNR {test["psnr"]:.2f} dB, SSIM {test["ssim"]:.3f} over '

@@ -476,6 +476,11 @@ class LossOptions(_Options):
                                type=str, choices=masks.MEANINGS,
                                default_help=f"(default: '{masks.DEFAULT_MEANING}' when the "
                                             f"dataset has masks; announced)")
+    transients: float = option(0.0, 'transients without masks (docs/training.md, "Transients"): '
+                               'a pixel whose tile errs more than this many times as much as '
+                               'the same point in the other photos that see it weighs less in '
+                               'the colour loss, and nothing from twice that (a passer-by, a '
+                               'car in one photo). 0: off')
     mask_weight: float = option(optim.SILHOUETTE_WEIGHT, 'weight of the silhouette loss of '
                                 '--masks object (the foreground opacity against the mask)')
 
@@ -486,6 +491,8 @@ class LossOptions(_Options):
             self._bad('masks', ' or '.join(f"'{k}'" for k in masks.MEANINGS))
         self._check(('distortion', 'appearance_prior', 'mask_weight', 'near_gradient'),
                     lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
+        self._check(('transients',), lambda v: _finite(v) and (v == 0 or v > 1),
+                    '0 (off) or a ratio above 1')
         for name, ok, one in (('sparsity', lambda w: w >= 0, 'one finite number >= 0'),
                               ('sparsity_start', lambda f: 0 <= f <= 1, 'one fraction in [0, 1]')):
             v = _as_tuple(getattr(self, name))          # per volume: see per_volume()

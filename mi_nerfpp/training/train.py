@@ -51,7 +51,9 @@ from mi_nerfpp.files.checkpoint import (CheckpointError, NonFiniteStateError, lo
                                         migration_notes, read_version, save_checkpoint)
 from mi_nerfpp.training import choices, optim, priors
 from mi_nerfpp.training.config import RETIRED_AFTER, TrainConfig, per_volume
+from mi_nerfpp.training import transients
 from mi_nerfpp.training.error_map import ErrorMap
+from mi_nerfpp.training.transients import TransientWeights
 from mi_nerfpp.training.errors import TrainingError
 from mi_nerfpp.training.metrics import psnr_from_mse
 from mi_nerfpp.training.raybank import RayBank
@@ -155,6 +157,19 @@ class Trainer:
                 raise CheckpointError(f'{self.checkpoint_path}: {e}: {CHECKPOINT_REMEDY}, or '
                                       f'resume with --error-rays 0') from None
         self._tiles = None          # the error map's tiles of this step's rays
+        # Transients without masks (:mod:`.transients`): loss weights from how the other photos
+        # that see a tile's point are fitted; resumes with the run.
+        self.transients = None
+        if config.losses.transients > 0:
+            n, h, w = self.rays.layout[:3]
+            self.transients = TransientWeights(self.train.cameras, h, w, transients.TILE,
+                                               config.losses.transients)
+            try:
+                self.transients.restore(state)
+            except ValueError as e:
+                raise CheckpointError(f'{self.checkpoint_path}: {e}: {CHECKPOINT_REMEDY}, or '
+                                      f'resume with --transients 0') from None
+        self._transient_tiles = None
         self.signs = CaptureSigns(len(self.train))
         self.signs.restore(state)
 
@@ -280,9 +295,11 @@ class Trainer:
         # A replayed frozen step runs no Python, so the step itself cannot give the model the
         # updated parameters (previews and evaluations read them).
         optim.write_back(self.opt, self.model)
-        squared_error, predicted, photographed = (v.numpy() for v in per_ray)
+        squared_error, predicted, photographed = (v.numpy() for v in per_ray[:3])
         if self.error_map is not None:
             self.error_map.update(self._tiles, squared_error)
+        if self.transients is not None:
+            self.transients.update(self._transient_tiles, squared_error, per_ray[3].numpy())
         self.signs.update(self._view_of(inputs), squared_error, predicted, photographed)
         self.iteration += 1
         return float(loss.array[0]), float(fine.array[0])
@@ -324,6 +341,10 @@ class Trainer:
             index = gen.integers(mi.UInt32, n, 0, rays.size)
         draws = {'index': index, 'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
                  'sparsity': self.sparsity.draw(gen, n, fields, progress)}
+        if self.transients is not None:
+            at = index.numpy()
+            self._transient_tiles = self.transients.tiles(at, rays.factor)
+            draws['weight'] = mi.Float(self.transients.weights(at, rays.factor, progress))
         dr.eval(draws)
         refine = (self.model.poses is not None
                   and progress >= self.cfg.optimizer.poses_start)
@@ -397,8 +418,12 @@ class Trainer:
             params = opt['appearance']
             encode = lambda c, e=encode: e(app.transform_rays(params, rays.image, c))  # noqa: E731
         pred = encode(res.composite.rgb)
-        # Masks: the pixels kept in the colour loss (ignore), or the object's silhouette.
+        # Masks: the pixels kept in the colour loss (ignore), or the object's silhouette;
+        # transients (:mod:`.transients`): each ray's weight.
         kept = mask if self.masks == 'ignore' else None
+        weight = inputs['draws'].get('weight')
+        if weight is not None:
+            kept = weight if kept is None else kept * weight
         terms = {'color': optim.COLOR_LOSS_WEIGHT
                  * optim.COLOR_LOSSES[cfg.color_loss](pred, gt, kept)}
         if self.masks == 'object':
@@ -415,8 +440,13 @@ class Trainer:
             terms['sparsity'] = self.sparsity.loss((model.fg, model.bg), points)
         fine = dr.detach(optim.mse(pred, gt, kept))
         error = optim.squared_error(pred, gt)
-        per_ray = (dr.detach(error if kept is None else error * kept),
-                   dr.detach(optim.luminance(pred)), dr.detach(optim.luminance(gt)))
+        if self.masks == 'ignore':
+            error = error * mask
+        per_ray = (dr.detach(error), dr.detach(optim.luminance(pred)),
+                   dr.detach(optim.luminance(gt)))
+        if self.transients is not None:      # each ray's distance, for its tile's point
+            c = res.composite
+            per_ray += (dr.detach(c.depth / dr.maximum(c.opacity, 1e-6)),)
         return terms, fine, per_ray
 
     def data_summary(self):
@@ -460,6 +490,8 @@ class Trainer:
             state = optim.adam_state(self.opt)
             if self.error_map is not None:
                 state.update(self.error_map.state())
+            if self.transients is not None:
+                state.update(self.transients.state())
             state.update(self.signs.state())
             save_checkpoint(self.checkpoint_path, self.model, meta=meta, state=state)
         except NonFiniteStateError as e:

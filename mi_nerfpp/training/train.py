@@ -49,9 +49,8 @@ from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.files.checkpoint import REMEDY as CHECKPOINT_REMEDY
 from mi_nerfpp.files.checkpoint import (CheckpointError, NonFiniteStateError, load_checkpoint,
                                         migration_notes, read_version, save_checkpoint)
-from mi_nerfpp.training import choices, optim, priors
+from mi_nerfpp.training import choices, optim, priors, transients
 from mi_nerfpp.training.config import RETIRED_AFTER, TrainConfig, per_volume
-from mi_nerfpp.training import transients
 from mi_nerfpp.training.error_map import ErrorMap
 from mi_nerfpp.training.transients import TransientWeights
 from mi_nerfpp.training.errors import TrainingError

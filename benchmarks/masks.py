@@ -143,12 +143,8 @@ def _figure(args, renders, view, stems):
     transient case's render."""
     photo = iio.imread(os.path.join(args.work, 'transients', 'images', 'train',
                                     stems[view] + '.png'))[..., :3] / 255.0
-    tiles = [photo] + [renders[label][0] for label in renders]
-    gap = np.ones((2 * photo.shape[0], 4, 3))
-    row = np.concatenate(sum(([np.repeat(np.repeat(t, 2, 0), 2, 1), gap] for t in tiles),
-                             [])[:-1], axis=1)
-    path = os.path.join(args.work, 'transient_view.png')
-    iio.imwrite(path, (np.clip(row, 0, 1) * 255).round().astype(np.uint8))
+    path = bench.write_image_row(os.path.join(args.work, 'transient_view.png'),
+                                 [photo] + [renders[label][0] for label in renders])
     print(f'figure (the photo given, then {", ".join(renders)}): {path}')
     return path
 

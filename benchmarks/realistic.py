@@ -162,11 +162,8 @@ def _crops(args, images, masks):
     x0 = int(np.clip(cx - size // 2, 0, w - size))
     tiles = [images[view]] + [iio.imread(_render(item.partition('=')[2], view))[..., :3] / 255.0
                               for item in args.runs]
-    crops = [np.repeat(np.repeat(t[y0:y0 + size, x0:x0 + size], 2, 0), 2, 1) for t in tiles]
-    gap = np.ones((2 * size, 4, 3))
-    row = np.concatenate(sum(([c, gap] for c in crops), [])[:-1], axis=1)
-    path = os.path.join(args.work_dir, f'crops_view{view}.png')
-    iio.imwrite(path, (np.clip(row, 0, 1) * 255).round().astype(np.uint8))
+    path = bench.write_image_row(os.path.join(args.work_dir, f'crops_view{view}.png'),
+                                 [t[y0:y0 + size, x0:x0 + size] for t in tiles])
     print(f'crops (truth, then {", ".join(i.partition("=")[0] for i in args.runs)}): {path}')
     return path
 

@@ -115,13 +115,8 @@ def _figure(work, stem, renders):
     folder = os.path.join(work, 'data', 'images', 'train')
     name = next(n for n in sorted(os.listdir(folder)) if os.path.splitext(n)[0] == stem)
     photo = iio.imread(os.path.join(folder, name))[..., :3] / 255.0
-    gap = np.ones((photo.shape[0], 4, 3))
-    row = [photo]
-    for image in renders.values():
-        row += [gap, image]
-    row = np.repeat(np.repeat(np.concatenate(row, axis=1), 2, axis=0), 2, axis=1)
-    path = os.path.join(work, 'transient_view.png')
-    iio.imwrite(path, (np.clip(row, 0, 1) * 255).round().astype(np.uint8))
+    path = bench.write_image_row(os.path.join(work, 'transient_view.png'),
+                                 [photo, *renders.values()])
     print(f'figure (the photo given, then {", ".join(renders)}): {path}')
     return path
 

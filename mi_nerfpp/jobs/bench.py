@@ -27,6 +27,7 @@ import sys
 import xml.etree.ElementTree as ET
 
 import drjit
+import imageio.v3 as iio
 import mitsuba
 import mitsuba as mi
 import numpy as np
@@ -90,6 +91,18 @@ def write_results(name: str, title: str, tables: list, figures=(), notes: str | 
         json.dump(_plain(results), f, indent=2, allow_nan=False)
         f.write('\n')
     os.replace(tmp, path)
+    return path
+
+
+def write_image_row(path: str, images, scale: int = 2, gap: int = 4) -> str:
+    """Write ``images`` (float (H, W, 3) in [0, 1], encoded for display, one height) side by
+    side, each enlarged ``scale`` times by pixel repetition, ``gap`` white pixels apart, as an
+    8-bit PNG at ``path`` (a benchmark's figure); returns ``path``."""
+    tiles = [np.repeat(np.repeat(np.asarray(t, np.float64)[..., :3], scale, 0), scale, 1)
+             for t in images]
+    space = np.ones((tiles[0].shape[0], gap, 3))
+    row = np.concatenate(sum(([t, space] for t in tiles), [])[:-1], axis=1)
+    iio.imwrite(path, (np.clip(row, 0, 1) * 255).round().astype(np.uint8))
     return path
 
 

@@ -341,9 +341,8 @@ class Trainer:
         draws = {'index': index, 'seed': gen.integers(mi.UInt32, n, 0, 2 ** 32 - 1),
                  'sparsity': self.sparsity.draw(gen, n, fields, progress)}
         if self.transients is not None:
-            at = index.numpy()
-            self._transient_tiles = self.transients.tiles(at, rays.factor)
-            draws['weight'] = mi.Float(self.transients.weights(at, rays.factor, progress))
+            self._transient_tiles = self.transients.tiles(index.numpy(), rays.factor)
+            draws['weight'] = mi.Float(self.transients.weights(self._transient_tiles, progress))
         dr.eval(draws)
         refine = (self.model.poses is not None
                   and progress >= self.cfg.optimizer.poses_start)

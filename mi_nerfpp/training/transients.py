@@ -151,12 +151,12 @@ class TransientWeights:
         weight = np.clip(2.0 - r / self.ratio, 0.0, 1.0)
         return np.where(enough & self.visited[tiles], weight, 1.0).astype(np.float32)
 
-    def weights(self, index: np.ndarray, factor: int, progress: float) -> np.ndarray:
-        """The weight (float32) of each ray ``index`` of pyramid level ``factor`` at
-        ``progress`` (the fraction of the run done): 1 before :data:`START`."""
+    def weights(self, tiles: np.ndarray, progress: float) -> np.ndarray:
+        """The weight (float32) of rays in ``tiles`` (:meth:`tiles`) at ``progress`` (the
+        fraction of the run done): 1 before :data:`START`."""
         if progress < START:
-            return np.ones(len(index), np.float32)
-        return self.tile_weights(self.tiles(index, factor))
+            return np.ones(len(tiles), np.float32)
+        return self.tile_weights(tiles)
 
     # ------------------------------------------------------------------ what it found
     def masks(self, chunk: int = 4096) -> np.ndarray:

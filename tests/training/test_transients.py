@@ -76,8 +76,8 @@ def test_unjudged_tiles_and_the_start_of_the_run_keep_their_weight():
     assert t.tile_weights(np.array([seen(t, 0)]))[0] == 1.0
     t = statistics(ring(), [40.0] + [1.0] * 7)
     index = np.array([(H // 2) * W + W // 2])   # photo 0's centre pixel, at full size
-    assert t.weights(index, 1, START - 0.01)[0] == 1.0
-    assert t.weights(index, 1, START)[0] == t.tile_weights(t.tiles(index))[0]
+    assert t.weights(t.tiles(index), START - 0.01)[0] == 1.0
+    assert t.weights(t.tiles(index), START)[0] == t.tile_weights(t.tiles(index))[0]
 
 
 @pytest.mark.parametrize('factor', [1, 2, 4])

@@ -113,8 +113,11 @@ def make_capture(root, views=24, width=32, height=24, spp=8):
     """Render a small unbounded capture (textured ball, ground, far cube, sky) in the NeRF++ layout.
 
     Cameras orbit at radius 3 world units, so the reader normalizes them into the unit sphere.
-    Every 6th view is held out for test, the one after it for validation.
+    Every 6th view is held out for test, the one after it for validation. A ``capture.json``
+    says, as ``synth``'s does, that the capture was rendered (one exposure: runs on it learn no
+    per-photo appearance unless told, :func:`mi_nerfpp.training.choices.choose_appearance`).
     """
+    import json
     import numpy as np
     from mi_nerfpp.data import mitsuba_sensor_dict, write_nerfpp
     from mi_nerfpp.core.color import to_srgb8
@@ -142,6 +145,9 @@ def make_capture(root, views=24, width=32, height=24, spp=8):
     train = np.setdiff1d(idx, np.concatenate([test, val]))
     write_nerfpp(root, {name: ([cams[i] for i in ids], [imgs[i] for i in ids])
                         for name, ids in (('train', train), ('validation', val), ('test', test))})
+    from mi_nerfpp.data.synth import CAPTURE_FILE, CAPTURE_FORMAT
+    with open(os.path.join(root, CAPTURE_FILE), 'w') as f:
+        json.dump({'format': CAPTURE_FORMAT, 'rendered_by': 'tests.helpers.make_capture'}, f)
     return root
 
 

@@ -1,16 +1,19 @@
 """What a run's options leave to the capture, chosen in one place and announced from there: the
-sparse foreground level, where the rays are drawn, what the photos' masks mean and the time
-budget (:func:`from_capture`). A resumed run keeps what it chose before.
+sparse foreground level, where the rays are drawn, whether each photo learns its exposure,
+what the photos' masks mean and the time budget (:func:`from_capture`). A resumed run keeps what it chose before.
 
 The resolution (``--downscale``) is chosen with the dataset's loading
 (:func:`mi_nerfpp.jobs.run.prepare`): it decides which images are read at all.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from mi_nerfpp.core import budget
 from mi_nerfpp.data import DatasetError, masks
+from mi_nerfpp.data.synth.capture import CAPTURE_FILE
 from mi_nerfpp.training.config import TrainConfig, default_minutes
 
 # What each meaning of the masks does, as the announcement says it.
@@ -28,13 +31,15 @@ def from_capture(config: TrainConfig, dataset, stored: dict | None = None, notic
                  sparse: bool = True) -> TrainConfig:
     """``config`` with every option it leaves to the capture chosen: the sparse foreground
     level (with ``sparse``; :func:`choose_sparse_level`), the share of rays drawn by the error
-    map (:func:`choose_error_rays`), the meaning of the masks (:func:`choose_masks`) and the
+    map (:func:`choose_error_rays`), the per-photo colour transforms (:func:`choose_appearance`),
+    the meaning of the masks (:func:`choose_masks`) and the
     budget (:func:`choose_budget`). ``stored``: the config of the checkpoint a run resumes
     (its choices are kept); ``notice(line)`` receives each announcement."""
     stored = stored or {}
     if sparse and config.model.grid_sparse is None:
         config = choose_sparse_level(config, dataset, stored, notice)
     config = choose_error_rays(config, stored)
+    config = choose_appearance(config, dataset, stored, notice)
     config = choose_masks(config, dataset, stored, notice)
     return choose_budget(config, dataset, notice)
 
@@ -80,6 +85,31 @@ def choose_error_rays(config: TrainConfig, stored: dict) -> TrainConfig:
         return config
     drawn = TrainConfig.stored_options(stored).get('error_rays') if stored else None
     return config.replace(error_rays=drawn or 0.0)
+
+
+def rendered(dataset) -> bool:
+    """Whether ``dataset`` is a capture that ``synth`` rendered (its ``capture.json`` beside it):
+    every view of one exposure and white balance, unlike photos."""
+    return os.path.isfile(os.path.join(os.fspath(dataset.root), CAPTURE_FILE))
+
+
+def choose_appearance(config: TrainConfig, dataset, stored: dict, notice=_quiet):
+    """``config`` with the per-photo colour transforms (``--appearance``) chosen when neither
+    ``--appearance`` nor ``--no-appearance`` is given: a resumed run's own; on for photos,
+    announced (a phone's or camera's auto-exposure and white balance change from photo to photo:
+    on the realistic stand-in of a phone capture the transforms are worth ~1.8 dB held out,
+    docs/experiments.md), off for a capture :func:`rendered` by ``synth``."""
+    if config.model.appearance is not None:
+        return config
+    if stored:
+        return config.replace(appearance=bool(
+            TrainConfig.stored_options(stored).get('appearance')))
+    if rendered(dataset):
+        return config.replace(appearance=False)
+    notice('per-photo appearance on: each training photo learns a colour transform (its '
+           'exposure and white balance; held-out photos scored with theirs fitted on their '
+           'left half); --no-appearance for photos of one fixed exposure')
+    return config.replace(appearance=True)
 
 
 def choose_masks(config: TrainConfig, dataset, stored: dict, notice=_quiet) -> TrainConfig:

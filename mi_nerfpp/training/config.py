@@ -271,10 +271,12 @@ class ModelOptions(_Options):
     grid_init: float = option(_grid_default('init'), 'grid field: standard deviation of the '
                               'noise the grid levels start with; 0 starts them neutral, so '
                               'that cells no training ray reaches hold no colour of their own')
-    appearance: bool = option(False, 'learn a colour transform (exposure, white-balance gain and '
-                              'bias) per training image; training image 0 is the reference; '
-                              'held-out views are then scored NeRF-W style (transform fitted on '
-                              'the left half, right half scored)', shapes_model=True)
+    appearance: bool | None = option(
+        None, 'learn a colour transform (exposure, white-balance gain and bias) per training '
+        'image; training image 0 is the reference; held-out views are then scored NeRF-W style '
+        '(transform fitted on the left half, right half scored)', type=bool, shapes_model=True,
+        default_help="(default: on for photos, whose exposure and white balance vary; off for "
+                     "a capture rendered by synth, of one exposure; announced)")
     appearance_embedding: int = option(0, 'learn a code of this many numbers per training '
                                        "image that both colour networks take (NeRF-W's "
                                        'appearance embedding): a sky or a haze that changes from '
@@ -291,7 +293,7 @@ class ModelOptions(_Options):
     def per_photo_appearance(self) -> bool:
         """Whether each training photo has an appearance of its own (a colour transform or an
         embedding): held-out photos are then scored with theirs fitted (NeRF-W)."""
-        return self.appearance or self.appearance_embedding > 0
+        return bool(self.appearance) or self.appearance_embedding > 0
 
     def _validate(self):
         if self.kind not in MODEL_KINDS:
@@ -353,6 +355,8 @@ class ModelOptions(_Options):
         value = getattr(self, self.source(name))
         if value is None and name == 'grid_sparse':
             value = ()
+        if value is None and name == 'appearance':     # unset: a model built now has none
+            value = False
         return tuple(value) if isinstance(value, (list, tuple)) else value
 
     def option_of(self, entry, domain):

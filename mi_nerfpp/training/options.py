@@ -98,7 +98,8 @@ def _add_fields(parser, section, cls):
         for key in ('choices', 'metavar', 'nargs', 'type'):
             if key in meta:
                 kwargs[key] = meta[key]
-        if isinstance(f.default, bool):
+        if isinstance(f.default, bool) or meta.get('type') is bool:   # bool: --x / --no-x
+            kwargs.pop('type', None)
             kwargs['action'] = argparse.BooleanOptionalAction
         elif isinstance(f.default, tuple) and 'type' not in meta:
             kwargs.setdefault('nargs', '+')

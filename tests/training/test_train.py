@@ -175,6 +175,12 @@ def test_optimize_options_come_from_train_config():
     assert '_joint__samples' in sections['sampling'] and 'model' in sections['model']
     args = build_parser().parse_args(['optimize', '--no-occupancy'])   # booleans switch both ways
     assert TrainConfig.from_options(**values(args, TrainConfig)).sampling.occupancy is False
+    # An option left to the capture (None) still switches both ways.
+    for words, appearance in (([], None), (['--appearance'], True),
+                              (['--no-appearance'], False)):
+        args = build_parser().parse_args(['optimize'] + words)
+        assert TrainConfig.from_options(**values(args, TrainConfig)).model.appearance is \
+            appearance, words
     with pytest.raises(SystemExit):
         build_parser().parse_args(['optimize', '--iterations', '3', '--minutes', '1'])
 

@@ -57,6 +57,7 @@ from mi_nerfpp.training.config import DEFAULT_JOB_EVAL_AT, DEFAULT_JOB_MINUTES, 
 from mi_nerfpp.training.evaluate import (choose_coverage_fill, evaluate_split, finish_run,
                                          matte_warning)
 from mi_nerfpp.training.optim import COLOR_LOSS_NAMES
+from mi_nerfpp.training.pose_check import check_outliers
 from mi_nerfpp.training.signs import sign_lines
 from mi_nerfpp.training.errors import TrainingError
 from mi_nerfpp.training.train import Trainer, in_model_frame, samples_per_second
@@ -476,15 +477,24 @@ def report(trainer, progress: list, observer: RunObserver | None = None) -> dict
                           'progress': progress,
                           'sparse_allocations': trainer.allocations,
                           'coverage_fill': fill,
-                          'capture_signs': trainer.signs.summary(
-                              [os.path.basename(p) for p in trainer.train.image_paths],
-                              error_map=trainer.error_map),
+                          'capture_signs': capture_signs(trainer, observer),
                           **({'transients': write_transient_masks(trainer)}
                              if trainer.transients is not None else {})},
                          progress=observer.track)
     plot_training(trainer.history, metrics, trainer.cfg.losses.color_loss,
                   os.path.join(trainer.out, 'training.png'))
     return metrics
+
+
+def capture_signs(trainer, observer) -> dict:
+    """The run's signs about its capture (:mod:`mi_nerfpp.training.signs`), with the views
+    that fit far worse than the rest checked for a wrong pose (:mod:`.pose_check`)."""
+    signs = trainer.signs.summary([os.path.basename(p) for p in trainer.train.image_paths],
+                                  error_map=trainer.error_map)
+    checks = check_outliers(trainer, signs, progress=observer.track)
+    if checks:
+        signs['pose_checks'] = checks
+    return signs
 
 
 def write_transient_masks(trainer) -> dict:

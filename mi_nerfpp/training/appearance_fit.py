@@ -48,30 +48,23 @@ def fit_code(model, camera, image: np.ndarray, steps: int = FIT_STEPS,
         opt['transform'] = dr.zeros(mi.Float, PARAMS)
     encode = model.loss_encoding
     fg, bg = model.radiance_fields()
-    # Dr.Jit 1.5.0 aborts ("jit_assemble(): dirty variable") evaluating a gradient that
-    # reached the colour networks' ray inputs through their matrix products unless their
-    # weights take gradients too: they are attached for the fit (and never updated).
-    colour = {k: dr.detach(v) for k, v in model.parameters().items() if '.color.' in k}
-    for v in colour.values():
-        dr.enable_grad(v)
-    model.set_parameters(colour)
     try:
-        for _ in range(steps):
-            index = rng.choice(left, size=min(rays, left.size), replace=False)
-            batch, target = bank.batch(mi.UInt32(index), footprint=model.antialias)
-            batch.seed = mi.UInt32(rng.integers(0, 2 ** 32, size=index.size, dtype=np.uint32))
-            per_ray = dr.zeros(mi.UInt32, index.size)
-            model.set_appearance([dr.gather(mi.Float, opt['code'], per_ray + j)
-                                  for j in range(dims)])
-            res = render_rays(batch, fg, bg, model.sampling,
-                              RenderOptions(occupancy=model.occupancy))
-            rgb = res.composite.rgb
-            if 'transform' in opt:
-                p = [dr.gather(mi.Float, opt['transform'], j) for j in range(PARAMS)]
-                rgb = dr.exp(mi.Color3f(p[0], p[1], p[2])) * rgb + mi.Color3f(p[3], p[4], p[5])
-            dr.backward(optim.mse(encode(rgb), target))
-            opt.step()
+        with optim.colour_weights_attached(model):
+            for _ in range(steps):
+                index = rng.choice(left, size=min(rays, left.size), replace=False)
+                batch, target = bank.batch(mi.UInt32(index), footprint=model.antialias)
+                batch.seed = mi.UInt32(rng.integers(0, 2 ** 32, size=index.size, dtype=np.uint32))
+                per_ray = dr.zeros(mi.UInt32, index.size)
+                model.set_appearance([dr.gather(mi.Float, opt['code'], per_ray + j)
+                                      for j in range(dims)])
+                res = render_rays(batch, fg, bg, model.sampling,
+                                  RenderOptions(occupancy=model.occupancy))
+                rgb = res.composite.rgb
+                if 'transform' in opt:
+                    p = [dr.gather(mi.Float, opt['transform'], j) for j in range(PARAMS)]
+                    rgb = dr.exp(mi.Color3f(p[0], p[1], p[2])) * rgb + mi.Color3f(p[3], p[4], p[5])
+                dr.backward(optim.mse(encode(rgb), target))
+                opt.step()
     finally:
         model.set_appearance(None)
-        model.set_parameters({k: dr.detach(v) for k, v in colour.items()})
     return [float(v) for v in np.asarray(opt['code'], dtype=np.float64)]

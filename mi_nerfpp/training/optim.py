@@ -4,6 +4,8 @@ parameter kind decaying exponentially over the run, and the colour losses.
 """
 from __future__ import annotations
 
+import contextlib
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -27,6 +29,23 @@ CHARBONNIER_WEIGHT = 0.3
 COLOR_LOSS_WEIGHT = 3.0
 # The weight of the silhouette loss (--masks object) beside the colour loss.
 SILHOUETTE_WEIGHT = 0.1
+
+
+@contextlib.contextmanager
+def colour_weights_attached(model):
+    """Inside the block, ``model``'s colour networks' weights take gradients (they are never
+    updated). A fit of something else through the fields (a held-out photo's code, a camera)
+    needs it: Dr.Jit 1.5.0 aborts ("jit_assemble(): dirty variable") evaluating a gradient that
+    reached the colour networks' ray inputs through their matrix products unless their weights
+    take gradients too."""
+    colour = {k: dr.detach(v) for k, v in model.parameters().items() if '.color.' in k}
+    for v in colour.values():
+        dr.enable_grad(v)
+    model.set_parameters(colour)
+    try:
+        yield
+    finally:
+        model.set_parameters({k: dr.detach(v) for k, v in colour.items()})
 
 
 def is_grid(name: str) -> bool:

@@ -93,16 +93,44 @@ def sign_lines(signs: dict) -> list[str]:
     if not signs:
         return lines
     views = {v['name']: v for v in signs['views']}
-    if signs['outliers']:
-        named = ', '.join(f'{name} ({views[name]["relative_error"]:.1f}x)'
-                          for name in signs['outliers'][:NAMED])
-        more = len(signs['outliers']) - NAMED
-        lines.append(f'training views that fit far worse than the median view: {named}'
-                     f'{f" and {more} more" if more > 0 else ""}; a wrong pose '
-                     f'(--refine-poses) or a large passer-by: look at them (docs/training.md)')
+    checks = signs.get('pose_checks')
+    if checks is None:              # (runs from before the pose check)
+        if signs['outliers']:
+            lines.append(f'training views that fit far worse than the median view: '
+                         f'{_named(signs["outliers"], views)}; a wrong pose (--refine-poses) '
+                         f'or a large passer-by: look at them (docs/training.md)')
+    else:
+        wrong = [n for n in signs['outliers'] if checks.get(n, {}).get('wrong_pose')]
+        other = [n for n in signs['outliers'] if n not in wrong]
+        if wrong:
+            lines.append('training views whose pose looks wrong (each fits far worse than the '
+                         'median view, and its camera fitted alone against the model turns by '
+                         'the degrees given and keeps the share of its error given): '
+                         + _named(wrong, views, checks)
+                         + '; --refine-poses, or leave them out (docs/training.md)')
+        if other:
+            lines.append('training views that fit far worse than the median view, though not '
+                         'for their pose (their cameras fitted alone keep most of their error): '
+                         + _named(other, views)
+                         + '; content the other photos do not explain (a passer-by: '
+                         '--transients) or that is hard to fit: look at them (docs/training.md)')
     share = signs.get('unexplained_share')
     if share is not None and share >= 0.01:
         lines.append(f'{100 * share:.1f} % of the training pixels fit more than {CAP:g}x worse '
                      f'than their photo\'s median: what no consistent scene explains '
                      f'(passers-by, glints, misregistered edges)')
     return lines
+
+
+def _named(names, views, checks=None) -> str:
+    """``name (5.3x), ...`` for at most :data:`NAMED` views (with ``checks``: ``name (5.3x,
+    0.8°, 35 %)``), and how many more."""
+    parts = []
+    for name in names[:NAMED]:
+        text = f'{views[name]["relative_error"]:.1f}x'
+        if checks is not None:
+            c = checks[name]
+            text += f', {c["turn_degrees"]:.2f}°, {100 * c["error_kept"]:.0f} %'
+        parts.append(f'{name} ({text})')
+    more = len(names) - NAMED
+    return ', '.join(parts) + (f' and {more} more' if more > 0 else '')

@@ -71,3 +71,23 @@ def test_the_unexplained_share_counts_tiles_far_above_their_images_median():
     summary = signs.summary(error_map=m)
     assert summary['unexplained_share'] == pytest.approx(2 / 32)
     assert any('6.2 % of the training pixels' in line for line in sign_lines(summary))
+
+
+def test_outliers_are_split_by_their_pose_check():
+    views = [{'name': f'img{i}.jpg', 'relative_error': 1.0, 'stops': 0.0} for i in range(4)]
+    views[1]['relative_error'], views[2]['relative_error'] = 5.3, 3.6
+    checks = {'img1.jpg': {'error_kept': 0.32, 'turn_degrees': 0.81, 'shift': 0.001,
+                           'wrong_pose': True},
+              'img2.jpg': {'error_kept': 0.98, 'turn_degrees': 0.03, 'shift': 0.0,
+                           'wrong_pose': False}}
+    signs = {'views': views, 'outliers': ['img1.jpg', 'img2.jpg'], 'pose_checks': checks}
+    wrong, other = sign_lines(signs)
+    assert wrong.startswith('training views whose pose looks wrong')
+    assert 'img1.jpg (5.3x, 0.81°, 32 %)' in wrong and 'img2.jpg' not in wrong
+    assert '--refine-poses' in wrong
+    assert 'though not for their pose' in other and 'img2.jpg (3.6x)' in other
+    assert 'img1.jpg' not in other and '--refine-poses' not in other
+    # Only hard views: one line, which does not suggest refining poses.
+    checks['img1.jpg']['wrong_pose'] = False
+    (line,) = sign_lines(signs)
+    assert 'img1.jpg (5.3x)' in line and '--refine-poses' not in line

@@ -9,7 +9,9 @@ turns them into figures (``metrics.json``'s ``capture_signs``) and :func:`sign_l
 lines a run ends with:
 
 - **views that fit far worse than the rest**: a view error at least :data:`OUTLIER` times the
-  median view's (a wrong pose, a large transient, another lens). Motion blur does not show:
+  median view's (a wrong pose, a large transient, another lens, or content that is hard to
+  fit); the :data:`NAMED` worst are checked for a wrong pose by fitting their cameras alone
+  (:mod:`.pose_check`, ``pose_checks``) and named apart. Motion blur does not show:
   a blurred photo is smooth and fits as well as the rest (0.6-1.1x the median on the
   realistic stand-in), and the stand-in's passers-by (5-15 % of a photo) fit 1.0-1.7x;
 - **exposure**: each view's brightness against the model's, in stops (a log2 ratio of linear
@@ -100,8 +102,9 @@ def sign_lines(signs: dict) -> list[str]:
                          f'{_named(signs["outliers"], views)}; a wrong pose (--refine-poses) '
                          f'or a large passer-by: look at them (docs/training.md)')
     else:
-        wrong = [n for n in signs['outliers'] if checks.get(n, {}).get('wrong_pose')]
-        other = [n for n in signs['outliers'] if n not in wrong]
+        wrong = [n for n in signs['outliers'] if n in checks and checks[n]['wrong_pose']]
+        other = [n for n in signs['outliers'] if n in checks and n not in wrong]
+        unchecked = [n for n in signs['outliers'] if n not in checks]
         if wrong:
             lines.append('training views whose pose looks wrong (each fits far worse than the '
                          'median view, and its camera fitted alone against the model turns by '
@@ -114,6 +117,9 @@ def sign_lines(signs: dict) -> list[str]:
                          + _named(other, views)
                          + '; content the other photos do not explain (a passer-by: '
                          '--transients) or that is hard to fit: look at them (docs/training.md)')
+        if unchecked:           # (beyond the NAMED worst, which alone are checked)
+            lines.append(f'training views that fit far worse than the median view, their poses '
+                         f'not checked (only the {NAMED} worst are): {_named(unchecked, views)}')
     share = signs.get('unexplained_share')
     if share is not None and share >= 0.01:
         lines.append(f'{100 * share:.1f} % of the training pixels fit more than {CAP:g}x worse '

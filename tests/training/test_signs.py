@@ -91,3 +91,9 @@ def test_outliers_are_split_by_their_pose_check():
     checks['img1.jpg']['wrong_pose'] = False
     (line,) = sign_lines(signs)
     assert 'img1.jpg (5.3x)' in line and '--refine-poses' not in line
+    # An outlier beyond the checked ones is said to be unchecked, not hard.
+    views[3]['relative_error'] = 3.1
+    signs['outliers'].append('img3.jpg')
+    hard, unchecked = sign_lines(signs)
+    assert 'img3.jpg' not in hard
+    assert 'poses not checked' in unchecked and 'img3.jpg (3.1x)' in unchecked

@@ -114,8 +114,9 @@ def make_capture(root, views=24, width=32, height=24, spp=8):
 
     Cameras orbit at radius 3 world units, so the reader normalizes them into the unit sphere.
     Every 6th view is held out for test, the one after it for validation. A ``capture.json``
-    says, as ``synth``'s does, that the capture was rendered (one exposure: runs on it learn no
-    per-photo appearance unless told, :func:`mi_nerfpp.training.choices.choose_appearance`).
+    says, as ``synth``'s does, that the capture was rendered (one exposure, exact poses: runs on
+    it learn no per-photo appearance and refine no poses unless told,
+    :func:`mi_nerfpp.training.choices.choose_for_photos`).
     """
     import json
     import numpy as np

@@ -488,12 +488,15 @@ def report(trainer, progress: list, observer: RunObserver | None = None) -> dict
 
 def capture_signs(trainer, observer) -> dict:
     """The run's signs about its capture (:mod:`mi_nerfpp.training.signs`), with the views
-    that fit far worse than the rest checked for a wrong pose (:mod:`.pose_check`)."""
+    that fit far worse than the rest checked for a wrong pose (:mod:`.pose_check`) and whether
+    the run refined its poses (what the advice for a wrong one is)."""
     signs = trainer.signs.summary([os.path.basename(p) for p in trainer.train.image_paths],
                                   error_map=trainer.error_map)
     checks = check_outliers(trainer, signs, progress=observer.track)
     if checks:
         signs['pose_checks'] = checks
+    if signs:
+        signs['poses_refined'] = trainer.model.poses is not None
     return signs
 
 

@@ -1,6 +1,7 @@
 """What a run's options leave to the capture, chosen in one place and announced from there: the
-sparse foreground level, where the rays are drawn, whether each photo learns its exposure,
-what the photos' masks mean and the time budget (:func:`from_capture`). A resumed run keeps what it chose before.
+sparse foreground level, where the rays are drawn, whether each photo learns its exposure and
+its camera's pose, what the photos' masks mean and the time budget (:func:`from_capture`). A
+resumed run keeps what it chose before.
 
 The resolution (``--downscale``) is chosen with the dataset's loading
 (:func:`mi_nerfpp.jobs.run.prepare`): it decides which images are read at all.
@@ -31,15 +32,15 @@ def from_capture(config: TrainConfig, dataset, stored: dict | None = None, notic
                  sparse: bool = True) -> TrainConfig:
     """``config`` with every option it leaves to the capture chosen: the sparse foreground
     level (with ``sparse``; :func:`choose_sparse_level`), the share of rays drawn by the error
-    map (:func:`choose_error_rays`), the per-photo colour transforms (:func:`choose_appearance`),
-    the meaning of the masks (:func:`choose_masks`) and the
+    map (:func:`choose_error_rays`), the per-photo colour transforms and pose corrections
+    (:func:`choose_for_photos`), the meaning of the masks (:func:`choose_masks`) and the
     budget (:func:`choose_budget`). ``stored``: the config of the checkpoint a run resumes
     (its choices are kept); ``notice(line)`` receives each announcement."""
     stored = stored or {}
     if sparse and config.model.grid_sparse is None:
         config = choose_sparse_level(config, dataset, stored, notice)
     config = choose_error_rays(config, stored)
-    config = choose_appearance(config, dataset, stored, notice)
+    config = choose_for_photos(config, dataset, stored, notice)
     config = choose_masks(config, dataset, stored, notice)
     return choose_budget(config, dataset, notice)
 
@@ -93,23 +94,36 @@ def rendered(dataset) -> bool:
     return os.path.isfile(os.path.join(os.fspath(dataset.root), CAPTURE_FILE))
 
 
-def choose_appearance(config: TrainConfig, dataset, stored: dict, notice=_quiet):
-    """``config`` with the per-photo colour transforms (``--appearance``) chosen when neither
-    ``--appearance`` nor ``--no-appearance`` is given: a resumed run's own; on for photos,
-    announced (a phone's or camera's auto-exposure and white balance change from photo to photo:
-    on the realistic stand-in of a phone capture the transforms are worth ~1.8 dB held out,
-    docs/experiments.md), off for a capture :func:`rendered` by ``synth``."""
-    if config.model.appearance is not None:
-        return config
-    if stored:
-        return config.replace(appearance=bool(
-            TrainConfig.stored_options(stored).get('appearance')))
-    if rendered(dataset):
-        return config.replace(appearance=False)
-    notice('per-photo appearance on: each training photo learns a colour transform (its '
-           'exposure and white balance; held-out photos scored with theirs fitted on their '
-           'left half); --no-appearance for photos of one fixed exposure')
-    return config.replace(appearance=True)
+# What a run learns for photos and not for a capture rendered by synth (exact exposure, exact
+# poses), each with the line that announces it (:func:`choose_for_photos`).
+FOR_PHOTOS = {
+    'appearance': 'per-photo appearance on: each training photo learns a colour transform (its '
+                  'exposure and white balance; held-out photos scored with theirs fitted on their '
+                  'left half); --no-appearance for photos of one fixed exposure',
+    'refine_poses': 'pose refinement on: each training camera learns a small turn and shift '
+                    '(the errors structure from motion leaves), coarse to fine; held-out photos '
+                    'keep their given poses; --no-refine-poses for exact poses (rendered or '
+                    'tracked cameras)'}
+
+
+def choose_for_photos(config: TrainConfig, dataset, stored: dict, notice=_quiet):
+    """``config`` with what each photo learns of its own chosen where the options leave it
+    (:data:`FOR_PHOTOS`: ``--appearance``, ``--refine-poses``; neither ``--x`` nor ``--no-x``
+    given): a resumed run's own; on for photos, announced, off for a capture :func:`rendered`
+    by ``synth``. On the realistic stand-in of a phone capture (auto-exposure, poses off by
+    COLMAP-sized errors) the colour transforms are worth ~1.1 dB held out and the pose
+    corrections 0.5-1.5 dB more (two scenes, docs/experiments.md)."""
+    for name, line in FOR_PHOTOS.items():
+        if getattr(config.model, name) is not None:
+            continue
+        if stored:
+            value = bool(TrainConfig.stored_options(stored).get(name))
+        else:
+            value = not rendered(dataset)
+            if value:
+                notice(line)
+        config = config.replace(**{name: value})
+    return config
 
 
 def choose_masks(config: TrainConfig, dataset, stored: dict, notice=_quiet) -> TrainConfig:

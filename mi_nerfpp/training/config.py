@@ -284,10 +284,12 @@ class ModelOptions(_Options):
                                        'fogging the volumes; renders use the neutral (zero) '
                                        'code; grid fields only (0: none)', metavar='DIMS',
                                        shapes_model=True)
-    refine_poses: bool = option(False, 'learn an SE(3) correction of each training camera '
-                                '(rotation about its centre, translation) jointly with the '
-                                'fields; training image 0 is the reference; held-out views keep '
-                                'their given poses', shapes_model=True)
+    refine_poses: bool | None = option(
+        None, 'learn an SE(3) correction of each training camera (rotation about its centre, '
+        'translation) jointly with the fields, coarse to fine (--poses-blur); training image 0 '
+        'is the reference; held-out views keep their given poses', type=bool, shapes_model=True,
+        default_help="(default: on for photos, whose poses structure from motion estimated; off "
+                     "for a capture rendered by synth, whose poses are exact; announced)")
 
     @property
     def per_photo_appearance(self) -> bool:
@@ -355,8 +357,8 @@ class ModelOptions(_Options):
         value = getattr(self, self.source(name))
         if value is None and name == 'grid_sparse':
             value = ()
-        if value is None and name == 'appearance':     # unset: a model built now has none
-            value = False
+        if value is None and name in ('appearance', 'refine_poses'):
+            value = False       # unset: a model built now has none
         return tuple(value) if isinstance(value, (list, tuple)) else value
 
     def option_of(self, entry, domain):

@@ -110,7 +110,10 @@ def sign_lines(signs: dict) -> list[str]:
                          'median view, and its camera fitted alone against the model turns by '
                          'the degrees given and keeps the share of its error given): '
                          + _named(wrong, views, checks)
-                         + '; --refine-poses, or leave them out (docs/training.md)')
+                         + ('; wrong beyond what the run refined: leave them out, or run '
+                            'structure from motion again (docs/training.md)'
+                            if signs.get('poses_refined') else
+                            '; --refine-poses, or leave them out (docs/training.md)'))
         if other:
             lines.append('training views that fit far worse than the median view, though not '
                          'for their pose (their cameras fitted alone keep most of their error): '

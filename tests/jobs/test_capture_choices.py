@@ -127,9 +127,9 @@ def test_a_trainer_given_no_budget_takes_the_default_one(capture, tmp_path):
 
 @pytest.mark.parametrize('options, downscale, schedule', [
     ({'minutes': 3.5, 'downscale': 2, 'grid_sparse': (), 'error_rays': 0.0,
-      'appearance': False}, 2, (None, 3.5)),
+      'appearance': False, 'refine_poses': True}, 2, (None, 3.5)),
     ({'iterations': 7, 'downscale': 1, 'grid_sparse': (16,), 'occupancy_res': 4,
-      'error_rays': 0.5, 'appearance': True}, 1, (7, None))])
+      'error_rays': 0.5, 'appearance': True, 'refine_poses': False}, 1, (7, None))])
 def test_given_options_are_kept_and_nothing_is_announced(capture, tmp_path, options, downscale,
                                                         schedule):
     inputs, notices = notices_of(capture, tmp_path, **options)
@@ -140,41 +140,47 @@ def test_given_options_are_kept_and_nothing_is_announced(capture, tmp_path, opti
     assert inputs.config.model.grid_sparse == options['grid_sparse']
     assert inputs.config.schedule.error_rays == options['error_rays']
     assert inputs.config.model.appearance is options['appearance']
+    assert inputs.config.model.refine_poses is options['refine_poses']
 
 
-def test_photos_learn_their_exposure_unless_rendered_or_told_and_a_resumed_run_keeps_it(
+def test_photos_learn_their_exposure_and_poses_unless_rendered_or_told_and_a_resumed_run_keeps_them(
         capture, tmp_path):
     import shutil
     from mi_nerfpp.data.synth.capture import CAPTURE_FILE
     # The test capture is rendered (its capture.json, as synth writes one): off, nothing said.
     inputs, notices = notices_of(capture, tmp_path / 'rendered', iterations=1)
-    assert inputs.config.model.appearance is False
-    assert not [line for line in notices if 'appearance' in line]
-    assert run.start(inputs).model.appearance is None
+    assert inputs.config.model.appearance is False and inputs.config.model.refine_poses is False
+    assert not [line for line in notices if 'appearance' in line or 'pose' in line]
+    trainer = run.start(inputs)
+    assert trainer.model.appearance is None and trainer.model.poses is None
     inputs.lock.release()
     # The same images as photos (a NeRF++-layout folder without capture.json): on, said.
     photos = str(tmp_path / 'photos_data')
     shutil.copytree(capture, photos, ignore=shutil.ignore_patterns(CAPTURE_FILE))
     inputs, notices = notices_of(photos, tmp_path / 'photos', iterations=1)
-    assert inputs.config.model.appearance is True
+    assert inputs.config.model.appearance is True and inputs.config.model.refine_poses is True
     assert [line for line in notices if line.startswith('per-photo appearance on: ')]
+    assert [line for line in notices if line.startswith('pose refinement on: ')]
     trainer = run.start(inputs)
     assert trainer.model.appearance_images == len(inputs.dataset.train)
+    assert trainer.model.pose_images == len(inputs.dataset.train)
     trainer.run()
     inputs.lock.release()
     # A resumed run keeps what it chose.
     resumed = run.prepare(photos, TrainConfig.from_options(iterations=2),
                           str(tmp_path / 'photos' / 'run'), resume=True)
-    assert resumed.config.model.appearance is True
+    assert resumed.config.model.appearance is True and resumed.config.model.refine_poses is True
     resumed.lock.release()
     # A Trainer made directly chooses as the command does.
     from mi_nerfpp.training.train import Trainer
-    assert Trainer(load_dataset(photos), str(tmp_path / 'direct'),
-                   TrainConfig.from_options(iterations=1)).model.appearance is not None
-    # Told: --no-appearance on photos.
-    inputs, notices = notices_of(photos, tmp_path / 'told', iterations=1, appearance=False)
-    assert inputs.config.model.appearance is False
-    assert not [line for line in notices if 'appearance' in line]
+    direct = Trainer(load_dataset(photos), str(tmp_path / 'direct'),
+                     TrainConfig.from_options(iterations=1))
+    assert direct.model.appearance is not None and direct.model.poses is not None
+    # Told: --no-appearance --no-refine-poses on photos.
+    inputs, notices = notices_of(photos, tmp_path / 'told', iterations=1, appearance=False,
+                                 refine_poses=False)
+    assert inputs.config.model.appearance is False and inputs.config.model.refine_poses is False
+    assert not [line for line in notices if 'appearance' in line or 'pose' in line]
     inputs.lock.release()
 
 

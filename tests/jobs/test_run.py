@@ -65,9 +65,10 @@ def test_a_run_reports_to_its_observer_writes_its_files_and_prints_nothing(
     assert os.path.exists(os.path.join(out, 'test_at_0.0001min', 'test_000.exr'))
     assert result.metrics['progress'] == [point] and result.progress == [point]
     # (what the run chose from the capture: the resolution, no sparse level and uniform rays at
-    # 32x24, no per-photo appearance for a rendered capture)
+    # 32x24, no per-photo appearance and no pose refinement for a rendered capture)
     assert result.metrics['config'] == cfg.replace(downscale=1, grid_sparse=(), error_rays=0.0,
-                                                   appearance=False).to_dict()
+                                                   appearance=False,
+                                                   refine_poses=False).to_dict()
     # training.png: the loss named as it is computed, the held-out PSNR as points.
     (fig, path), = figures
     assert path == os.path.join(out, 'training.png')

@@ -87,6 +87,9 @@ def test_outliers_are_split_by_their_pose_check():
     assert '--refine-poses' in wrong
     assert 'though not for their pose' in other and 'img2.jpg (3.6x)' in other
     assert 'img1.jpg' not in other and '--refine-poses' not in other
+    # A run that refined its poses already says so instead of suggesting it.
+    wrong, _ = sign_lines(dict(signs, poses_refined=True))
+    assert 'wrong beyond what the run refined' in wrong and '--refine-poses' not in wrong
     # Only hard views: one line, which does not suggest refining poses.
     checks['img1.jpg']['wrong_pose'] = False
     (line,) = sign_lines(signs)

@@ -176,11 +176,12 @@ def test_optimize_options_come_from_train_config():
     args = build_parser().parse_args(['optimize', '--no-occupancy'])   # booleans switch both ways
     assert TrainConfig.from_options(**values(args, TrainConfig)).sampling.occupancy is False
     # An option left to the capture (None) still switches both ways.
-    for words, appearance in (([], None), (['--appearance'], True),
-                              (['--no-appearance'], False)):
-        args = build_parser().parse_args(['optimize'] + words)
-        assert TrainConfig.from_options(**values(args, TrainConfig)).model.appearance is \
-            appearance, words
+    for name in ('appearance', 'refine_poses'):
+        flag = '--' + name.replace('_', '-')
+        for words, value in (([], None), ([flag], True), (['--no-' + flag[2:]], False)):
+            args = build_parser().parse_args(['optimize'] + words)
+            model = TrainConfig.from_options(**values(args, TrainConfig)).model
+            assert getattr(model, name) is value, words
     with pytest.raises(SystemExit):
         build_parser().parse_args(['optimize', '--iterations', '3', '--minutes', '1'])
 

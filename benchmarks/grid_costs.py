@@ -66,6 +66,17 @@ def timed(fn):
     return time.perf_counter() - t0
 
 
+def timed_backward(fn):
+    """:func:`timed` ``fn`` (a reverse pass) with a training step's scatter settings
+    (:data:`mi_nerfpp.training.train.GRADIENT_LOCAL_REDUCTION`)."""
+    local = dr.flag(dr.JitFlag.ScatterReduceLocal)
+    dr.set_flag(dr.JitFlag.ScatterReduceLocal, T.GRADIENT_LOCAL_REDUCTION)
+    try:
+        return timed(fn)
+    finally:
+        dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
+
+
 class Level:
     """One grid level, its optimizer, and the three measurements."""
 
@@ -85,12 +96,7 @@ class Level:
             dr.backward(dr.sum(density) + sum(dr.sum(f) for f in features))
             self.gradient = dr.grad(self.opt['grid0']).array
             dr.eval(self.gradient)
-        local = dr.flag(dr.JitFlag.ScatterReduceLocal)
-        dr.set_flag(dr.JitFlag.ScatterReduceLocal, T.GRADIENT_LOCAL_REDUCTION)
-        try:
-            return timed(backward)
-        finally:
-            dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
+        return timed_backward(backward)
 
     def dense_adam(self):
         def step():

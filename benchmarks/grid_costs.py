@@ -67,14 +67,10 @@ def timed(fn):
 
 
 def timed_backward(fn):
-    """:func:`timed` ``fn`` (a reverse pass) with a training step's scatter settings
-    (:data:`mi_nerfpp.training.train.GRADIENT_LOCAL_REDUCTION`)."""
-    local = dr.flag(dr.JitFlag.ScatterReduceLocal)
-    dr.set_flag(dr.JitFlag.ScatterReduceLocal, T.GRADIENT_LOCAL_REDUCTION)
-    try:
+    """:func:`timed` ``fn`` (a reverse pass) under a training step's Dr.Jit settings (its
+    scatter reductions, :data:`mi_nerfpp.training.train.GRADIENT_LOCAL_REDUCTION`)."""
+    with T._step_settings(llvm=True, big=False):
         return timed(fn)
-    finally:
-        dr.set_flag(dr.JitFlag.ScatterReduceLocal, local)
 
 
 class Level:

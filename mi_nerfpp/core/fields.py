@@ -30,6 +30,8 @@ that dict is the single source of truth that the integrator exposes through
 from __future__ import annotations
 
 import inspect
+import math
+import numbers
 import os
 from dataclasses import dataclass
 
@@ -46,6 +48,13 @@ DOMAINS = {'ball': 3, 'inverted_sphere': 4}
 # How a grid field colours a ray: 'deferred' (features composited, one MLP per ray) or
 # 'sample' (an MLP per sample, as the paper's fields and models trained before deferred colour).
 COLOR_MODES = ('deferred', 'sample')
+# What shapes the colour MLP is bounded by sense rather than memory: each layer is traced into
+# the step's kernels (thousands of layers compile for hours), and direction frequencies 2^k
+# beyond float32's 24-bit mantissa are noise. NeRF-W's appearance codes have 48 numbers; each
+# is an input of the colour networks' per-ray layer.
+MAX_COLOR_LAYERS = 64
+MAX_DIR_OCTAVES = 24
+MAX_APPEARANCE_DIMS = 64
 # How training colours the background volume unless told (``--bg-color``); the foreground takes
 # the grid field's own default (deferred). After 10 minutes, time-matched on the default capture
 # (seeds 0-2) and gt_plaza (seeds 0-1), per-sample colour in the background scored 0.2-0.5 dB
@@ -505,13 +514,78 @@ def grid_default(entry):
     return inspect.signature(owner).parameters[name].default
 
 
+def _whole(low, high=None):
+    return lambda v: (isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= low
+                      and (high is None or v <= high))
+
+
+def _whole_list(low, high=None):
+    return lambda v: isinstance(v, (list, tuple)) and all(map(_whole(low, high), v))
+
+
+def _real(v):
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _ratio(v):
+    return _real(v) and 0 < v <= 1
+
+
+# What each entry of a stored field config must be (checked before anything is built from it:
+# a damaged checkpoint is refused in a line, not by an allocation, issue 63): entry ->
+# (check, what it must be). Resolutions are bounded by what one array holds (a dense level of
+# 2048³ texels is past Dr.Jit's 2^32 entries); the reader compares the sizes they make with
+# the stored parameters.
+MAX_RESOLUTION = 2048
+FIELD_ENTRIES = {
+    'resolutions': (_whole_list(2, MAX_RESOLUTION),
+                    f'a list of whole numbers from 2 to {MAX_RESOLUTION}'),
+    'planes': (_whole_list(2, 1 << 15), 'a list of whole numbers from 2 to 32768'),
+    'sparse': (_whole_list(2, 1 << 14), 'a list of whole numbers from 2 to 16384'),
+    'sparse_blocks': (lambda v: v is None or (_whole_list(1)(v) and len(v) == 3),
+                      'three whole numbers >= 1, or null'),
+    'sparse_s': (lambda v: v is None or _whole(1)(v), 'a whole number >= 1, or null'),
+    'channels': (_whole(1, 1 << 10), 'a whole number from 1 to 1024'),
+    'hidden': (_whole(1, 1 << 14), 'a whole number from 1 to 16384'),
+    'width': (_whole(1, 1 << 14), 'a whole number from 1 to 16384'),
+    'depth': (_whole(1, MAX_COLOR_LAYERS), f'a whole number from 1 to {MAX_COLOR_LAYERS}'),
+    'color_layers': (_whole(1, MAX_COLOR_LAYERS),
+                     f'a whole number from 1 to {MAX_COLOR_LAYERS}'),
+    'dir_octaves': (_whole(0, MAX_DIR_OCTAVES), f'a whole number from 0 to {MAX_DIR_OCTAVES}'),
+    'pos_octaves': (_whole(0, MAX_DIR_OCTAVES), f'a whole number from 0 to {MAX_DIR_OCTAVES}'),
+    'appearance_dims': (_whole(0, MAX_APPEARANCE_DIMS),
+                        f'a whole number from 0 to {MAX_APPEARANCE_DIMS}'),
+    's_ratio': (lambda v: _ratio(v) or (isinstance(v, (list, tuple)) and v
+                                        and all(map(_ratio, v))),
+                'a number in (0, 1], or a list of them'),
+    'init': (lambda v: _real(v) and v >= 0, 'a finite number >= 0'),
+    'density_bias': (_real, 'a finite number'),
+    'warp_radius': (lambda v: _real(v) and 0 <= v < 1, 'a number in [0, 1)'),
+    'antialias': (lambda v: isinstance(v, bool), 'true or false'),
+    'color': (lambda v: v in COLOR_MODES, ' or '.join(map(repr, COLOR_MODES))),
+    'density_activation': (lambda v: v in ACTIVATIONS, ' or '.join(map(repr, ACTIVATIONS))),
+}
+
+
+def check_field_config(config: dict, domain) -> None:
+    """ValueError naming the first entry of the stored config of a field over ``domain`` that
+    is not what :data:`FIELD_ENTRIES` says it must be."""
+    for entry, value in config.items():
+        if entry in FIELD_ENTRIES and not FIELD_ENTRIES[entry][0](value):
+            shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + '...'
+            raise ValueError(f'the {domain} field entry {entry!r} must be '
+                             f'{FIELD_ENTRIES[entry][1]}, got {shown}')
+
+
 def grid_field(domain, seed=0, **config):
     """A :class:`GridField` from the entries of its stored config (:attr:`GridField.config`,
-    :data:`GRID_CONFIG`), the others at their defaults: dense, plane and sparse levels (all
-    with ``channels``) and the colour network, drawn from one generator seeded ``seed``."""
+    :data:`GRID_CONFIG`, each checked: :func:`check_field_config`), the others at their
+    defaults: dense, plane and sparse levels (all with ``channels``) and the colour network,
+    drawn from one generator seeded ``seed``."""
     unknown = sorted(set(config) - set(GRID_CONFIG))
     if unknown:
         raise TypeError(f"unexpected grid field entries {unknown}")
+    check_field_config(config, domain)
     args = {}
     for entry, value in config.items():
         owner, name = GRID_CONFIG[entry]
@@ -594,6 +668,7 @@ def make_field(config, seed=0):
         if kind == 'grid':
             return grid_field(domain, seed=seed, **cfg)
         if kind in ('nerf', 'vanilla'):
+            check_field_config(cfg, domain)
             return MLPField(domain, structure=kind, seed=seed, **cfg)
     except TypeError as e:
         raise ValueError(f"invalid field config {config}: {e}") from None

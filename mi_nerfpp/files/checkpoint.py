@@ -20,8 +20,9 @@ Keys:
   "meta": {...}}``. ``normalization`` is the scene normalization
   ``x_model = (x_world - center)·scale`` (:class:`~mi_nerfpp.core.frame.Normalization`; version 1
   files stored ``center`` and ``scale`` at the top level and are still read);
-  ``meta`` holds free-form information (iteration, dataset, the training config as
-  :meth:`~mi_nerfpp.training.config.TrainConfig.to_dict` - flat in older files -, …);
+  ``meta`` holds what training records (:data:`META`: iteration, seconds, dataset, the
+  training config as :meth:`~mi_nerfpp.training.config.TrainConfig.to_dict` - flat in older
+  files -, …; checked when the file is read, :func:`check_meta`);
 * ``param/<name>`` — float32 arrays of the learnable parameters, named as in
   ``NeRFPPModel.parameters()`` (``fg.grid0``, ``bg.color.layers.0.weights``, …);
 * ``bricks/<name>`` — the allocated bricks of a sparse grid level (``fg.sparse0``, ...: flat
@@ -40,7 +41,10 @@ Files are written atomically: to a temporary file in the same folder, then renam
 from __future__ import annotations
 
 import json
+import math
+import numbers
 import os
+
 import numpy as np
 
 from mi_nerfpp.core.arrays import owned
@@ -172,14 +176,119 @@ def _config(z, path) -> dict:
                        error=CheckpointError)
 
 
-def read_meta(path) -> dict:
-    """The ``meta`` a checkpoint was saved with (its training config, iteration, ...), read
-    without building its model; errors as :func:`load_checkpoint`'s."""
-    path = os.fspath(path)
-    meta = _config(_read(path, keys=('config',)), path).get('meta', {})
+def _count(v):
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 0
+
+
+def _seconds(v):
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) \
+        and v >= 0
+
+
+def _number(v):
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
+def _rng_state(v):
+    """the state of the NumPy generator training draws its rays with (``default_rng``)"""
+    try:
+        np.random.default_rng().bit_generator.state = v
+    except (ValueError, TypeError, KeyError, OverflowError):
+        return False
+    return True
+
+
+def _data(v):
+    """what training recorded of its data (``Trainer.data_summary``)"""
+    return isinstance(v, dict) and all(
+        (key not in v or ok(v[key])) for key, ok in (
+            ('dataset', lambda p: isinstance(p, str)), ('train_views', _count),
+            ('training_rays', _count)))
+
+
+def _history_row(row):
+    """(iteration, seconds, loss, PSNR of the batch[, {loss term: value}])"""
+    return (isinstance(row, list) and len(row) in (4, 5) and _count(row[0])
+            and _seconds(row[1]) and all(_number(v) for v in row[2:4])
+            and (len(row) == 4 or (isinstance(row[4], dict)
+                                   and all(_number(v) for v in row[4].values()))))
+
+
+# What training records in a checkpoint's ``meta`` (``training`` writes it; every reader of a
+# checkpoint reads it through :func:`check_meta`): entry -> (check, what it must be). A model
+# saved by other code, or by an older version, may lack any of them (:func:`progress`).
+META = {
+    'iteration': (_count, 'a whole number >= 0'),
+    'elapsed': (_seconds, 'a finite number of seconds >= 0'),
+    'dataset': (lambda v: v is None or (isinstance(v, str) and v and '\0' not in v),
+                'the path of a dataset'),
+    'config': (lambda v: v is None or isinstance(v, dict), 'an object (the training options)'),
+    'data': (_data, 'an object (the dataset path, the numbers of training views and rays)'),
+    'rng': (_rng_state, "the state of NumPy's PCG64 generator"),
+    'history': (lambda v: isinstance(v, list) and all(map(_history_row, v)),
+                'a list of [iteration, seconds, loss, PSNR, {terms}] rows'),
+}
+
+
+def _occupancy(v):
+    """{volume: {domain, resolution, threshold}}"""
+    return isinstance(v, dict) and all(
+        isinstance(c, dict) and _count(c.get('resolution', 64))
+        and c.get('resolution', 64) <= 4096 and _seconds(c.get('threshold', 0.0))
+        for c in v.values())
+
+
+# What the model's entries of a checkpoint's config must be besides its fields' (which
+# :func:`~mi_nerfpp.core.fields.check_field_config` checks) and its normalization: checked
+# before anything is built from them.
+MODEL = {
+    'appearance_images': (lambda v: _count(v) and v < 2 ** 31, 'a whole number >= 0'),
+    'pose_images': (lambda v: _count(v) and v < 2 ** 31, 'a whole number >= 0'),
+    'embedding_images': (lambda v: _count(v) and v < 2 ** 31, 'a whole number >= 0'),
+    'occupancy': (_occupancy, 'an object of grids, each with a resolution from 0 to 4096 and '
+                  'a threshold >= 0'),
+    'color_space': (lambda v: v in ('srgb', 'linear'), "'srgb' or 'linear'"),
+    'composite': (lambda v: v in ('srgb', 'linear'), "'srgb' or 'linear'"),
+}
+
+
+def _check(config, schema, where, path):
+    """:class:`CheckpointError` naming the first entry of ``config`` that ``schema`` (entry ->
+    (check, what it must be)) refuses."""
+    for key, (ok, need) in schema.items():
+        if key in config and not ok(config[key]):
+            shown = repr(config[key])
+            shown = shown if len(shown) <= 60 else shown[:57] + '...'
+            raise CheckpointError(f'{path}: {where}: {key} must be {need}, got {shown}: '
+                                  f'{REMEDY}')
+
+
+def check_meta(meta, path) -> dict:
+    """``meta`` when it has :data:`META`'s layout (entries it does not name are kept), else
+    :class:`CheckpointError` naming the file and the entry."""
     if not isinstance(meta, dict):
         raise CheckpointError(f'{path}: invalid config: its "meta" is not an object: {REMEDY}')
+    _check(meta, META, 'its training record (meta) is damaged', path)
     return meta
+
+
+def progress(meta, path) -> tuple[int, float]:
+    """``(iteration, seconds)`` of training that the checked ``meta`` of checkpoint ``path``
+    records; :class:`CheckpointError` for one that does not (what continues or reports a run
+    needs them)."""
+    missing = [f'meta.{key}' for key in ('iteration', 'elapsed') if key not in meta]
+    if missing:
+        raise CheckpointError(f'{path}: its training record has no {" and no ".join(missing)} '
+                              f'(not saved by optimize, or damaged): {REMEDY}')
+    return int(meta['iteration']), float(meta['elapsed'])
+
+
+def read_meta(path) -> dict:
+    """The ``meta`` a checkpoint was saved with (its training config, iteration, ...), read
+    without building its model and checked (:func:`check_meta`); errors as
+    :func:`load_checkpoint`'s."""
+    path = os.fspath(path)
+    return check_meta(_config(_read(path, keys=('config',)), path).get('meta', {}), path)
 
 
 def _set_bricks(model, z, path) -> None:
@@ -206,7 +315,12 @@ def _set_bricks(model, z, path) -> None:
 def load_checkpoint(path, seed=0):
     """Read a checkpoint. Returns ``(model, meta, state)``; errors name the path and the problem."""
     path = os.fspath(path)
-    z = _read(path)
+    return from_arrays(_read(path), path, seed)
+
+
+def from_arrays(z: dict, path, seed=0):
+    """:func:`load_checkpoint` of the arrays ``z`` read from checkpoint ``path``: the model,
+    its checked ``meta`` and its state, or :class:`CheckpointError` naming ``path``."""
     if 'format' not in z or str(z['format']) != FORMAT:
         raise CheckpointError(f"{path}: not a mi-nerfpp checkpoint (no 'format' = '{FORMAT}' entry)")
     try:
@@ -218,6 +332,8 @@ def load_checkpoint(path, seed=0):
         raise CheckpointError(f'{path}: checkpoint version {version}, this mi-nerfpp reads '
                               f'{", ".join(map(str, READABLE_VERSIONS))}')
     config = _config(z, path)
+    meta = check_meta(config.get('meta', {}), path)
+    _check(config, MODEL, 'its model config is damaged', path)
     try:
         config = migrate_config(config, version)
         fg = make_field(config['fg'], seed=seed)
@@ -238,8 +354,10 @@ def load_checkpoint(path, seed=0):
             model.coverage = CoverageFill.from_arrays(fill)
     except CheckpointError:
         raise
-    except (KeyError, ValueError, TypeError, AttributeError) as e:
-        raise CheckpointError(f'{path}: invalid config: {e}') from None
+    except (KeyError, ValueError, TypeError, AttributeError, OverflowError, ZeroDivisionError,
+            RuntimeError, MemoryError) as e:     # what a damaged config meets as it is built
+        text = ' '.join(str(e).split())     # a library's message may span lines
+        raise CheckpointError(f'{path}: invalid config: {text}: {REMEDY}') from None
 
     expected = model.parameters()
     stored = {k[len('param/'):]: v for k, v in z.items() if k.startswith('param/')}
@@ -258,7 +376,7 @@ def load_checkpoint(path, seed=0):
         values[k] = owned(v)
     model.set_parameters(values)
     state = {k[len('state/'):]: v for k, v in z.items() if k.startswith('state/')}
-    return model, config.get('meta', {}), state
+    return model, meta, state
 
 
 def read_version(path) -> int:

@@ -49,11 +49,12 @@ from mi_nerfpp.data.sfm import is_photo_folder, run_sfm, run_sfm_on_videos, vide
 from mi_nerfpp.data.synth import default_capture
 from mi_nerfpp.files.atomic import (LOCK_NAME, check_not_a_file,
                                     check_writable_folder, lock_folder)
-from mi_nerfpp.files.checkpoint import load_checkpoint, read_meta
+from mi_nerfpp.files.checkpoint import load_checkpoint, progress, read_meta
 from mi_nerfpp.files.preview import write_linear_png
 from mi_nerfpp.output.views import ViewRenderer, rgb
 from mi_nerfpp.training import choices
-from mi_nerfpp.training.config import DEFAULT_JOB_EVAL_AT, DEFAULT_JOB_MINUTES, TrainConfig
+from mi_nerfpp.training.config import (DEFAULT_JOB_EVAL_AT, DEFAULT_JOB_MINUTES, TrainConfig,
+                                       stored_config)
 from mi_nerfpp.training.evaluate import (choose_coverage_fill, evaluate_split, finish_run,
                                          matte_warning)
 from mi_nerfpp.training.optim import COLOR_LOSS_NAMES
@@ -230,7 +231,7 @@ def prepare(data: str, config: TrainConfig, out: str | None = None, resume: bool
                                  frames=frames)
         downscale = config.data.downscale
         checkpoint = os.path.join(out, 'model.npz')
-        stored = (read_meta(checkpoint).get('config') or {}
+        stored = (stored_config(read_meta(checkpoint), checkpoint)
                   if resume and os.path.exists(checkpoint) else {})
         unknown = TrainConfig.unknown_stored(stored)
         if unknown:     # written by another version: said, not dropped silently
@@ -652,8 +653,9 @@ def open_run(run_dir):
     (a dataset with ``train``, ``validation`` and ``test``) are in the model's frame.
     Raises :class:`~mi_nerfpp.training.train.TrainingError` when the dataset is not there any more.
     """
-    model, meta, _ = load_checkpoint(os.path.join(run_dir, 'model.npz'))
-    cfg = TrainConfig.from_stored(meta.get('config', {}), weights=model.config)
+    path = os.path.join(run_dir, 'model.npz')
+    model, meta, _ = load_checkpoint(path)
+    cfg = TrainConfig.from_stored(stored_config(meta, path, model.config), weights=model.config)
     root = meta.get('dataset')
     if not root or not os.path.exists(root):
         raise TrainingError(f'{run_dir}/model.npz: its dataset {root!r} is not there any more')
@@ -668,11 +670,12 @@ def evaluate_run(run_dir, observer: RunObserver | None = None) -> dict:
     locked (refused while a run trains there). Returns the metrics."""
     observer = observer or RunObserver()
     model, meta, cfg, dataset = open_run(run_dir)
+    checkpoint = os.path.join(run_dir, 'model.npz')
+    iterations, seconds = progress(meta, checkpoint)
     held_out = dataset.test if len(dataset.test) else dataset.validation
     with lock_folder(run_dir, what='run folder'):     # not while a run trains there
-        return finish_run(run_dir, model, held_out, cfg, os.path.join(run_dir, 'model.npz'), {
-            'dataset': dataset.root, 'iterations': meta['iteration'],
-            'train_seconds': round(meta['elapsed'], 2),
-            'train_samples_per_second': samples_per_second(cfg, meta['iteration'],
-                                                           meta['elapsed'])},
+        return finish_run(run_dir, model, held_out, cfg, checkpoint, {
+            'dataset': dataset.root, 'iterations': iterations,
+            'train_seconds': round(seconds, 2),
+            'train_samples_per_second': samples_per_second(cfg, iterations, seconds)},
             progress=observer.track)

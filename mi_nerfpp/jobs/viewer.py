@@ -56,6 +56,7 @@ from mi_nerfpp.output.camera_path import (CameraPath, Pose, camera_pose,
                                           write_path)
 from mi_nerfpp.output.video import BUILT_IN_PATHS, built_in_path
 from mi_nerfpp.output.views import ViewRenderer, rgb
+from mi_nerfpp.training.config import TrainConfig, stored_config
 
 # The layers the viewer shows, by the name in its menu.
 LAYERS = ('beauty', 'foreground', 'background', 'depth', 'alpha')
@@ -762,7 +763,9 @@ class Viewer:
         if mtime is None or mtime == self._model_mtime:
             return False
         try:
-            model, meta, _ = load_checkpoint(os.path.join(self.run_dir, 'model.npz'))
+            path = os.path.join(self.run_dir, 'model.npz')
+            model, meta, _ = load_checkpoint(path)
+            stored_config(meta, path)
         except (OSError, ValueError):
             return False        # being replaced: next time
         self._model_mtime = mtime
@@ -779,8 +782,7 @@ class Viewer:
         history = meta.get('history') or []
         if history:
             s.batch_psnr = float(history[-1][3])
-        config = meta.get('config', {})
-        batch = (config.get('schedule', {}) or {}).get('batch_rays')
+        batch = TrainConfig.stored_options(meta.get('config') or {}).get('batch_rays')
         if batch and s.elapsed > 0:
             s.rays_per_second = s.iteration * batch / s.elapsed
         s.state = 'model.npz'

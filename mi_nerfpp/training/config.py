@@ -30,13 +30,15 @@ from mi_nerfpp.core import appearance as app
 from mi_nerfpp.core import budget
 from mi_nerfpp.core import occupancy as occ
 from mi_nerfpp.core import poses
-from mi_nerfpp.core.fields import BACKGROUND_COLOR, COLOR_MODES, grid_default
+from mi_nerfpp.core.fields import (BACKGROUND_COLOR, COLOR_MODES, MAX_APPEARANCE_DIMS,
+                                   MAX_COLOR_LAYERS, MAX_DIR_OCTAVES, grid_default)
 from mi_nerfpp.core.frame import NERF_CAMERA_RADIUS
 from mi_nerfpp.core.model import FIELD_KINDS, default_field_config
 from mi_nerfpp.core.render import SKIPPING, Sampling
 from mi_nerfpp.data import masks
+from mi_nerfpp.files.checkpoint import REMEDY as CHECKPOINT_REMEDY, CheckpointError
 from mi_nerfpp.training import optim
-from mi_nerfpp.training.options import (flag, group, groups, option,
+from mi_nerfpp.training.options import (check_value, flag, group, groups, option,
                                         option_name, options_of)
 
 MODEL_KINDS = ('nerfpp', 'nerf')
@@ -53,14 +55,6 @@ MAX_SEED = 2 ** 64 - 2
 # times more; issue 63). The level is also never coarser than leaves the images a pixel
 # (RayBank.max_factor).
 MAX_PYRAMID_LEVELS = 3
-# Options that shape the colour MLP are bounded by sense rather than memory: each layer is
-# traced into the step's kernels (thousands of layers compile for hours), and direction
-# frequencies 2^k beyond float32's 24-bit mantissa are noise.
-MAX_COLOR_LAYERS = 64
-MAX_DIR_OCTAVES = 24
-# The largest --appearance-embedding: NeRF-W's codes have 48 numbers; each is an input of the
-# colour networks' per-ray layer.
-MAX_APPEARANCE_DIMS = 64
 # Options measured and not kept (docs/experiments.md, each with the figure that decided it),
 # removed after RETIRED_AFTER, with the value each took when off (None: any value, it only
 # mattered with another option on). A stored config that used one otherwise is not resumed
@@ -152,12 +146,13 @@ def per_volume(values):
 
 
 class _Options:
-    """What every group does: lists from JSON become tuples, then its values are checked."""
+    """What every group does: each value is checked against its option's declared type
+    (:func:`~.options.check_value`: lists from JSON become tuples), then the group checks
+    their ranges."""
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
-            if isinstance(getattr(self, f.name), list):
-                setattr(self, f.name, tuple(getattr(self, f.name)))
+            setattr(self, f.name, check_value(f, getattr(self, f.name)))
         self._validate()
 
     def _validate(self):
@@ -298,11 +293,6 @@ class ModelOptions(_Options):
         return bool(self.appearance) or self.appearance_embedding > 0
 
     def _validate(self):
-        if self.kind not in MODEL_KINDS:
-            self._bad('kind', "'nerfpp' or 'nerf'")
-        for name in ('field', 'bg_field'):
-            if getattr(self, name) is not None and getattr(self, name) not in FIELD_KINDS:
-                self._bad(name, ' or '.join(f"'{k}'" for k in FIELD_KINDS))
         self._check(('grid_channels', 'color_layers', 'color_width'),
                     lambda v: v >= 1, 'at least 1')
         self._check(('dir_octaves',), lambda v: 0 <= v <= MAX_DIR_OCTAVES,
@@ -491,10 +481,6 @@ class LossOptions(_Options):
                                 '--masks object (the foreground opacity against the mask)')
 
     def _validate(self):
-        if self.color_loss not in optim.COLOR_LOSSES:
-            self._bad('color_loss', ' or '.join(f"'{k}'" for k in optim.COLOR_LOSSES))
-        if self.masks is not None and self.masks not in masks.MEANINGS:
-            self._bad('masks', ' or '.join(f"'{k}'" for k in masks.MEANINGS))
         self._check(('distortion', 'appearance_prior', 'mask_weight', 'near_gradient'),
                     lambda v: _finite(v) and v >= 0, 'a finite number >= 0')
         self._check(('transients',), lambda v: _finite(v) and (v == 0 or v > 1),
@@ -674,8 +660,11 @@ class TrainConfig:
     def stored_options(cls, stored: dict) -> dict:
         """The options (by command-line name) of a stored config: :meth:`to_dict`'s nested
         groups, or the flat dict of checkpoints written before the groups; names this version
-        does not know are left out (:meth:`unknown_stored` lists them)."""
+        does not know are left out (:meth:`unknown_stored` lists them). A value that is not of
+        its option's type is a ValueError naming the option (:func:`~.options.check_value`)."""
         options = cls._stored_names(stored)[0]
+        if 'bg_s_ratio' in options and isinstance(options['bg_s_ratio'], (int, float)):
+            options['bg_s_ratio'] = [options['bg_s_ratio']]     # before per-level ratios
         if 'bg_grid_sparse' in options and options['bg_grid_sparse'] is None:
             # Runs of 15f237e stored None for "as --grid-sparse" (today: none unless given).
             options['bg_grid_sparse'] = options.get('grid_sparse') or ()
@@ -683,7 +672,8 @@ class TrainConfig:
             options['error_rays'] = 0.0     # runs from before the error map drew uniformly
         if stored and options.get('refine_poses') and 'poses_blur' not in options:
             options['poses_blur'] = 0.0     # refined before coarse to fine: without it
-        return options
+        fields = {option_name(f): f for _, f in options_of(cls)}
+        return {name: check_value(fields[name], value) for name, value in options.items()}
 
     @classmethod
     def unknown_stored(cls, stored: dict) -> list[str]:
@@ -862,13 +852,11 @@ class TrainConfig:
                            f'{_shown(self.effective(name))} (resume with '
                            f'{_as_flag(name, value)})')
         now = json.loads(json.dumps(self.options()))
-        stored = self.stored_options(stored)
+        stored = json.loads(json.dumps(self.stored_options(stored)))    # as ``now``: lists
         if 'field' in stored:
             stored.setdefault('bg_field', stored['field'])
         if 'color' in stored:
             stored.setdefault('bg_color', stored['color'])
-        if isinstance(stored.get('bg_s_ratio'), (int, float)):    # before per-level ratios
-            stored['bg_s_ratio'] = [stored['bg_s_ratio']]
         for _, f in options_of(type(self)):
             name = option_name(f)
             if (f.metadata.get('shapes_model') and name not in fixed and name in stored
@@ -876,6 +864,22 @@ class TrainConfig:
                 out.append(f'{flag(TrainConfig, name)}: the checkpoint has {stored[name]!r}, '
                            f'this run asks for {now[name]!r}')
         return out
+
+
+def stored_config(meta: dict, path, weights: dict | None = None) -> dict:
+    """The training config that the (checked, :func:`~mi_nerfpp.files.checkpoint.check_meta`)
+    ``meta`` of checkpoint ``path`` stores, as stored, when it describes a valid config
+    (:meth:`TrainConfig.from_stored`, with the checkpoint's model config ``weights`` when
+    given); else :class:`~mi_nerfpp.files.checkpoint.CheckpointError` naming the file and the
+    option. Every reader of a run folder's training config takes it from here (issue 63: a
+    retyped entry ended in TypeError deep inside)."""
+    stored = meta.get('config') or {}
+    try:
+        TrainConfig.from_stored(stored, weights)
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(f'{path}: its stored training config is damaged: {e}: '
+                              f'{CHECKPOINT_REMEDY}') from None
+    return stored
 
 
 def weight_options(weights: dict) -> dict:
@@ -887,6 +891,9 @@ def weight_options(weights: dict) -> dict:
     out = {'model': 'nerf' if weights.get('bg') is None else 'nerfpp',
            'appearance': int(weights.get('appearance_images', 0)) > 0,
            'refine_poses': int(weights.get('pose_images', 0)) > 0}
+    occupancy = weights.get('occupancy') or {}
+    if 'fg' in occupancy and 'resolution' in occupancy['fg']:    # the bricks' cells
+        out['occupancy_res'] = occupancy['fg']['resolution']
     for side, key in enumerate(('fg', 'bg')):
         field = weights.get(key)
         if not field:

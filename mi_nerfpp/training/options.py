@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import numbers
 
 
 def option(default, help, **cli):
@@ -53,6 +54,87 @@ def options_of(cls):
     if not parts:
         return [(None, f) for f in dataclasses.fields(cls) if 'help' in f.metadata]
     return [(name, f) for name, sub, _ in parts for _, f in options_of(sub)]
+
+
+# What a value of each declared type is, for messages: one value, several.
+KINDS = {bool: ('true or false', 'true/false values'), int: ('a whole number', 'whole numbers'),
+         float: ('a number', 'numbers'), str: ('text', 'texts')}
+
+
+def declared(f):
+    """``(type, sequence, optional)`` of option field ``f``: the type of its value (of each of
+    its values for a sequence: ``bool``, ``int``, ``float`` or ``str``), whether it takes a
+    sequence (``'+'``: one or more values, ``'*'``: any number), and whether ``None`` (unset)
+    is a value. Read from its metadata and its default as :func:`add_options` reads them."""
+    meta, default = f.metadata, f.default
+    parser = meta.get('type')
+    sequence = meta.get('nargs') or ('+' if isinstance(default, tuple) else None)
+    if isinstance(default, bool) or parser is bool:
+        kind = bool
+    elif parser in KINDS:
+        kind = parser
+    elif isinstance(default, tuple):
+        kind = type(default[0]) if default else float
+    else:
+        kind = type(default)
+    return kind, sequence, default is None
+
+
+def _of_kind(value, kind):
+    """``value`` as a value of ``kind``, or None when it is not one (a bool is no number, a
+    number with a fraction no whole number)."""
+    if kind is bool:
+        return value if isinstance(value, bool) else None
+    if kind is str:
+        return value if isinstance(value, str) else None
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return None
+    if kind is int:
+        return int(value) if isinstance(value, numbers.Integral) else None
+    return float(value)
+
+
+def check_value(f, value):
+    """The value of option field ``f`` that ``value`` gives (from Python or from JSON: lists
+    become tuples, one number may be given bare for a sequence of numbers, NumPy scalars
+    become Python's), or ValueError saying what it must be; ranges are checked by the option's
+    group. ``choices`` are checked here."""
+    kind, sequence, optional = declared(f)
+    if value is None and optional:
+        return None
+    one, several = KINDS[kind]
+    unset = ' (or unset)' if optional else ''
+    if sequence:
+        if isinstance(value, numbers.Real) and not isinstance(value, bool) and kind in (
+                int, float):
+            value = (value,)
+        items = tuple(_of_kind(v, kind) for v in value) if isinstance(
+            value, (list, tuple)) else None
+        if items is None or None in items or (sequence == '+' and not items):
+            need = f'one or more {several}' if sequence == '+' else f'a list of {several}'
+            raise ValueError(f'{_spelled(f)} must be {need}{unset}, got {_shown(value)}')
+        return items
+    checked = _of_kind(value, kind)
+    if checked is None:
+        raise ValueError(f'{_spelled(f)} must be {one}{unset}, got {_shown(value)}')
+    choices = f.metadata.get('choices')
+    if choices and checked not in choices:
+        raise ValueError(f'{_spelled(f)} must be {" or ".join(map(repr, choices))}, got '
+                         f'{checked}')
+    return checked
+
+
+def _spelled(f):
+    """The flag of field ``f`` in a message (a joint option with its value's name)."""
+    if 'joint' in f.metadata:
+        return f"{f.metadata['joint']} ({f.metadata['metavar']})"
+    return _flag(f)
+
+
+def _shown(value):
+    """A value in a message: as JSON would write it, shortened."""
+    text = repr(value) if not isinstance(value, (list, tuple, dict)) else str(value)
+    return text if len(text) <= 60 else text[:57] + '...'
 
 
 def _flag(f):

@@ -48,9 +48,10 @@ from mi_nerfpp.errors import interrupt_in
 from mi_nerfpp.files.atomic import remove_stale_temporaries
 from mi_nerfpp.files.checkpoint import REMEDY as CHECKPOINT_REMEDY
 from mi_nerfpp.files.checkpoint import (CheckpointError, NonFiniteStateError, load_checkpoint,
-                                        migration_notes, read_version, save_checkpoint)
+                                        migration_notes, progress, read_version,
+                                        save_checkpoint)
 from mi_nerfpp.training import choices, optim, priors, transients
-from mi_nerfpp.training.config import RETIRED_AFTER, TrainConfig, per_volume
+from mi_nerfpp.training.config import RETIRED_AFTER, TrainConfig, per_volume, stored_config
 from mi_nerfpp.training.error_map import ErrorMap
 from mi_nerfpp.training.transients import TransientWeights
 from mi_nerfpp.training.errors import TrainingError
@@ -128,7 +129,7 @@ class Trainer:
                     weights=self._background_weights())
         self.rng = np.random.default_rng(config.schedule.seed)
         if 'rng' in meta:
-            self.rng.bit_generator.state = meta['rng']
+            self.rng.bit_generator.state = meta['rng']      # checked: files.checkpoint.META
         o, s, losses = config.optimizer, config.schedule, config.losses
         self.opt = optim.adam(self.model.parameters(), o.lr_mlp, beta_2=o.adam_beta2)
         optim.restore_adam(self.opt, state)
@@ -188,8 +189,7 @@ class Trainer:
         if resume and os.path.exists(self.checkpoint_path):
             self.model, meta, state = load_checkpoint(self.checkpoint_path)
             self._check_resumable(meta)
-            self.iteration = int(meta['iteration'])
-            self.elapsed = float(meta['elapsed'])
+            self.iteration, self.elapsed = progress(meta, self.checkpoint_path)
             self.history = meta.get('history', [])
             self.model.sampling = config.render_sampling     # --samples may change
             return meta, state
@@ -212,7 +212,8 @@ class Trainer:
     def _check_resumable(self, meta):
         """Refuse, in one line, a checkpoint that this run cannot continue: trained with an
         option since removed, or with other model options or data."""
-        stored, weights = meta.get('config', {}), self.model.config
+        weights = self.model.config
+        stored = stored_config(meta, self.checkpoint_path, weights)
         retired = self.cfg.retired_in(stored, weights)
         if retired:
             raise TrainingError(

@@ -99,7 +99,7 @@ def run(args):
             bar.update(1)
     rows = [rows[job.name] for job in jobs]
     os.makedirs(args.out, exist_ok=True)
-    write_json(os.path.join(args.out, 'sweep.json'), rows)
+    write_json(os.path.join(args.out, 'sweep.json'), rows, text=True)
     print(table(rows))
     print(f"{sum(r['status'] != 'failed' for r in rows)} of {len(rows)} runs finished; "
           f"results in {os.path.join(args.out, 'sweep.json')}")

@@ -51,7 +51,7 @@ from mi_nerfpp.data.colmap import colmap_frames, pinhole_model, with_masks
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.nerfpp import write_camera
 from mi_nerfpp.files.atomic import remove_entries
-from mi_nerfpp.files.readers import FileReadError, read_json
+from mi_nerfpp.files.readers import FileReadError, open_photo, read_json
 
 PHOTO_EXTENSIONS = ('.jpg', '.jpeg', '.png', '.tif', '.tiff')
 MATCHING = ('exhaustive', 'sequential')
@@ -72,6 +72,7 @@ RELAXED_INIT = dict(init_min_tri_angle=4.0, init_min_num_inliers=50)
 MIN_PAIR_INLIERS = 15             # COLMAP's default minimum of a verified pair
 FEATURE_CHUNK = 8                 # images per feature-extraction call (progress granularity)
 _EXIF_ORIENTATION = 0x0112
+PHOTO_REMEDY = 'remove it, or convert it to JPG/PNG'     # a photo that cannot be read
 
 
 class SfmError(RuntimeError):
@@ -383,7 +384,8 @@ def _one_camera(image_dir: str, names: list[str]) -> bool:
     length (or none)."""
     keys = set()
     for name in names:
-        with Image.open(os.path.join(image_dir, name)) as img:
+        with open_photo(os.path.join(image_dir, name), error=SfmError, remedy=PHOTO_REMEDY,
+                        pixels=False) as img:
             exif = img.getexif()
             focal = exif.get_ifd(0x8769).get(0x920A)  # Exif IFD: FocalLength
             keys.add((img.size, exif.get(0x010F), exif.get(0x0110), focal))
@@ -407,34 +409,31 @@ def _prepare_output(out: str, has_report: bool) -> None:
 
 def _prepare_photo(path: str, image_dir: str, name: str) -> str:
     """Copy one photo for COLMAP, upright and 8-bit; returns its name there."""
-    try:
-        with Image.open(path) as img:
-            orientation = img.getexif().get(_EXIF_ORIENTATION, 1)
-            if orientation in (0, 1) and img.mode in ('RGB', 'L') and \
-                    not name.lower().endswith(('.tif', '.tiff')):
-                shutil.copy2(path, os.path.join(image_dir, name))
-                return name
-            img = ImageOps.exif_transpose(img)
-            if img.mode.startswith('I'):  # 16/32-bit integer grayscale
-                pixels = np.asarray(img, dtype=np.float64)
-                peak = 65535.0 if pixels.max() > 255 else 255.0
-                img = Image.fromarray(np.round(pixels * 255.0 / peak).astype(np.uint8))
-            elif img.mode not in ('RGB', 'L'):
-                img = img.convert('RGB')
-            converted = name + '.png'
-            img.save(os.path.join(image_dir, converted))
-            return converted
-    except OSError as e:
-        raise SfmError(f'{path}: cannot read this photo ({e}); remove it or convert it to '
-                       f'JPG/PNG') from e
+    with open_photo(path, error=SfmError, remedy=PHOTO_REMEDY) as img:
+        orientation = img.getexif().get(_EXIF_ORIENTATION, 1)
+        if orientation in (0, 1) and img.mode in ('RGB', 'L') and \
+                not name.lower().endswith(('.tif', '.tiff')):
+            shutil.copy2(path, os.path.join(image_dir, name))
+            return name
+        img = ImageOps.exif_transpose(img)
+        if img.mode.startswith('I'):  # 16/32-bit integer grayscale
+            pixels = np.asarray(img, dtype=np.float64)
+            peak = 65535.0 if pixels.max() > 255 else 255.0
+            img = Image.fromarray(np.round(pixels * 255.0 / peak).astype(np.uint8))
+        elif img.mode not in ('RGB', 'L'):
+            img = img.convert('RGB')
+        converted = name + '.png'
+        img.save(os.path.join(image_dir, converted))
+        return converted
 
 
 def _prepare_mask(path: str, photo: str, target: str) -> None:
     """A photo's mask for COLMAP: 8-bit grayscale PNG, black where the photo is masked out
     (:func:`~mi_nerfpp.data.masks.read_mask`, which checks it against the photo upright)."""
-    with Image.open(photo) as img:
-        img = ImageOps.exif_transpose(img)
+    with open_photo(photo, error=SfmError, remedy=PHOTO_REMEDY, pixels=False) as img:
         size = img.size
+        if img.getexif().get(_EXIF_ORIENTATION, 1) in (5, 6, 7, 8):    # turned by 90°
+            size = size[::-1]
     try:
         mask = masks.read_mask(path, size, photo)
     except DatasetError as e:
@@ -557,7 +556,7 @@ def _copy_cropped(src: str, dst_stem: str, camera, offset) -> None:
         shutil.copy2(src, dst_stem + os.path.splitext(src)[1].lower())
         return
     x0, y0 = offset
-    with Image.open(src) as img:
+    with open_photo(src, error=SfmError, remedy=PHOTO_REMEDY) as img:
         img.crop((x0, y0, x0 + camera.width, y0 + camera.height)).save(dst_stem + '.png')
 
 

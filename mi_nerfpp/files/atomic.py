@@ -43,6 +43,32 @@ def is_utf8(path: str | os.PathLike) -> bool:
     return True
 
 
+def as_text(name: str) -> str:
+    """``name`` (a path or a file's name, :func:`is_utf8` or not) as text that any format
+    holding text takes (USD, JSON read by other tools, a page): its bytes read as UTF-8, each
+    byte that is not UTF-8 written ``\\xNN`` (as Python prints bytes). A UTF-8 name is itself;
+    its exact bytes are :func:`name_bytes`. None (no name) stays None."""
+    return None if name is None else os.fsencode(name).decode('utf-8', 'backslashreplace')
+
+
+def name_bytes(name: str) -> str | None:
+    """The bytes of a ``name`` that is not UTF-8, in hexadecimal (kept beside
+    :func:`as_text` where a format has room); None for a UTF-8 name (or none)."""
+    return None if name is None or is_utf8(name) else os.fsencode(name).hex()
+
+
+def _as_text_tree(data):
+    """``data`` (JSON-ready) with every text :func:`as_text`."""
+    if isinstance(data, str):
+        return as_text(data)
+    if isinstance(data, dict):
+        return {as_text(k) if isinstance(k, str) else k: _as_text_tree(v)
+                for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [_as_text_tree(v) for v in data]
+    return data
+
+
 def _ascii_name(name: str) -> str:
     """``name`` with every byte outside printable ASCII (and a space) as ``_``: the part of a
     temporary file's name taken from the file it stands for."""
@@ -295,7 +321,11 @@ def check_not_a_file(folder, option: str = '--out'):
                          f'another {option}')
 
 
-def write_json(path, data):
-    """Write ``data`` as indented JSON to ``path``, atomically."""
+def write_json(path, data, text=False):
+    """Write ``data`` as indented JSON to ``path``, atomically. ``text``: a file for other
+    tools (metrics, a sweep's table), whose names and paths are written :func:`as_text` (JSON
+    from Python keeps a name that is not UTF-8 as lone surrogates ``\\udcNN``, which Python
+    reads back to the same bytes and stricter readers refuse)."""
+    data = _as_text_tree(data) if text else data
     with atomic_write_path(path) as tmp, open(tmp, 'w') as f:
         json.dump(data, f, indent=2)

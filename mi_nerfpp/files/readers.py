@@ -7,7 +7,9 @@ names the file, says what is wrong with it and what to do.
 * :func:`read_npz` returns the arrays of an ``.npz`` archive (all, or the ones asked for), and
   :func:`read_npy` the array of an ``.npy`` file, never unpickling anything;
 * :func:`read_exr` returns the header and channels of an OpenEXR file (deep ones included), and
-  :func:`read_image` the pixels of a PNG or JPEG file, as imageio gives them.
+  :func:`read_image` the pixels of a PNG or JPEG file, as imageio gives them;
+* :func:`open_photo` opens a photo of any format Pillow reads (JPEG, PNG, TIFF, ...) as a
+  Pillow image, for what needs more than its pixels: its EXIF, turning it upright, a crop.
 
 Every error is the caller's ``error`` class (:class:`FileReadError` unless the caller names its
 own: ``DatasetError``, ``CameraPathError``, ...), a ``ValueError`` whose one line is
@@ -303,6 +305,35 @@ def _printed_to(buffer: io.StringIO):
                 if not line.startswith('Warning: Exception raised reading pixel data')]
         if kept:
             sys.stdout.write(''.join(kept))
+
+
+@contextlib.contextmanager
+def open_photo(path, what: str = 'photo', remedy: str | None = FIX,
+               error: type[Exception] = FileReadError, pixels: bool = True):
+    """A Pillow image of the file ``path`` (any format Pillow reads), open for the time of the
+    ``with``, its EXIF read and (``pixels``, the default) its pixels decoded before it is
+    given, so that what the caller does with it meets no damage of the file; ``pixels=False``
+    for its size and EXIF alone.
+
+    Raises:
+        error: the file is missing, a folder, unreadable, empty, not an image Pillow reads,
+            damaged or cut short.
+    """
+    from PIL import Image     # deferred: only photos for structure from motion need Pillow's
+    path = _name(path)
+    _read_bytes(path, what, remedy, error, size=8)
+    try:
+        img = Image.open(path)
+    except Exception as e:  # noqa: BLE001 - Pillow's refusals are open-ended, as read_image's
+        _fail(error, path, what, _image_detail(e, 'not an image Pillow reads'), remedy)
+    with img:
+        try:
+            img.getexif()
+            if pixels:
+                img.load()
+        except Exception as e:  # noqa: BLE001
+            _fail(error, path, what, _image_detail(e, 'a damaged image'), remedy)
+        yield img
 
 
 def read_image(path, what: str = 'image', remedy: str | None = FIX,

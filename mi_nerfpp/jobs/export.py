@@ -70,7 +70,7 @@ from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.data.colmap import read_model
 from mi_nerfpp.data.sfm import read_report, sfm_normalization
 from mi_nerfpp.core.geometry import nuke_rotation
-from mi_nerfpp.files.atomic import atomic_write_path, check_writable_folder
+from mi_nerfpp.files.atomic import as_text, atomic_write_path, check_writable_folder, name_bytes
 from mi_nerfpp.files.readers import FileReadError, read_json
 from mi_nerfpp.jobs.run import open_run
 from mi_nerfpp.output.proxy_texture import (bake_texture, surface_color, unwrap, write_obj,
@@ -111,7 +111,7 @@ def camera_prim_names(cameras) -> dict:
     names, taken = {}, set()
     for split, cams in cameras.items():
         for i, camera in enumerate(cams):
-            base = Tf.MakeValidIdentifier(f'{split}_{camera.name or i}')
+            base = Tf.MakeValidIdentifier(f'{split}_{as_text(camera.name or str(i))}')
             name, k = base, 2
             while name in taken:
                 name, k = f'{base}_{k}', k + 1
@@ -160,8 +160,10 @@ def _write_scene_usd(stage, cameras, video, proxy):
         for i, camera in enumerate(cams):
             prim = _define_camera(stage, f'/World/cameras/{split}/{names[split, i]}',
                                   [camera]).GetPrim()
-            prim.SetDisplayName(camera.name)
-            prim.SetCustomDataByKey('imageStem', camera.name)
+            prim.SetDisplayName(as_text(camera.name))
+            prim.SetCustomDataByKey('imageStem', as_text(camera.name))
+            if name_bytes(camera.name):     # not UTF-8: the exact bytes too
+                prim.SetCustomDataByKey('imageStemBytes', name_bytes(camera.name))
     if video:
         _define_camera(stage, '/World/cameras/video_orbit', video,
                        times=list(range(1, len(video) + 1)))
@@ -494,6 +496,11 @@ def _write_export(model, meta, dataset, out, resolution, density, warn,
         proxy = []
     written += [os.path.join(out, name) for name in proxy]
     written.append(write_usd(out, cameras, video, 'proxy.usda' if proxy else None))
+    odd = [c.name for cams in cameras.values() for c in cams if name_bytes(c.name)]
+    if odd:
+        warn(f'note: export: {len(odd)} image names are not UTF-8 (e.g. "{as_text(odd[0])}"): '
+             f'USD and cameras.json have them as text with \\xNN for each such byte, and their '
+             f'exact bytes in hexadecimal (customData imageStemBytes, name_bytes)')
     points = _sfm_points(meta.get('dataset'), sfm)
     if points is not None and len(points):
         write_ply(os.path.join(out, 'sfm_points.ply'), points)
@@ -504,8 +511,10 @@ def _write_export(model, meta, dataset, out, resolution, density, warn,
             continue
         write_chan(os.path.join(out, f'{split}.chan'), cams)
         written.append(os.path.join(out, f'{split}.chan'))
-        table += [{'name': c.name, 'split': split, 'frame': i + 1, 'c2w': c.c2w.tolist(),
-                   'K': c.K.tolist(), 'width': c.width, 'height': c.height}
+        table += [dict({'name': as_text(c.name), 'split': split, 'frame': i + 1,
+                        'c2w': c.c2w.tolist(), 'K': c.K.tolist(), 'width': c.width,
+                        'height': c.height},
+                       **({'name_bytes': name_bytes(c.name)} if name_bytes(c.name) else {}))
                   for i, c in enumerate(cams)]
     with atomic_write_path(os.path.join(out, 'cameras.json')) as tmp, open(tmp, 'w') as f:
         json.dump({'frame': 'capture world (normalization undone)', 'cameras': table}, f,

@@ -47,6 +47,7 @@ from scipy.spatial.transform import Rotation
 
 from mi_nerfpp.core.color import to_srgb8
 from mi_nerfpp.data import Camera
+from mi_nerfpp.files.atomic import as_text
 from mi_nerfpp.files.checkpoint import load_checkpoint
 from mi_nerfpp.files.preview import depth_to_png
 from mi_nerfpp.files.readers import FileReadError, read_image, read_json
@@ -347,7 +348,7 @@ class Viewer:
         """What the 'Appearance' menu offers: 'neutral', then each training photo that has an
         appearance of its own (``--appearance``, ``--appearance-embedding``) by its name."""
         n = max(self.model.appearance_images, self.model.embedding_images)
-        names = [os.path.basename(p) for p in self.splits.train.image_paths][:n]
+        names = [as_text(os.path.basename(p)) for p in self.splits.train.image_paths][:n]
         names += [f'photo {i}' for i in range(len(names), n)]
         return [NEUTRAL] + [f'{i}: {name}' for i, name in enumerate(names)]
 

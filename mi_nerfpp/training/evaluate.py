@@ -202,6 +202,6 @@ def finish_run(out, model, held_out, cfg, checkpoint_path, metrics, progress=Non
         write_render_xml(os.path.join(out, 'render.xml'), checkpoint_path,
                          norm.to_world_camera(held_out.cameras[0]),
                          near_clip=norm.to_world_distance(SCENE_NEAR_CLIP))
-    write_json(os.path.join(out, 'metrics.json'), metrics)
+    write_json(os.path.join(out, 'metrics.json'), metrics, text=True)
     return metrics
 

@@ -4,9 +4,10 @@ that names the file, or reads.
 
 * The source scan (``ast``, nothing imported) fails on a direct ``json.load``, a ``json.loads``
   of anything but ``json.dumps(...)`` (a deep copy), ``np.load``, an ``OpenEXR.File`` that reads
-  (one argument: a path; writes pass a header and the pixels) or an ``imread`` outside the
-  modules that read that kind of file. Reads not yet behind one reader would be listed in
-  :data:`SCATTERED`, each one named; a listed site that is gone must leave the list.
+  (one argument: a path; writes pass a header and the pixels), an ``imread`` or a Pillow
+  ``Image.open`` outside the modules that read that kind of file. Reads not yet behind one
+  reader would be listed in :data:`SCATTERED`, each one named; a listed site that is gone must
+  leave the list.
 * The property tests damage one file :data:`CASES` times per kind, seeded (the same cases every
   run): cut short at a random byte, random bytes flipped, random bytes (not UTF-8) in its place,
   bytes that are not UTF-8 put inside it, a JSON value of another type in its place, a value
@@ -42,6 +43,7 @@ READERS = {
     'np.load': {'files/readers.py'},
     'OpenEXR.File': {'files/readers.py', 'files/exr.py', 'data/images.py'},
     'imread': {'files/readers.py', 'data/images.py'},
+    'Image.open': {'files/readers.py', 'data/images.py'},
 }
 # Reads not yet behind their kind's reader (issue 63, item 1: to move behind one).
 SCATTERED = set()
@@ -73,6 +75,8 @@ def _kind(call: ast.Call) -> str | None:
         return name if len(call.args) == 1 else None
     if name.split('.')[-1] == 'imread':
         return 'imread'
+    if name in ('Image.open', 'PIL.Image.open'):
+        return 'Image.open'
     return None
 
 
@@ -101,10 +105,11 @@ def test_every_read_goes_through_its_reader():
 def test_the_scan_finds_what_it_looks_for(tmp_path):
     source = ('import json, numpy as np, OpenEXR, imageio.v3 as iio\n'
               'json.load(f); json.loads(text); json.loads(json.dumps(x)); np.load(p)\n'
-              'OpenEXR.File(p); OpenEXR.File(header, pixels); iio.imread(p)\n')
+              'OpenEXR.File(p); OpenEXR.File(header, pixels); iio.imread(p); Image.open(p)\n')
     calls = [n for n in ast.walk(ast.parse(source)) if isinstance(n, ast.Call)]
     kinds = [k for k in map(_kind, calls) if k]
-    assert sorted(kinds) == ['OpenEXR.File', 'imread', 'json.load', 'json.loads', 'np.load']
+    assert sorted(kinds) == ['Image.open', 'OpenEXR.File', 'imread', 'json.load', 'json.loads',
+                             'np.load']
 
 
 # ------------------------------------------------------------------------------ damage
@@ -356,6 +361,29 @@ def test_read_exr_and_read_image_property(tmp_path, capsys):
     for read, other in ((read_exr, png), (read_image, flat), (read_image, npz_file(tmp_path))):
         with pytest.raises(FileReadError, match=r'\(not an OpenEXR file|\(neither a PNG nor'):
             read(other)
+
+
+def _photo_size(path):
+    from mi_nerfpp.files.readers import open_photo
+    with open_photo(path) as img:
+        return img.size
+
+
+def test_open_photo_property(tmp_path):
+    """Photos for structure from motion (JPEG, PNG, TIFF: Pillow, for their EXIF, turning them
+    upright, crops) are damaged as the other binary files: each opens whole (its pixels
+    decoded) or ends with the reader's one line."""
+    rng = np.random.default_rng(8)
+    pixels = (rng.random((12, 16, 3)) * 255).astype(np.uint8)
+    for suffix in ('.jpg', '.png', '.tif'):
+        template = tmp_path / f'template{suffix}'
+        Image.fromarray(pixels).save(template)
+        assert _photo_size(template) == (16, 12)
+        path = tmp_path / f'photo{suffix}'
+        found = run_cases(template, path, _photo_size, FileReadError, BINARY_DAMAGE,
+                          template.name, pattern=re.escape(f'{path}: cannot read photo (') +
+                          r'.+\): fix or replace the file')
+        _every_damage_refused_some(found)
 
 
 def npz_file(folder: Path) -> Path:

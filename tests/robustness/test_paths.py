@@ -236,3 +236,62 @@ def test_a_capture_of_byte_named_images_reads(tmp_path, kind, distorted):
         def stem(path):
             return os.path.splitext(os.path.basename(path))[0]
         assert sorted(map(stem, read)) == sorted(stem(f['file_path']) for f in frames)
+
+
+# ------------------------------------------------------------------- names in text formats
+
+def test_as_text_and_name_bytes():
+    from mi_nerfpp.files.atomic import as_text, name_bytes
+    name = os.fsdecode(b'caf\xc3\xa9 \xff\x80.png')     # UTF-8 é, then two bytes that are not
+    assert as_text(name) == 'café \\xff\\x80.png' and as_text(name).encode('utf-8')
+    assert bytes.fromhex(name_bytes(name)) == os.fsencode(name)
+    assert as_text('plain.png') == 'plain.png' and name_bytes('plain.png') is None
+    assert as_text(None) is None and name_bytes(None) is None
+
+
+def test_image_names_that_are_not_utf8_reach_usd_and_json_as_text(tmp_path):
+    """Export ended with "'utf-8' codec can't encode character '\\udcc2' ... surrogates not
+    allowed" (USD takes UTF-8 text only) for photos whose names are not UTF-8, and
+    metrics.json held them as lone surrogates (``\\udcc2``), which strict JSON readers refuse.
+    Now USD has each name as text (``\\xNN`` per such byte) with its exact bytes in
+    customData, cameras.json likewise (``name_bytes``), metrics.json as text, and the export
+    says so."""
+    rng = random.Random(f'{SEED} text names')
+    capture = make_capture(str(tmp_path / 'capture'), views=12, width=16, height=12, spp=2)
+    stems = {}
+    for split in ('train', 'validation', 'test'):
+        for f in sorted(os.listdir(os.path.join(capture, split, 'rgb'))):
+            stem, ext = os.path.splitext(f)
+            new = byte_name(rng)
+            stems[new] = split
+            for folder, suffix in (('rgb', ext), ('pose', '.txt'), ('intrinsics', '.txt')):
+                os.rename(os.path.join(capture, split, folder, stem + suffix),
+                          os.path.join(capture, split, folder, new + suffix))
+    run = str(tmp_path / 'run')
+    status, output = run_command('optimize', capture, '--out', run, *TINY)
+    assert status == 0, output.decode(errors='replace')
+    metrics = (tmp_path / 'run' / 'metrics.json').read_text(encoding='ascii')
+    assert '\\udc' not in metrics
+    names = {view['image'] for view in json.loads(metrics)['test']['views']}
+    from mi_nerfpp.files.atomic import as_text
+    assert names == {as_text(s) + '.png' for s, split in stems.items() if split == 'test'}
+
+    out = str(tmp_path / 'export')
+    status, output = run_command('export', run, '--out', out, '--resolution', '8')
+    assert status == 0, output.decode(errors='replace')
+    assert f'note: export: {len(stems)} image names are not UTF-8'.encode() in output
+    table = json.loads((tmp_path / 'export' / 'cameras.json').read_text(encoding='ascii'))
+    named = [c for c in table['cameras'] if c['split'] != 'video_orbit']
+    assert sorted(bytes.fromhex(c['name_bytes']) for c in named) == sorted(
+        os.fsencode(s) for s in stems)
+    assert all(c['name'] == as_text(os.fsdecode(bytes.fromhex(c['name_bytes'])))
+               for c in named)
+    from pxr import Usd
+    stage = Usd.Stage.Open(os.path.join(out, 'scene.usda'))
+    cameras = [p for p in stage.Traverse() if p.GetCustomDataByKey('imageStem') is not None]
+    assert len(cameras) == len(stems)
+    for prim in cameras:
+        exact = bytes.fromhex(prim.GetCustomDataByKey('imageStemBytes'))
+        assert os.fsdecode(exact) in stems
+        assert prim.GetDisplayName() == prim.GetCustomDataByKey('imageStem') == as_text(
+            os.fsdecode(exact))

@@ -50,7 +50,7 @@ from mi_nerfpp.data import masks, video
 from mi_nerfpp.data.colmap import colmap_frames, pinhole_model, with_masks
 from mi_nerfpp.data.errors import DatasetError
 from mi_nerfpp.data.nerfpp import write_camera
-from mi_nerfpp.files.atomic import remove_entries
+from mi_nerfpp.files.atomic import as_text, folder_path, remove_entries
 from mi_nerfpp.files.readers import FileReadError, open_photo, read_json
 
 PHOTO_EXTENSIONS = ('.jpg', '.jpeg', '.png', '.tif', '.tiff')
@@ -244,97 +244,103 @@ def _run(pycolmap, photos, out, names, params, inputs, camera, hold, max_image_s
     with bar('images', len(names), 'photo') as b:
         colmap_names = {}
         for name in names:
-            colmap_names[name] = _prepare_photo(os.path.join(photos, name), image_dir, name)
+            colmap_names[name] = _prepare_photo(os.path.join(photos, name), image_dir,
+                                                _colmap_name(name, colmap_names.values()))
             if name in photo_masks:     # COLMAP's naming: the image's name plus .png
                 _prepare_mask(photo_masks[name], os.path.join(photos, name),
                               os.path.join(workspace, masks.FOLDER, colmap_names[name] + '.png'))
             b.update(1)
     seconds['images'] = time.perf_counter() - t
-    reader = pycolmap.ImageReaderOptions()
-    if params['mask_features']:
-        reader.mask_path = os.path.join(workspace, masks.FOLDER)
+    # COLMAP takes UTF-8 paths only (std::string): a workspace whose path is not UTF-8 is
+    # given through its /proc/self/fd path (files.atomic.folder_path).
+    with folder_path(workspace) as workspace:
+        image_dir = os.path.join(workspace, 'images')
+        database = os.path.join(workspace, 'database.db')
+        reader = pycolmap.ImageReaderOptions()
+        if params['mask_features']:
+            reader.mask_path = os.path.join(workspace, masks.FOLDER)
 
-    t = time.perf_counter()
-    listed = sorted(colmap_names.values())
-    if camera == 'auto':
-        camera = 'single' if _one_camera(image_dir, listed) else 'per-image'
-    report['camera_mode'] = camera
-    mode = {'single': pycolmap.CameraMode.SINGLE,
-            'per-image': pycolmap.CameraMode.PER_IMAGE}[camera]
-    pycolmap.Database.open(database).close()
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.max_image_size = max_image_size
-    extraction.num_threads = num_threads
-    try:
-        pycolmap.import_images(database, image_dir, camera_mode=mode, image_names=listed)
-        with bar('features', len(listed), 'photo') as b:
-            for i in range(0, len(listed), FEATURE_CHUNK):
-                chunk = listed[i:i + FEATURE_CHUNK]
-                pycolmap.extract_features(database, image_dir, image_names=chunk,
-                                          camera_mode=mode, reader_options=reader,
-                                          extraction_options=extraction)
-                b.update(len(chunk))
-    except Exception as e:  # noqa: BLE001 - pycolmap raises ValueError/RuntimeError alike
-        raise SfmError(f'{photos}: COLMAP feature extraction failed ({e})') from e
-    seconds['features'] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    n_pairs = len(listed) * (len(listed) - 1) // 2 if matching == 'exhaustive' else None
-    matcher = pycolmap.FeatureMatchingOptions()
-    matcher.num_threads = num_threads
-    verification = pycolmap.TwoViewGeometryOptions()
-    # Geometric verification's RANSAC has its own seed, unset by default (-1), which
-    # set_random_seed does not reach: unseeded, the verified pairs varied from run to run.
-    verification.ransac.random_seed = SFM_SEED
-    with bar(f'matching ({matching})', 1, 'stage') as b:
+        t = time.perf_counter()
+        listed = sorted(colmap_names.values())
+        if camera == 'auto':
+            camera = 'single' if _one_camera(image_dir, listed) else 'per-image'
+        report['camera_mode'] = camera
+        mode = {'single': pycolmap.CameraMode.SINGLE,
+                'per-image': pycolmap.CameraMode.PER_IMAGE}[camera]
+        pycolmap.Database.open(database).close()
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.max_image_size = max_image_size
+        extraction.num_threads = num_threads
         try:
-            if matching == 'exhaustive':
-                pycolmap.match_exhaustive(database, matching_options=matcher,
-                                          verification_options=verification)
-            else:
-                pairing = pycolmap.SequentialPairingOptions()
-                pairing.overlap = overlap
-                pairing.loop_detection = False
-                pycolmap.match_sequential(database, matching_options=matcher,
-                                          pairing_options=pairing,
-                                          verification_options=verification)
-        except Exception as e:  # noqa: BLE001
-            raise SfmError(f'{photos}: COLMAP feature matching failed ({e})') from e
-        b.update(1)
-    with pycolmap.Database.open(database) as db:
-        _, geometries = db.read_two_view_geometries()
-        # Photo pairs whose matches passed geometric verification (COLMAP keeps a record,
-        # possibly empty, for every pair it tried).
-        report['verified_pairs'] = sum(len(g.inlier_matches) >= MIN_PAIR_INLIERS
-                                       for g in geometries)
-        report['cameras'] = int(db.num_cameras())
-    if n_pairs is not None:
-        report['pairs'] = n_pairs
-    seconds['matching'] = time.perf_counter() - t
+            pycolmap.import_images(database, image_dir, camera_mode=mode, image_names=listed)
+            with bar('features', len(listed), 'photo') as b:
+                for i in range(0, len(listed), FEATURE_CHUNK):
+                    chunk = listed[i:i + FEATURE_CHUNK]
+                    pycolmap.extract_features(database, image_dir, image_names=chunk,
+                                              camera_mode=mode, reader_options=reader,
+                                              extraction_options=extraction)
+                    b.update(len(chunk))
+        except Exception as e:  # noqa: BLE001 - pycolmap raises ValueError/RuntimeError alike
+            raise SfmError(f'{photos}: COLMAP feature extraction failed ({e})') from e
+        seconds['features'] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    model_dir, registered = _map(pycolmap, database, image_dir, workspace, len(listed),
-                                 num_threads, bar)
-    seconds['mapping'] = time.perf_counter() - t
-    if model_dir is None or registered < 2:
-        raise SfmError(
-            f'{photos}: COLMAP could not reconstruct the scene: it found no pair of photos to '
-            f'start from ({report["verified_pairs"]} pairs of the {len(listed)} photos have '
-            f'{MIN_PAIR_INLIERS} or more geometrically verified matches; a start needs '
-            f'{RELAXED_INIT["init_min_num_inliers"]}-100 and enough parallax). ' + ADVICE)
+        t = time.perf_counter()
+        n_pairs = len(listed) * (len(listed) - 1) // 2 if matching == 'exhaustive' else None
+        matcher = pycolmap.FeatureMatchingOptions()
+        matcher.num_threads = num_threads
+        verification = pycolmap.TwoViewGeometryOptions()
+        # Geometric verification's RANSAC has its own seed, unset by default (-1), which
+        # set_random_seed does not reach: unseeded, the verified pairs varied from run to run.
+        verification.ransac.random_seed = SFM_SEED
+        with bar(f'matching ({matching})', 1, 'stage') as b:
+            try:
+                if matching == 'exhaustive':
+                    pycolmap.match_exhaustive(database, matching_options=matcher,
+                                              verification_options=verification)
+                else:
+                    pairing = pycolmap.SequentialPairingOptions()
+                    pairing.overlap = overlap
+                    pairing.loop_detection = False
+                    pycolmap.match_sequential(database, matching_options=matcher,
+                                              pairing_options=pairing,
+                                              verification_options=verification)
+            except Exception as e:  # noqa: BLE001
+                raise SfmError(f'{photos}: COLMAP feature matching failed ({e})') from e
+            b.update(1)
+        with pycolmap.Database.open(database) as db:
+            _, geometries = db.read_two_view_geometries()
+            # Photo pairs whose matches passed geometric verification (COLMAP keeps a record,
+            # possibly empty, for every pair it tried).
+            report['verified_pairs'] = sum(len(g.inlier_matches) >= MIN_PAIR_INLIERS
+                                           for g in geometries)
+            report['cameras'] = int(db.num_cameras())
+        if n_pairs is not None:
+            report['pairs'] = n_pairs
+        seconds['matching'] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    with bar('undistortion', 1, 'stage') as b:
-        try:
-            model, undistorted_images = pinhole_model(workspace, model_dir, progress=False)
-        except DatasetError as e:
-            raise SfmError(str(e)) from e
-        b.update(1)
-    seconds['undistortion'] = time.perf_counter() - t
+        t = time.perf_counter()
+        model_dir, registered = _map(pycolmap, database, image_dir, workspace, len(listed),
+                                     num_threads, bar)
+        seconds['mapping'] = time.perf_counter() - t
+        if model_dir is None or registered < 2:
+            raise SfmError(
+                f'{photos}: COLMAP could not reconstruct the scene: it found no pair of photos '
+                f'to start from ({report["verified_pairs"]} pairs of the {len(listed)} photos have '
+                f'{MIN_PAIR_INLIERS} or more geometrically verified matches; a start needs '
+                f'{RELAXED_INIT["init_min_num_inliers"]}-100 and enough parallax). ' + ADVICE)
 
-    t = time.perf_counter()
-    report.update(_write_dataset(out, model, undistorted_images, hold, bar, workspace))
-    seconds['dataset'] = time.perf_counter() - t
+        t = time.perf_counter()
+        with bar('undistortion', 1, 'stage') as b:
+            try:
+                model, undistorted_images = pinhole_model(workspace, model_dir, progress=False)
+            except DatasetError as e:
+                raise SfmError(str(e)) from e
+            b.update(1)
+        seconds['undistortion'] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        report.update(_write_dataset(out, model, undistorted_images, hold, bar, workspace))
+        seconds['dataset'] = time.perf_counter() - t
 
     by_colmap_name = {v: k for k, v in colmap_names.items()}
     reg = {by_colmap_name[im.name] for im in model.images.values()}
@@ -405,6 +411,18 @@ def _prepare_output(out: str, has_report: bool) -> None:
     _check_output(out, has_report)
     remove_entries(out, ('colmap', 'train', 'validation', 'test', SFM_FILE))
     os.makedirs(out, exist_ok=True)
+
+
+def _colmap_name(name: str, taken) -> str:
+    """The name of photo ``name`` in COLMAP's workspace: itself when it is UTF-8 (COLMAP's
+    names are UTF-8 text), else :func:`~mi_nerfpp.files.atomic.as_text`, made unique against
+    the names ``taken``."""
+    text = as_text(name)
+    stem, ext = os.path.splitext(text)
+    k = 2
+    while text in taken or text + '.png' in taken:
+        text, k = f'{stem}~{k}{ext}', k + 1
+    return text
 
 
 def _prepare_photo(path: str, image_dir: str, name: str) -> str:

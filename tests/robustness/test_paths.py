@@ -67,15 +67,38 @@ def trained(places):
     return out
 
 
+@pytest.fixture(scope='module')
+def photos(places):
+    """A folder of a random byte name of photos named with random bytes (no poses): a small
+    textured capture that COLMAP registers."""
+    from mi_nerfpp.data.synth import synthesize
+    root, _ = places
+    capture = os.path.join(root, 'plaza')
+    synthesize(scene_file('gt_plaza.xml'), capture, views=20, res=(240, 180), spp=32,
+               trajectory='arc', progress=False)
+    rng = random.Random(SEED + 2)
+    folder = os.path.join(root, byte_name(rng))
+    os.makedirs(folder)
+    for split in ('train', 'validation', 'test'):
+        rgb = os.path.join(capture, split, 'rgb')
+        for name in sorted(os.listdir(rgb)) if os.path.isdir(rgb) else []:
+            shutil.copy(os.path.join(rgb, name), os.path.join(folder, byte_name(rng, b'.png')))
+    return folder
+
+
 def _video_name():
     import importlib.util
     return b'.mp4' if importlib.util.find_spec('imageio_ffmpeg') else b'.gif'
 
 
-def _case(command, rng, root, capture, trained):
+def _case(command, rng, root, capture, trained, photos):
     """(argv, files it must write, path it must print) of ``command`` on random byte paths."""
     here = os.path.join(root, byte_name(rng))          # a fresh folder of a random name
     os.makedirs(here)
+    if command == 'colmap':
+        out = os.path.join(here, byte_name(rng))
+        return (['colmap', photos(), '--out', out],
+                [os.path.join(out, 'sfm.json'), os.path.join(out, 'train', 'rgb')], out)
     if command == 'optimize --out':
         out = os.path.join(here, byte_name(rng))
         return (['optimize', capture, '--out', out, *TINY],
@@ -122,18 +145,19 @@ def _case(command, rng, root, capture, trained):
 
 
 COMMANDS = ['optimize --out', 'read a capture', 'evaluate', 'sweep', 'export', 'synth --out',
-            'render -o --preview', 'video']
+            'render -o --preview', 'video', 'colmap']
 
 
 @pytest.mark.parametrize('command', COMMANDS)
-def test_every_command_takes_a_path_of_any_bytes(command, places, trained):
+def test_every_command_takes_a_path_of_any_bytes(command, places, trained, request):
     """The commands failed with "'utf-8' codec can't encode ..." (the lock file, logs, the
     console) or OpenEXR's "use write(path: str) ..." (OpenEXR, Mitsuba and USD take UTF-8 names
-    only). Now each ends with status 0, its files at the exact bytes of the names given, the
+    only; colmap: "import_images(): incompatible function arguments", COLMAP's too). Now each ends with status 0, its files at the exact bytes of the names given, the
     path printed as its bytes, and no temporary file left."""
     root, capture = places
     rng = random.Random(f'{SEED} {command}')
-    argv, outputs, printed = _case(command, rng, root, capture, trained)
+    argv, outputs, printed = _case(command, rng, root, capture, trained,
+                                   lambda: request.getfixturevalue('photos'))
     status, output = run_command(*argv)
     assert status == 0, output.decode(errors='replace')
     for path in outputs:

@@ -64,8 +64,9 @@ def _scalar(rng):
     if kind == 0:
         return rng.choice([None, True, False])
     if kind == 1:
-        return rng.choice([0, -1, 1, 2 ** 31, 2 ** 63, 2 ** 64, -(2 ** 40)]) \
-            if rng.random() < 0.5 else rng.randint(-10 ** rng.randint(0, 20), 10 ** rng.randint(0, 20))
+        if rng.random() < 0.5:
+            return rng.choice([0, -1, 1, 2 ** 31, 2 ** 63, 2 ** 64, -(2 ** 40)])
+        return rng.randint(-10 ** rng.randint(0, 20), 10 ** rng.randint(0, 20))
     if kind == 2:
         return rng.choice([math.nan, math.inf, -math.inf, -0.0, 1e-300, 1e300]) \
             if rng.random() < 0.4 else rng.uniform(-1, 1) * 10 ** rng.randint(-10, 30)

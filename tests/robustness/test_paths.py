@@ -168,6 +168,40 @@ def test_every_command_takes_a_path_of_any_bytes(command, places, trained, reque
         assert not [f for f in files if b'.tmp' in f], (folder, files)
 
 
+def test_view_serves_a_run_of_any_bytes(trained):
+    """``view`` (the command that writes nothing) on a run folder of a random byte name: the
+    page is served, the path printed as its bytes, and Ctrl-C ends it with 130."""
+    import signal
+    import socket
+    import threading
+    import time
+    import urllib.request
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, '-m', 'mi_nerfpp', 'view', trained, '--port',
+                             str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            env=dict(os.environ, PYTHONIOENCODING='utf-8'))
+    lines = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    try:
+        start = time.monotonic()       # the address is printed once the page is ready
+        while not any(b'http://' in line for line in lines) and proc.poll() is None \
+                and time.monotonic() - start < 300:
+            time.sleep(0.2)
+        status = urllib.request.urlopen(f'http://127.0.0.1:{port}/', timeout=30).status
+        proc.send_signal(signal.SIGINT)
+        proc.wait(120)
+        reader.join(30)
+    finally:
+        proc.kill()
+    output = b''.join(lines)
+    assert status == 200, output
+    assert proc.returncode == 130 and os.fsencode(trained) in output, output
+    assert b'Traceback' not in output and b'\\udc' not in output
+
+
 # ------------------------------------------------------------------------- in-process
 
 def test_files_written_and_read_at_random_byte_paths(tmp_path):

@@ -58,7 +58,7 @@ from mi_nerfpp.training.errors import TrainingError
 from mi_nerfpp.training.metrics import psnr_from_mse
 from mi_nerfpp.training.raybank import RayBank
 from mi_nerfpp.training.schedule import (ImagePyramid, OccupancyRefresh, SparseAllocation,
-                                         sparse_levels)
+                                         passed, sparse_levels)
 from mi_nerfpp.training.signs import CaptureSigns
 
 # Gradients scattered into arrays of up to this many entries are summed in one copy per thread
@@ -190,6 +190,7 @@ class Trainer:
             self.model, meta, state = load_checkpoint(self.checkpoint_path)
             self._check_resumable(meta)
             self.iteration, self.elapsed = progress(meta, self.checkpoint_path)
+            self._check_allocations(meta)
             self.history = meta.get('history', [])
             self.model.sampling = config.render_sampling     # --samples may change
             return meta, state
@@ -229,6 +230,28 @@ class Trainer:
                           for note in migration_notes(version) if model_conflicts)
             raise TrainingError(f'{self.checkpoint_path} cannot be resumed with other model '
                                 f'options or data: ' + '; '.join(conflicts) + why)
+
+    def _check_allocations(self, meta):
+        """Refuse, in one line, a resumed run that changes how the sparse levels' bricks are
+        chosen (``--sparse-entries``, ``--sparse-at``) when they were allocated and no
+        allocation is ahead of it: the model keeps the bricks chosen the old way, and the
+        run would record a value that never took effect (issue 63)."""
+        if not any(len(b) for b in self.model.allocated_bricks().values()):
+            return
+        stored = TrainConfig.stored_options(stored_config(meta, self.checkpoint_path))
+        s = self.cfg.schedule
+        if passed(s.sparse_at, self.progress()) < len(s.sparse_at):
+            return      # an allocation is ahead: the new values take effect there
+        changed = [f'{self.cfg.flag(name)} {_words(stored[name])}'
+                   for name, now in (('sparse_entries', s.sparse_entries),
+                                     ('sparse_at', s.sparse_at))
+                   if name in stored and stored[name] != now]
+        if changed:
+            raise TrainingError(
+                f'{self.checkpoint_path}: its sparse levels were allocated with '
+                f'{" and ".join(changed)}, and no allocation is ahead of this run to take '
+                f'other values: resume with {" ".join(changed)} (other values need a new run, '
+                f'or a --sparse-at fraction still ahead)')
 
     def _background_weights(self):
         """Per training image how much each pixel shows of the background (for the coverage
@@ -644,6 +667,11 @@ def _signals_deferred(enabled):
 
 def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt(f'signal {signum}')
+
+
+def _words(value) -> str:
+    """An option's value as command-line words."""
+    return ' '.join(f'{v:g}' for v in value) if isinstance(value, tuple) else str(value)
 
 
 def data_conflicts(stored: dict, now: dict) -> list[str]:

@@ -152,8 +152,9 @@ COMMANDS = ['optimize --out', 'read a capture', 'evaluate', 'sweep', 'export', '
 def test_every_command_takes_a_path_of_any_bytes(command, places, trained, request):
     """The commands failed with "'utf-8' codec can't encode ..." (the lock file, logs, the
     console) or OpenEXR's "use write(path: str) ..." (OpenEXR, Mitsuba and USD take UTF-8 names
-    only; colmap: "import_images(): incompatible function arguments", COLMAP's too). Now each ends with status 0, its files at the exact bytes of the names given, the
-    path printed as its bytes, and no temporary file left."""
+    only; colmap: "import_images(): incompatible function arguments", COLMAP's too). Now each
+    ends with status 0, its files at the exact bytes of the names given, the path printed as
+    its bytes, and no temporary file left."""
     root, capture = places
     rng = random.Random(f'{SEED} {command}')
     argv, outputs, printed = _case(command, rng, root, capture, trained,

@@ -279,3 +279,24 @@ def test_a_full_disk_names_the_file_being_written(tmp_path):
     assert error_line(info.value) == (f'{target}: No space left on device: free space on that '
                                       f'disk or write somewhere else (--out)')
     assert os.listdir(tmp_path) == []                   # the temporary file is gone
+
+
+def test_a_resume_that_changes_the_sparse_allocation_after_it_took_effect_is_refused(
+        capsys, capture, tmp_path):
+    """A resumed run recorded a new --sparse-entries / --sparse-at while its model kept the
+    bricks chosen with the old ones (no allocation ahead to apply them). Now that is refused,
+    naming the values to resume with; with an allocation still ahead the new values are taken."""
+    out = tmp_path / 'run'
+    sparse = ['--occupancy-res', '8', '--grid-sparse', '16', '--sparse-at', '0.1']
+    assert _train(capsys, capture, out, *sparse, '--iterations', '4')[0] == 0
+    status, _, err = _train(capsys, capture, out, *sparse, '--iterations', '6', '--resume',
+                            '--sparse-entries', '1000')
+    assert status == 1 and one_clear_line(err) == (
+        f'error: optimize: {out / "model.npz"}: its sparse levels were allocated with '
+        f'--sparse-entries 4000000, and no allocation is ahead of this run to take other '
+        f'values: resume with --sparse-entries 4000000 (other values need a new run, or a '
+        f'--sparse-at fraction still ahead)')
+    assert _train(capsys, capture, out, *sparse[:4], '--sparse-at', '0.1', '0.9',
+                  '--sparse-entries', '1000', '--iterations', '8', '--resume')[0] == 0
+    stored = load_checkpoint(out / 'model.npz')[1]['config']['schedule']
+    assert stored['sparse_entries'] == 1000 and stored['sparse_at'] == [0.1, 0.9]

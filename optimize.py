@@ -6,7 +6,8 @@ ten minutes. Same as ``python -m mi_nerfpp optimize``; ``--help`` lists the opti
 """
 import sys
 
+from mi_nerfpp._start import run_and_exit
 from mi_nerfpp.commands.cli import main
 
 if __name__ == '__main__':
-    sys.exit(main(['optimize'] + sys.argv[1:], replace=True))
+    run_and_exit(main, ['optimize'] + sys.argv[1:], replace=True)

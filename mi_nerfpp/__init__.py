@@ -14,10 +14,14 @@ the process with one line, ``error: <command>: ...``, and exit status 1.
 """
 from __future__ import annotations
 
-from mi_nerfpp import variant
-from mi_nerfpp._llvm import LLVMNotFoundError
-from mi_nerfpp.variant import VariantError
-from mi_nerfpp.version import __version__
+from mi_nerfpp import _start
+
+_start.catch_signals_while_starting()   # Ctrl-C or SIGTERM from here to the command: one line
+
+from mi_nerfpp import variant  # noqa: E402
+from mi_nerfpp._llvm import LLVMNotFoundError  # noqa: E402
+from mi_nerfpp.variant import VariantError  # noqa: E402
+from mi_nerfpp.version import __version__  # noqa: E402
 
 DEFAULT_VARIANT = variant.DEFAULT
 
@@ -28,7 +32,6 @@ def _setup():
     register()
 
 
-variant.catch_interrupt_while_starting()    # Ctrl-C from here to the command: one line, 130
 try:
     _setup()
 except (LLVMNotFoundError, VariantError) as e:

@@ -27,12 +27,11 @@ from __future__ import annotations
 
 import ctypes
 import os
-import signal
 import sys
-import threading
 import traceback
 
 from mi_nerfpp import _llvm
+from mi_nerfpp._start import PROGRAMS, command_line  # noqa: F401 - where the command line starts
 
 ENV = 'MI_NERFPP_VARIANT'
 DEFAULT = 'llvm_ad_rgb'
@@ -40,10 +39,6 @@ DEFAULT = 'llvm_ad_rgb'
 VARIANTS = {'llvm_ad_rgb': 'the CPU', 'cuda_ad_rgb': 'an NVIDIA GPU'}
 # Where a choice came from, as messages name it.
 SELECTED, OPTION = 'mi.set_variant', '--variant'
-# The names under which the command line starts (``sys.argv[0]`` while the package is
-# imported): ``python -m mi_nerfpp`` (``-m`` while Python locates the module), the installed
-# ``mi-nerfpp`` script, and ``optimize.py`` (the ``optimize`` command).
-PROGRAMS = {'-m': None, 'mi-nerfpp': None, 'optimize.py': 'optimize'}
 
 
 class VariantError(ImportError):
@@ -147,27 +142,6 @@ def select(environ=os.environ, argv=None) -> str:
     return variant
 
 
-def command_line(argv=None) -> tuple[bool, str | None]:
-    """``(whether the process is mi_nerfpp's command line, its command or None)``, from
-    ``argv`` (default ``sys.argv``) while the package is being imported: see :data:`PROGRAMS`.
-    The command is the first word after the options ``--debug`` and ``--variant NAME``."""
-    argv = sys.argv if argv is None else argv
-    if not argv:
-        return False, None
-    name = argv[0] if argv[0] == '-m' else os.path.basename(argv[0])
-    if name not in PROGRAMS:
-        return False, None
-    if PROGRAMS[name]:
-        return True, PROGRAMS[name]
-    words = iter(argv[1:])
-    for word in words:
-        if word == '--variant':
-            next(words, None)
-        elif not word.startswith('-'):
-            return True, word
-    return True, None
-
-
 def option_value(argv) -> str | None:
     """The value of ``--variant NAME`` / ``--variant=NAME`` in ``argv[1:]`` (the last one given,
     as argparse takes it), up to a ``--``; None without one."""
@@ -180,39 +154,6 @@ def option_value(argv) -> str | None:
         elif word.startswith('--variant='):
             value = word.partition('=')[2]
     return value
-
-
-def _interrupted_while_starting(signum, frame):
-    """SIGINT while the command line starts: end the process as an interrupted command does."""
-    try:
-        sys.stdout.flush()
-    except Exception:     # noqa: BLE001 - a closed or broken stream: exit all the same
-        pass
-    try:
-        print('interrupted', file=sys.stderr, flush=True)
-    finally:
-        os._exit(130)
-
-
-def catch_interrupt_while_starting(argv=None) -> None:
-    """On the command line, let Ctrl-C while the package and the command are imported (Mitsuba,
-    Dr.Jit, LLVM, viser: seconds, before :func:`mi_nerfpp.commands.cli.main` and its handler
-    run) end the process with ``interrupted`` and status 130, not an import traceback (or an
-    ImportError of an extension whose start-up the KeyboardInterrupt broke). The command's own
-    handling takes over in :func:`end_of_start`. A SIGINT that is ignored (a background job)
-    or handled by the caller is left as it is; a library's import is left alone."""
-    if not command_line(argv)[0] or threading.current_thread() is not threading.main_thread():
-        return
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, _interrupted_while_starting)
-
-
-def end_of_start() -> None:
-    """The command runs: Ctrl-C raises KeyboardInterrupt again (its status 130 then comes from
-    the command line's boundary, which may save a checkpoint first)."""
-    if threading.current_thread() is threading.main_thread() and \
-            signal.getsignal(signal.SIGINT) is _interrupted_while_starting:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def exit_if_command_line(error: ImportError, argv=None) -> None:

@@ -31,7 +31,7 @@ import traceback
 
 import mitsuba as mi
 
-from mi_nerfpp import variant
+from mi_nerfpp import _start, variant
 from mi_nerfpp._llvm import LLVMNotFoundError
 from mi_nerfpp.commands import (colmap, evaluate, export, optimize, render,
                                 sweep, synth, video, view)
@@ -132,7 +132,7 @@ def main(argv=None, *, replace=None):
     process by one that selects it (default: when ``argv`` is None, i.e. main is the program;
     ``optimize.py`` passes True)."""
     print_any_path()
-    variant.end_of_start()      # Ctrl-C raises KeyboardInterrupt again, handled below
+    _start.end_of_start()       # Ctrl-C and SIGTERM raise KeyboardInterrupt, handled below
     args = build_parser().parse_args(argv)
     try:
         run_in_variant(args, sys.argv[1:] if argv is None else list(argv),
@@ -149,3 +149,9 @@ def main(argv=None, *, replace=None):
             traceback.print_exc()
         print(f'error: {args.command}: {describe(e, args)}', file=sys.stderr)
         return 1
+
+
+def entry_point():
+    """The installed ``mi-nerfpp`` script and ``python -m mi_nerfpp``: :func:`main`, then the
+    process ends at once with its status (:func:`mi_nerfpp._start.run_and_exit`)."""
+    _start.run_and_exit(main)

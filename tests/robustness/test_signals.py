@@ -68,3 +68,52 @@ def test_ctrl_c_while_the_command_starts_ends_with_one_line(tiny_run, module):
                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert proc.returncode == 130, proc.stderr
     assert proc.stderr == 'interrupted\n' and proc.stdout == ''
+
+
+def _commands(run, folder):
+    """Commands of a few seconds each on a tiny run, writing into ``folder``."""
+    from mi_nerfpp.data.synth import scene_file
+    return {
+        'evaluate': ['evaluate', run],
+        'render': ['render', scene_file('render_random.xml'), '-o', folder / 'view.exr',
+                   '--preview', folder / 'view.png', '-D', 'res_x=32', '-D', 'res_y=24'],
+        'export': ['export', run, '--out', folder / 'export', '--resolution', '16'],
+        'video': ['video', run, '-o', folder / 'orbit.gif', '--frames', '6', '--res', '32x24'],
+        'synth': ['synth', scene_file('gt_bounded.xml'), '--out', folder / 'synth', '--views',
+                  '4', '--res', '16x12', '--spp', '4'],
+    }
+
+
+@pytest.mark.parametrize('command', ['evaluate', 'render', 'export', 'video', 'synth'])
+def test_a_signal_at_any_moment_of_a_command_ends_it_in_one_line(tiny_run, tmp_path, command):
+    """SIGTERM killed every command but optimize without a word (status -15), Ctrl-C in the
+    first tenth of a second printed an import traceback, and either signal in the ~0.4 s of
+    Python's shutdown after the command killed the process silently (issue 63, item 6). Now,
+    at seeded moments from the start-up to past the end, the command ends with status 0 (done
+    before the signal) or 130 and the one line ``interrupted``, never a traceback."""
+    import random
+    import shutil
+    import subprocess
+    import sys
+    import time
+    rng = random.Random(f'63 {command}')
+    run = tmp_path / 'run'
+    shutil.copytree(tiny_run, run)
+    statuses = []
+    for k in range(4):
+        folder = tmp_path / f'case{k}'
+        folder.mkdir()
+        argv = [str(a) for a in _commands(run, folder)[command]]
+        sig = (signal.SIGINT, signal.SIGTERM)[k % 2]
+        proc = subprocess.Popen([sys.executable, '-m', 'mi_nerfpp', *argv],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        time.sleep(10 ** rng.uniform(-1.3, 0.7))      # 0.05 to 5 s
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=300)
+        text = err.decode(errors='replace')
+        assert proc.returncode in (0, 130) and 'Traceback' not in text, (sig, text)
+        if proc.returncode == 130:
+            assert text.rstrip().splitlines()[-1] == 'interrupted', text
+        statuses.append(proc.returncode)
+    print(command, statuses)

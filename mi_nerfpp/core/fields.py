@@ -538,8 +538,12 @@ def _ratio(v):
 # the stored parameters.
 MAX_RESOLUTION = 2048
 FIELD_ENTRIES = {
-    'resolutions': (_whole_list(2, MAX_RESOLUTION),
-                    f'a list of whole numbers from 2 to {MAX_RESOLUTION}'),
+    'kind': (lambda v: v in ('grid', 'nerf', 'vanilla') if isinstance(v, str) else False,
+             "'grid', 'nerf' or 'vanilla'"),
+    'domain': (lambda v: isinstance(v, str) and v in DOMAINS,
+               ' or '.join(map(repr, DOMAINS))),
+    'resolutions': (lambda v: _whole_list(2, MAX_RESOLUTION)(v) and len(v) >= 1,
+                    f'a list of one or more whole numbers from 2 to {MAX_RESOLUTION}'),
     'planes': (_whole_list(2, 1 << 15), 'a list of whole numbers from 2 to 32768'),
     'sparse': (_whole_list(2, 1 << 14), 'a list of whole numbers from 2 to 16384'),
     'sparse_blocks': (lambda v: v is None or (_whole_list(1)(v) and len(v) == 3),
@@ -562,19 +566,22 @@ FIELD_ENTRIES = {
     'density_bias': (_real, 'a finite number'),
     'warp_radius': (lambda v: _real(v) and 0 <= v < 1, 'a number in [0, 1)'),
     'antialias': (lambda v: isinstance(v, bool), 'true or false'),
-    'color': (lambda v: v in COLOR_MODES, ' or '.join(map(repr, COLOR_MODES))),
-    'density_activation': (lambda v: v in ACTIVATIONS, ' or '.join(map(repr, ACTIVATIONS))),
+    'color': (lambda v: isinstance(v, str) and v in COLOR_MODES,
+              ' or '.join(map(repr, COLOR_MODES))),
+    'density_activation': (lambda v: isinstance(v, str) and v in ACTIVATIONS,
+                           ' or '.join(map(repr, ACTIVATIONS))),
 }
 
 
 def check_field_config(config: dict, domain) -> None:
     """ValueError naming the first entry of the stored config of a field over ``domain`` that
     is not what :data:`FIELD_ENTRIES` says it must be."""
+    field = f'the {domain} field' if isinstance(domain, str) and domain in DOMAINS else 'a field'
     for entry, value in config.items():
         if entry in FIELD_ENTRIES and not FIELD_ENTRIES[entry][0](value):
             shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + '...'
-            raise ValueError(f'the {domain} field entry {entry!r} must be '
-                             f'{FIELD_ENTRIES[entry][1]}, got {shown}')
+            raise ValueError(f'{field} entry {entry!r} must be {FIELD_ENTRIES[entry][1]}, '
+                             f'got {shown}')
 
 
 def grid_field(domain, seed=0, **config):
@@ -660,7 +667,11 @@ class MLPField(Field):
 # ----------------------------------------------------------------------------- factory
 
 def make_field(config, seed=0):
-    """Build a field from its ``config`` dict (as stored in checkpoints)."""
+    """Build a field from its ``config`` dict (as stored in checkpoints; checked:
+    :func:`check_field_config`)."""
+    if not isinstance(config, dict):
+        raise ValueError(f'a field config must be an object, got {type(config).__name__}')
+    check_field_config(config, config.get('domain'))
     cfg = dict(config)
     kind = cfg.pop('kind', 'grid')
     domain = cfg.pop('domain')

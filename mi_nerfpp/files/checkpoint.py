@@ -232,21 +232,46 @@ META = {
 
 def _occupancy(v):
     """{volume: {domain, resolution, threshold}}"""
-    return isinstance(v, dict) and all(
-        isinstance(c, dict) and _count(c.get('resolution', 64))
-        and c.get('resolution', 64) <= 4096 and _seconds(c.get('threshold', 0.0))
-        for c in v.values())
+    return isinstance(v, dict) and set(v) <= {'fg', 'bg'} and all(
+        isinstance(c, dict) and set(c) <= {'domain', 'resolution', 'threshold'}
+        and c.get('domain') == {'fg': 'ball', 'bg': 'inverted_sphere'}[k]
+        and _count(c.get('resolution', 64)) and 4 <= c.get('resolution', 64) <= 4096
+        and _seconds(c.get('threshold', 0.0)) for k, c in v.items())
 
 
 # What the model's entries of a checkpoint's config must be besides its fields' (which
 # :func:`~mi_nerfpp.core.fields.check_field_config` checks) and its normalization: checked
 # before anything is built from them.
+def _normalization(v):
+    """{center: [x, y, z], scale: s}"""
+    center, scale = (v.get('center'), v.get('scale')) if isinstance(v, dict) else (None, None)
+    return (isinstance(center, list) and len(center) == 3
+            and all(_number(c) and math.isfinite(c) for c in center)
+            and _seconds(scale) and scale > 0)
+
+
+def _sample_counts(v):
+    """{fg_samples, bg_samples, fine_samples, near}"""
+    counts = ('fg_samples', 'bg_samples', 'fine_samples')
+    return isinstance(v, dict) and set(v) <= {*counts, 'near'} and all(
+        _count(v[k]) and v[k] <= 1 << 16 for k in counts if k in v) and (
+        _seconds(v['near']) if 'near' in v else True)
+
+
 MODEL = {
+    'fg': (lambda v: isinstance(v, dict), 'an object (the foreground field)'),
+    'bg': (lambda v: v is None or isinstance(v, dict), 'an object (the background field) or '
+           'null'),
+    'normalization': (_normalization, 'an object of a center (three finite numbers) and a '
+                      'scale > 0'),
+    'sampling': (_sample_counts, 'an object of fg_samples, bg_samples and fine_samples (whole '
+                 'numbers >= 0) and near (a distance >= 0)'),
     'appearance_images': (lambda v: _count(v) and v < 2 ** 31, 'a whole number >= 0'),
     'pose_images': (lambda v: _count(v) and v < 2 ** 31, 'a whole number >= 0'),
     'embedding_images': (lambda v: _count(v) and v < 2 ** 31, 'a whole number >= 0'),
-    'occupancy': (_occupancy, 'an object of grids, each with a resolution from 0 to 4096 and '
-                  'a threshold >= 0'),
+    'occupancy': (_occupancy, 'an object of the grids fg (domain ball) and bg (domain '
+                  'inverted_sphere), each with a resolution from 4 to 4096 and a threshold '
+                  '>= 0'),
     'color_space': (lambda v: v in ('srgb', 'linear'), "'srgb' or 'linear'"),
     'composite': (lambda v: v in ('srgb', 'linear'), "'srgb' or 'linear'"),
 }
@@ -333,9 +358,9 @@ def from_arrays(z: dict, path, seed=0):
                               f'{", ".join(map(str, READABLE_VERSIONS))}')
     config = _config(z, path)
     meta = check_meta(config.get('meta', {}), path)
-    _check(config, MODEL, 'its model config is damaged', path)
     try:
         config = migrate_config(config, version)
+        _check(config, MODEL, 'its model config is damaged', path)
         fg = make_field(config['fg'], seed=seed)
         bg = make_field(config['bg'], seed=seed + 1) if config.get('bg') else None
         occupancy = {k: OccupancyGrid(density=z[f'occupancy/{k}'], **c)
@@ -357,6 +382,9 @@ def from_arrays(z: dict, path, seed=0):
     except (KeyError, ValueError, TypeError, AttributeError, OverflowError, ZeroDivisionError,
             RuntimeError, MemoryError) as e:     # what a damaged config meets as it is built
         text = ' '.join(str(e).split())     # a library's message may span lines
+        if isinstance(e, KeyError):         # a missing key, or a message of our own
+            key = str(e.args[0]) if e.args else ''
+            text = key if ' ' in key else f'it has no entry {key!r}'
         raise CheckpointError(f'{path}: invalid config: {text}: {REMEDY}') from None
 
     expected = model.parameters()

@@ -93,7 +93,8 @@ def test_missing_parameter_and_bad_kind_and_nan(tmp_path):
     cfg = json.loads(str(np.load(p)['config']))
     cfg['fg']['kind'] = 'hashgrid'
     _rewrite(p, config=np.array(json.dumps(cfg)))
-    with pytest.raises(CheckpointError, match="invalid config: unknown field kind 'hashgrid'"):
+    with pytest.raises(CheckpointError, match="invalid config: the ball field entry 'kind' must be "
+                       "'grid', 'nerf' or 'vanilla', got 'hashgrid'"):
         load_checkpoint(p)
 
     save_checkpoint(p, tiny_model())

@@ -35,7 +35,8 @@ OPENED_END_TO_END = 8
 # The entries of the training record that only a resumed run reads.
 RESUMED = [('meta', key) for key in ('iteration', 'elapsed', 'rng', 'history', 'data')]
 # The run folder: small grids, and the parts a model may have besides its volumes (per-photo
-# colour transforms and codes, pose corrections, a sparse level, the error map's state).
+# colour transforms and codes, pose corrections, a sparse level, the error map's state). A
+# resumed run takes the same options but --error-rays (its own is read back): RUN[:-2].
 RUN = TINY + ['--appearance', '--refine-poses', '--appearance-embedding', '2',
               '--occupancy-res', '8', '--grid-sparse', '16', '--sparse-at', '0.1',
               '--error-rays', '0.5']
@@ -192,10 +193,12 @@ def test_commands_end_clearly_on_a_damaged_run_folder(run_folder, capture, capsy
             seen[(kind, result)] += 1
             if entry[:2] in RESUMED:
                 status, _, err = run_cli(capsys, 'optimize', capture, '--out', folder,
-                                         '--resume', *RUN[:-4], '--iterations', '3')
+                                         '--resume', *RUN[:-2], '--iterations', '3')
                 seen[('resume', _clear(status, err, path))] += 1
             if len(tried) == 2:
                 break
     assert seen[('opened', 'ok')] > 0
     assert seen[('refused', 'clear')] > 0
+    if part == 'meta':
+        assert seen[('resume', 'ok')] > 0
     print(part, dict(seen))

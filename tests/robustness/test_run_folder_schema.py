@@ -7,7 +7,8 @@ retyped or given an odd value, :data:`CORRUPTIONS` times per entry, seeded. Each
 config is read as the commands read a run folder (:func:`~mi_nerfpp.files.checkpoint.from_arrays`
 on the file's arrays, then :func:`~mi_nerfpp.training.config.stored_config` and
 :meth:`~mi_nerfpp.training.config.TrainConfig.from_stored`): it opens, or it is refused with a
-:class:`~mi_nerfpp.files.checkpoint.CheckpointError` naming the file - never another exception.
+:class:`~mi_nerfpp.files.checkpoint.CheckpointError` naming the file in one line of the project's
+own (no message of Python, NumPy or Dr.Jit passed on) - never another exception.
 
 Then end to end, through the command line on a real file: per entry, the first damage that is
 refused and the first that opens go through ``evaluate`` (and, for the training record,
@@ -19,6 +20,7 @@ import json
 import math
 import os
 import random
+import re
 import shutil
 
 import numpy as np
@@ -32,6 +34,10 @@ CORRUPTIONS = 200       # per entry (issue 63: at least 200 per run-folder field
 # End to end, a damaged config that opens renders with kernels of its own (seconds each): so
 # many entries' (drawn, seeded) go through evaluate; every entry's refusal does.
 OPENED_END_TO_END = 8
+# What Python's, NumPy's and Dr.Jit's own messages say, which a refusal must not pass on.
+LIBRARY_TEXT = re.compile(r'NoneType|object is not|has no attribute|jit_|drjit|nanobind|'
+                          r'__init__\(\)|unhashable|not supported between|positional argument|'
+                          r'Invoked with|cannot convert|index-sized')
 # The entries of the training record that only a resumed run reads.
 RESUMED = [('meta', key) for key in ('iteration', 'elapsed', 'rng', 'history', 'data')]
 # The run folder: small grids, and the parts a model may have besides its volumes (per-photo
@@ -140,6 +146,7 @@ def test_every_damaged_entry_opens_or_is_refused_naming_the_file(run_folder):
                 outcomes['refused'] += 1
                 text = str(e)
                 assert text.startswith(f'{path}: ') and '\n' not in text, (entry, how, text)
+                assert not LIBRARY_TEXT.search(text), (entry, how, text)
             except Exception as e:     # noqa: BLE001 - anything else is what this test finds
                 pytest.fail(f'{".".join(entry)} = {how}: {type(e).__name__}: {e}')
     assert sum(outcomes.values()) == len(entries) * CORRUPTIONS

@@ -4,6 +4,7 @@ Imported as ``from tests.helpers import ...``; the fixtures built on them are in
 """
 import contextlib
 import os
+import shutil
 
 import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
 import drjit as dr
@@ -56,6 +57,20 @@ def blender_python() -> str:
     if not os.path.exists(python):
         pytest.fail('bpy 4.2 is not installed: run scripts/setup.sh --test (it makes .venv-bpy)')
     return python
+
+
+def debian_blender() -> str:
+    """Debian's Blender (3.4, the command ``blender``; scripts/setup.sh --test installs it, with
+    its bundled add-ons such as Nuke .chan); the calling test fails, saying how to install it,
+    where there is none, or skips where ``MI_NERFPP_NO_BLENDER`` is set."""
+    import pytest
+    blender = shutil.which('blender')
+    if blender is None:
+        if os.environ.get('MI_NERFPP_NO_BLENDER'):
+            pytest.skip('blender not installed and MI_NERFPP_NO_BLENDER is set')
+        pytest.fail('blender is not installed: run scripts/setup.sh --test (apt package blender), or '
+                    'set MI_NERFPP_NO_BLENDER=1 to skip this check')
+    return blender
 
 
 def field_inputs(domain, n=256, seed=1):

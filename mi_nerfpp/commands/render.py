@@ -139,9 +139,10 @@ def tracked_sensor(scene, args):
     number = shot.frames[0].number if args.frame is None else shot.frame(args.frame).number
     sensors = scene.sensors()
     film = tuple(sensors[0].film().crop_size()) if sensors else DEFAULT_RESOLUTION
-    width, height = shot.image_size(*film)
-    camera = shot.within((number, number)).cameras(
-        width, height, capture_normalizations(integrator.meta.get('dataset')))[number]
+    frame = shot.within((number, number))       # its own film: the aspect may change
+    width, height = frame.image_size(*film)
+    camera = frame.cameras(width, height,
+                           capture_normalizations(integrator.meta.get('dataset')))[number]
     spp = sensors[0].sampler().sample_count() if sensors else 1
     desc = mitsuba_sensor_dict(camera, spp=spp)
     desc['near_clip'] = integrator.model.normalization.to_world_distance(SCENE_NEAR_CLIP)

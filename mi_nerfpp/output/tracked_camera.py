@@ -29,8 +29,13 @@ principal point from the offsets, ``cx = width/2 - horizontalApertureOffset·fx/
 ``cy = height/2 + verticalApertureOffset·fx/focalLength``), the inverse of ``export``'s USD
 cameras for square pixels; a ``.chan``'s and nerfstudio's vertical field of view spans the
 height, the principal point at the centre. Pixels are square. A file's own image size is
-nerfstudio's ``render_width`` x ``render_height``; otherwise the caller's width (the training
-images', the scene's film) with the USD film's aspect, or the caller's size for a ``.chan``.
+nerfstudio's ``render_width`` x ``render_height`` (its per-frame ``aspect`` then ignored, as
+``ns-render`` ignores it); otherwise the caller's width (the training images', the scene's film)
+with the film's aspect (USD's apertures, nerfstudio's ``aspect``), or the caller's size for a
+``.chan``. A film whose aspect changes between frames (an animated aperture, nerfstudio
+keyframes of several aspects) gives each frame of ``render`` its own size; a video's frames
+share one, so its size is then asked for (``--res``), each frame keeping its field of view
+across the extent that spans the image.
 
 **The frame.** The cameras are in the frame of ``export``'s files: the capture's world, COLMAP's
 for a run trained from photos (the normalization structure from motion applied, undone by
@@ -72,6 +77,8 @@ FRAME_DIGITS = 4
 Z_UP_TO_Y_UP = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
 # How far from a rotation (after its scale is divided out) a camera's transform may be.
 ROTATION_TOLERANCE = 1e-4
+# How far (relative) the film aspects of a shot's frames may differ and still share one size.
+ASPECT_TOLERANCE = 1e-4
 
 
 class TrackedCameraError(CameraPathError):
@@ -175,12 +182,23 @@ class Shot:
 
     def image_size(self, width: int, height: int) -> tuple:
         """The frames' image size: the file's own, else ``width`` with the film's aspect,
-        else ``width`` x ``height`` (module docs)."""
+        else ``width`` x ``height`` (module docs). Frames whose film aspects differ have no
+        one size: refused, naming the first two, unless the file gives the size."""
         if self.size:
             return self.size
-        aspect = self.frames[0].window.aspect
-        if aspect is None:
+        aspects = [(f.number, f.window.aspect) for f in self.frames
+                   if f.window.aspect is not None]
+        if not aspects:
             return int(width), int(height)
+        aspect = aspects[0][1]
+        for (before, previous), (number, other) in zip(aspects, aspects[1:]):
+            if abs(other / aspect - 1.0) > ASPECT_TOLERANCE:
+                raise TrackedCameraError(
+                    f'{self.path}: the film aspect changes from {previous:.4g} at frame {before} '
+                    f'to {other:.4g} at frame {number}, and the frames of a video share one '
+                    f'image size: give it with --res WxH (each frame keeps its field of view '
+                    f'across the {"width" if self.frames[0].window.fit == "width" else "height"}'
+                    f'), or ask for frames of one aspect with --frame-range')
         return int(width), max(1, int(round(width / aspect)))
 
     def cameras(self, width: int, height: int, normalizations=()) -> dict:

@@ -5,7 +5,6 @@ import contextlib
 import glob
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -20,7 +19,7 @@ from mi_nerfpp.data import Camera, mitsuba_sensor_dict
 from mi_nerfpp.core.frame import Normalization
 from mi_nerfpp.core.geometry import rotation_zxy
 from mi_nerfpp.core.model import NeRFPPModel
-from tests.helpers import AnalyticField, blender_python
+from tests.helpers import AnalyticField, blender_python, debian_blender
 
 from pxr import Gf, Usd, UsdGeom  # noqa: E402  (usd-core: a test dependency, setup.sh)
 
@@ -181,12 +180,7 @@ def test_blender_builds_the_usd_camera_and_projects_like_the_exr_header(exported
     """Headless Blender (Debian's, built without USD import: the camera is built from the USD
     file through usd-core, as a user's script would) projects points onto the pixels that
     the EXR header's worldToNDC gives for the same camera."""
-    blender = shutil.which('blender')
-    if blender is None:
-        if os.environ.get('MI_NERFPP_NO_BLENDER'):
-            pytest.skip('blender not installed and MI_NERFPP_NO_BLENDER is set')
-        pytest.fail('blender is not installed: run scripts/setup.sh --test (apt package blender), or '
-                    'set MI_NERFPP_NO_BLENDER=1 to skip this check')
+    blender = debian_blender()
     from mi_nerfpp.output.views import camera_attributes
     run, out = exported
     (split, stem), camera = sorted(_dataset_cameras(run).items())[0]

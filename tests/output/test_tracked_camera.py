@@ -14,7 +14,7 @@ from mi_nerfpp.data import Camera, opencv_to_opengl
 from mi_nerfpp.jobs import export
 from mi_nerfpp.output.tracked_camera import (TrackedCameraError, read_shot,
                                              shot_format)
-from tests.helpers import blender_python, orbit_camera
+from tests.helpers import blender_python, debian_blender, orbit_camera
 
 from pxr import Usd, UsdGeom  # noqa: E402  (usd-core: a test dependency, setup.sh)
 
@@ -109,6 +109,61 @@ def test_a_nerfstudio_camera_path_reads_back_identical(tmp_path):
     for number, camera in zip(shot.numbers, cameras):
         assert_same_camera(shot.cameras(WIDTH, HEIGHT)[number], camera, tol=1e-12)
     assert shot.frame_name.format(7) == 'camera_path.0007'
+
+
+def _nerfstudio_path(path, cameras, aspects, size=None):
+    """nerfstudio's camera path of ``cameras`` with a per-frame ``aspect`` (``size``: its
+    render_width x render_height, none where None)."""
+    data = {'camera_type': 'perspective', 'fps': 24, 'camera_path': [
+        {'camera_to_world': opencv_to_opengl(c.c2w).ravel().tolist(), 'fov': c.fov_y,
+         'aspect': a} for c, a in zip(cameras, aspects)]}
+    if size:
+        data['render_width'], data['render_height'] = size
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_a_film_aspect_that_changes_between_frames(tmp_path, tiny_run, capsys):
+    """nerfstudio keyframes of two aspects (4:3, then 2:1), no render size: each frame alone
+    has its own size (the width given, the height from its aspect) with its vertical field of
+    view across that height; a video of all of them has no one size: one line naming the
+    frames and --res; with --res, or a range of one aspect, it renders; with the file's
+    render size, the per-frame aspect is ignored, as ns-render ignores it."""
+    cameras = known_cameras(off_centre=False)
+    path = _nerfstudio_path(tmp_path / 'aspects.json', cameras, [4 / 3, 4 / 3, 2.0, 2.0])
+    shot = read_shot(path)
+    assert shot.within((0, 1)).image_size(48, 1) == (48, 36)
+    assert shot.within((2, 3)).image_size(48, 1) == (48, 24)
+    for number in (1, 2):
+        frame = shot.within((number, number))
+        size = frame.image_size(48, 1)
+        camera = frame.cameras(*size)[number]
+        assert camera.K[1, 1] == pytest.approx(cameras[number].K[1, 1] * size[1] / HEIGHT)
+        assert camera.K[0, 2] == size[0] / 2 and camera.K[1, 2] == size[1] / 2
+    with pytest.raises(TrackedCameraError) as caught:
+        shot.image_size(48, 1)
+    message = str(caught.value)
+    assert message.startswith(str(path)) and '\n' not in message
+    assert 'changes from 1.333 at frame 1 to 2 at frame 2' in message and '--res WxH' in message
+    assert 'across the height' in message
+    fixed = read_shot(_nerfstudio_path(tmp_path / 'fixed.json', cameras, [4 / 3, 4 / 3, 2.0, 2.0],
+                                       size=(WIDTH, HEIGHT)))
+    assert fixed.image_size(48, 1) == (WIDTH, HEIGHT)
+    for number, camera in fixed.cameras(WIDTH, HEIGHT).items():
+        assert_same_camera(camera, cameras[number], tol=1e-12)
+    # The commands: one line without a size, frames with --res or a range of one aspect.
+    capsys.readouterr()
+    assert main(['video', tiny_run, '--path', str(path), '-o', str(tmp_path / 'v.gif')]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'changes from 1.333 at frame 1 to 2 at frame 2' in err[0], err
+    frames = tmp_path / 'frames'
+    assert main(['video', tiny_run, '--path', str(path), '--frame-range', '2-3', '--exr',
+                 '--frames-dir', str(frames), '-o', str(tmp_path / 'v.gif')]) == 0
+    from mi_nerfpp.files.exr import read_exr
+    from mi_nerfpp.jobs.run import open_run
+    width = open_run(tiny_run)[3].train.cameras[0].width      # the training images' width
+    for number in (2, 3):
+        assert read_exr(frames / f'aspects.{number:04d}.exr')['R'].shape == (width // 2, width)
 
 
 def test_cameras_are_placed_as_export_wrote_them_also_for_a_photo_run(tmp_path):
@@ -242,6 +297,117 @@ def blender_camera(frame, width, height) -> Camera:
     K = np.array([[P[0, 0] * width / 2, 0, (1 - P[0, 2]) * width / 2],
                   [0, P[1, 1] * height / 2, (1 + P[1, 2]) * height / 2], [0, 0, 1]])
     return Camera(K, c2w, width, height)
+
+
+BLENDER_CHAN = r"""
+import json, math, sys
+import addon_utils
+import bpy
+args = json.loads(sys.argv[sys.argv.index('--') + 1])
+addon_utils.enable('io_anim_nuke_chan', default_set=True)
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable('io_anim_nuke_chan', default_set=True)
+scene = bpy.context.scene
+width, height = args['size']
+scene.render.resolution_x, scene.render.resolution_y = width, height
+
+
+def camera(name):
+    data = bpy.data.cameras.new(name)
+    data.sensor_fit, data.sensor_width, data.sensor_height = 'HORIZONTAL', *args['sensor']
+    obj = bpy.data.objects.new(name, data)
+    scene.collection.objects.link(obj)
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+    return obj
+
+
+def frames(obj, numbers):
+    out = {}
+    for number in numbers:
+        scene.frame_set(number)
+        projection = obj.calc_matrix_camera(bpy.context.evaluated_depsgraph_get(), x=width,
+                                            y=height)
+        out[number] = {'matrix_world': [list(row) for row in obj.matrix_world],
+                       'projection': [list(row) for row in projection]}
+    return out
+
+
+# A camera keyframed in Blender (all three angles, rotation mode ZXY), written by the add-on.
+shot = camera('shot')
+shot.rotation_mode = 'ZXY'
+for number, (location, degrees, lens) in zip(args['numbers'], args['keys']):
+    shot.location = location
+    shot.rotation_euler = [math.radians(a) for a in degrees]
+    shot.data.lens = lens
+    shot.keyframe_insert('location', frame=number)
+    shot.keyframe_insert('rotation_euler', frame=number)
+    shot.data.keyframe_insert('lens', frame=number)
+scene.frame_start, scene.frame_end = args['numbers'][0], args['numbers'][-1]
+assert bpy.ops.export.export_chan(filepath=args['written'], y_up=False,
+                                  rotation_order='ZXY') == {'FINISHED'}
+written = frames(shot, args['numbers'])
+# The project's .chan read by the add-on onto another camera.
+shot.select_set(False)
+read = camera('read')
+assert bpy.ops.import_scene.import_chan(filepath=args['read'], z_up=False, rotation_order='ZXY',
+                                        sensor_width=args['sensor'][0],
+                                        sensor_height=args['sensor'][1]) == {'FINISHED'}
+print('CHAN ' + json.dumps({'written': written, 'read': frames(read, args['read_numbers'])}))
+"""
+
+
+def _blender_gl_camera(frame, width, height) -> Camera:
+    """Blender's camera of a frame in its own world, OpenCV, K from its projection matrix."""
+    c2w = np.array(frame['matrix_world']) @ np.diag([1.0, -1, -1, 1])
+    P = np.array(frame['projection'])
+    K = np.array([[P[0, 0] * width / 2, 0, (1 - P[0, 2]) * width / 2],
+                  [0, P[1, 1] * height / 2, (1 + P[1, 2]) * height / 2], [0, 0, 1]])
+    return Camera(K, c2w, width, height)
+
+
+def test_a_chan_reads_and_writes_as_blenders_nuke_chan_addon(tmp_path):
+    """The .chan column layout and rotation order checked against a reader and writer this
+    project did not write: Blender's bundled Nuke .chan add-on (io_anim_nuke_chan, Debian's
+    Blender 3.4; rotation order ZXY, no axis swap, the vertical field of view of a horizontal
+    sensor fit of the images' aspect). A camera keyframed in Blender with all three angles and
+    the lens animated, exported by the add-on, reads back here as Blender's own matrices; the
+    project's export (cameras rolled about their axis) imported by the add-on gives Blender
+    cameras equal to the ones written."""
+    blender = debian_blender()
+    numbers = [1001, 1002, 1003, 1004]
+    keys = [((0.4 + 0.2 * i, -0.3 + 0.5 * i, 2.0 - 0.1 * i), (-12.0 + 9 * i, 25.0 + 40 * i,
+             7.0 - 11 * i), 28.0 + 6 * i) for i in range(4)]
+    cameras = known_cameras(off_centre=False)
+    for k, camera in enumerate(cameras):            # rolled: rz of the ZXY angles not zero
+        roll = np.radians(10.0 + 15 * k)
+        turn = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0],
+                         [0, 0, 1]])
+        camera.c2w[:3, :3] = camera.c2w[:3, :3] @ turn
+    ours, theirs = tmp_path / 'ours.chan', tmp_path / 'blender.chan'
+    export.write_chan(str(ours), cameras)
+    args = {'size': [WIDTH, HEIGHT], 'sensor': [36.0, 36.0 * HEIGHT / WIDTH],
+            'numbers': numbers, 'keys': keys, 'written': str(theirs), 'read': str(ours),
+            'read_numbers': [1, 2, 3, 4]}
+    script = tmp_path / 'chan.py'
+    script.write_text(BLENDER_CHAN)
+    done = subprocess.run([blender, '-b', '--factory-startup', '--python-exit-code', '1',
+                           '--python', str(script), '--', json.dumps(args)],
+                          capture_output=True, text=True, timeout=300)
+    line = next((x for x in done.stdout.splitlines() if x.startswith('CHAN ')), None)
+    assert done.returncode == 0 and line, done.stdout[-3000:] + done.stderr[-3000:]
+    blender_frames = json.loads(line[len('CHAN '):])
+    # Blender's .chan, read here: frames as in the file, poses and K as Blender's.
+    shot = read_shot(theirs)
+    assert shot.numbers == numbers
+    read = shot.cameras(WIDTH, HEIGHT)
+    for number in numbers:
+        expected = _blender_gl_camera(blender_frames['written'][str(number)], WIDTH, HEIGHT)
+        assert_same_camera(read[number], expected, tol=1e-5)
+    # The project's .chan, read by Blender: its cameras are the ones written.
+    for number, camera in zip([1, 2, 3, 4], cameras):
+        got = _blender_gl_camera(blender_frames['read'][str(number)], WIDTH, HEIGHT)
+        assert_same_camera(got, camera, tol=1e-5)
 
 
 def test_a_blender_usd_camera_reads_back_as_blenders_matrices(blender_shot):

@@ -49,6 +49,35 @@ def test_ray_frames_equal_single_process_frames(tiny_run, cluster, tmp_path):
     assert_same_frames(tmp_path / 'here_frames', tmp_path / 'ray_frames', 6)
 
 
+def test_ray_frames_of_a_tracked_camera_carry_its_frame_numbers(tiny_run, cluster, tmp_path):
+    """``video --path shot.chan --frame-range 1002-1004 --ray``: the Ray workers write
+    ``shot.1002`` .. ``shot.1004`` (the file's numbers, nothing else), equal to the frames of
+    one process."""
+    from mi_nerfpp.jobs import export
+    from mi_nerfpp.jobs.run import open_run
+    dataset = open_run(tiny_run)[3]
+    chan = tmp_path / 'shot.chan'
+    export.write_chan(str(chan), dataset.train.cameras[:5])     # frames 1-5
+    with open(chan) as f:                                       # renumbered 1001-1005
+        lines = [str(1000 + int(line.split()[0])) + line[line.index(' '):] for line in f]
+    chan.write_text(''.join(lines))
+    shot = ['--path', str(chan), '--frame-range', '1002-1004', '--res', '24x18', '--exr']
+    for where, extra in (('here', []), ('there', ['--ray', 'auto', '--workers', '2'])):
+        assert main(['video', tiny_run, '-o', str(tmp_path / f'{where}.gif'), '--frames-dir',
+                     str(tmp_path / where)] + shot + extra) == 0
+    names = [f'shot.{n}.{ext}' for n in (1002, 1003, 1004) for ext in ('exr', 'png')]
+    for where in ('here', 'there'):
+        assert sorted(n for n in os.listdir(tmp_path / where) if not n.endswith('.json')) \
+            == names
+    for number in (1002, 1003, 1004):
+        a = read_exr(tmp_path / 'here' / f'shot.{number}.exr')
+        b = read_exr(tmp_path / 'there' / f'shot.{number}.exr')
+        assert set(a) == set(b) and a['R'].shape == (18, 24)
+        for name in a:
+            np.testing.assert_allclose(a[name], b[name], rtol=1e-4, atol=1e-5,
+                                       err_msg=f'frame {number} {name}')
+
+
 def test_killed_worker_still_yields_every_frame(tiny_run, cluster, tmp_path):
     args = build_parser().parse_args(['video', tiny_run, '--frames', '8', '--res', '24x18'])
     checkpoint, cameras, job = cameras_of(args)

@@ -12,6 +12,15 @@ ADVICE = {
     errno.EROFS: ': write somewhere else (--out)',
 }
 _EXCEPTION_LINE = re.compile(r'^(?:[A-Za-z_][\w.]*(?:Error|Exception)): (.+)$')
+# The most characters of a value that an error message shows.
+SHOWN_CHARS = 60
+
+
+def shown(value) -> str:
+    """A value as an error message shows it: its ``repr`` (a list, tuple or dict as ``str``
+    writes it, as in JSON), cut to :data:`SHOWN_CHARS` with ``...``."""
+    text = str(value) if isinstance(value, (list, tuple, dict)) else repr(value)
+    return text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS - 3] + '...'
 
 
 def error_line(error: BaseException) -> str:

@@ -43,6 +43,7 @@ import numpy as np
 from mi_nerfpp.core.arrays import llvm_backend
 from mi_nerfpp.core.encodings import CHANNELS, DenseLevels, PlaneLevels, SparseLevels
 from mi_nerfpp.core.geometry import ball_warp, grid_coordinates
+from mi_nerfpp.errors import shown
 
 DOMAINS = {'ball': 3, 'inverted_sphere': 4}
 # How a grid field colours a ray: 'deferred' (features composited, one MLP per ray) or
@@ -579,9 +580,8 @@ def check_field_config(config: dict, domain) -> None:
     field = f'the {domain} field' if isinstance(domain, str) and domain in DOMAINS else 'a field'
     for entry, value in config.items():
         if entry in FIELD_ENTRIES and not FIELD_ENTRIES[entry][0](value):
-            shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + '...'
             raise ValueError(f'{field} entry {entry!r} must be {FIELD_ENTRIES[entry][1]}, '
-                             f'got {shown}')
+                             f'got {shown(value)}')
 
 
 def grid_field(domain, seed=0, **config):

@@ -56,6 +56,7 @@ from mi_nerfpp.core.render import SKIPPING, Sampling
 from mi_nerfpp.core.coverage import CoverageFill
 from mi_nerfpp.files.atomic import atomic_write_path
 from mi_nerfpp.files.readers import FileReadError, decode_json, read_npz
+from mi_nerfpp.errors import shown
 
 FORMAT = 'mi-nerfpp-checkpoint'
 VERSION = 4
@@ -142,8 +143,8 @@ def save_checkpoint(path, model, meta=None, state=None):
         arrays[f'state/{k}'] = np.asarray(v)
     bad = _non_finite(arrays)
     if bad:
-        shown = ', '.join(bad[:4]) + (f' and {len(bad) - 4} more' if len(bad) > 4 else '')
-        raise NonFiniteStateError(f'{shown} hold NaN or infinite values')
+        names = ', '.join(bad[:4]) + (f' and {len(bad) - 4} more' if len(bad) > 4 else '')
+        raise NonFiniteStateError(f'{names} hold NaN or infinite values')
     with atomic_write_path(path) as tmp, open(tmp, 'wb') as f:
         np.savez(f, **arrays)
         f.flush()
@@ -282,10 +283,8 @@ def _check(config, schema, where, path):
     (check, what it must be)) refuses."""
     for key, (ok, need) in schema.items():
         if key in config and not ok(config[key]):
-            shown = repr(config[key])
-            shown = shown if len(shown) <= 60 else shown[:57] + '...'
-            raise CheckpointError(f'{path}: {where}: {key} must be {need}, got {shown}: '
-                                  f'{REMEDY}')
+            raise CheckpointError(f'{path}: {where}: {key} must be {need}, got '
+                                  f'{shown(config[key])}: {REMEDY}')
 
 
 def check_meta(meta, path) -> dict:

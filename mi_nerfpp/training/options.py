@@ -26,6 +26,8 @@ import argparse
 import dataclasses
 import numbers
 
+from mi_nerfpp.errors import shown
+
 
 def option(default, help, **cli):
     """A dataclass field with a default and its command-line description."""
@@ -112,11 +114,11 @@ def check_value(f, value):
             value, (list, tuple)) else None
         if items is None or None in items or (sequence == '+' and not items):
             need = f'one or more {several}' if sequence == '+' else f'a list of {several}'
-            raise ValueError(f'{_spelled(f)} must be {need}{unset}, got {_shown(value)}')
+            raise ValueError(f'{_spelled(f)} must be {need}{unset}, got {shown(value)}')
         return items
     checked = _of_kind(value, kind)
     if checked is None:
-        raise ValueError(f'{_spelled(f)} must be {one}{unset}, got {_shown(value)}')
+        raise ValueError(f'{_spelled(f)} must be {one}{unset}, got {shown(value)}')
     choices = f.metadata.get('choices')
     if choices and checked not in choices:
         raise ValueError(f'{_spelled(f)} must be {" or ".join(map(repr, choices))}, got '
@@ -129,12 +131,6 @@ def _spelled(f):
     if 'joint' in f.metadata:
         return f"{f.metadata['joint']} ({f.metadata['metavar']})"
     return _flag(f)
-
-
-def _shown(value):
-    """A value in a message: as JSON would write it, shortened."""
-    text = repr(value) if not isinstance(value, (list, tuple, dict)) else str(value)
-    return text if len(text) <= 60 else text[:57] + '...'
 
 
 def _flag(f):

@@ -3,11 +3,12 @@
 Importing the package and a command takes seconds (Mitsuba, Dr.Jit, LLVM, viser) before
 :func:`mi_nerfpp.commands.cli.main` and its handler run. On the command line (:func:`command_line`),
 :func:`catch_signals_while_starting` - the first thing the package does - lets Ctrl-C (SIGINT)
-or SIGTERM in that time end the process with ``interrupted`` and status 130, not an import
-traceback (or an ImportError of an extension whose start-up it broke). The command's own
-handling takes over in :func:`end_of_start`, where SIGTERM raises KeyboardInterrupt as Ctrl-C
-does, so that every command stops as when interrupted (its outputs whole or absent, a run's
-checkpoint saved) with status 130. A signal that is ignored (a background job) or handled by
+or SIGTERM in that time end the process with ``interrupted`` and the shell's status of the
+signal (:func:`interrupted_status`: 130 for Ctrl-C, 143 for SIGTERM), not an import traceback
+(or an ImportError of an extension whose start-up it broke). The command's own handling takes
+over in :func:`end_of_start`, where SIGTERM raises KeyboardInterrupt as Ctrl-C does, so that
+every command stops as when interrupted (its outputs whole or absent, a run's checkpoint
+saved) with that status. A signal that is ignored (a background job) or handled by
 the caller is left as it is; a library's import of the package is left alone.
 
 After the command, :func:`exit_now` ends the process at once with its status: Python's
@@ -27,7 +28,24 @@ import threading
 # imported): ``python -m mi_nerfpp`` (``-m`` while Python locates the module), the installed
 # ``mi-nerfpp`` script, and ``optimize.py`` (the ``optimize`` command).
 PROGRAMS = {'-m': None, 'mi-nerfpp': None, 'optimize.py': 'optimize'}
-INTERRUPTED = 130       # the status of a command stopped by Ctrl-C or SIGTERM
+# The status of a command stopped by a signal: 128 + its number, as a shell reports a process
+# the signal ended (Ctrl-C: 130, SIGTERM: 143), so that a scheduler tells the two apart.
+SIGNAL_STATUS_BASE = 128
+# The signal that stopped the command (:func:`note_stop`); a KeyboardInterrupt of no signal
+# (raised by code) counts as Ctrl-C.
+_stopped_by = signal.SIGINT
+
+
+def note_stop(signum) -> None:
+    """Remember that signal ``signum`` stops the command (its handler calls this)."""
+    global _stopped_by
+    _stopped_by = signum
+
+
+def interrupted_status() -> int:
+    """The exit status of a command stopped by a signal (:data:`SIGNAL_STATUS_BASE` + the
+    signal that :func:`note_stop` last heard of, Ctrl-C's by default)."""
+    return SIGNAL_STATUS_BASE + int(_stopped_by)
 
 
 def command_line(argv=None) -> tuple[bool, str | None]:
@@ -60,11 +78,12 @@ def _stopped_while_starting(signum, frame):
     try:
         print('interrupted', file=sys.stderr, flush=True)
     finally:
-        os._exit(INTERRUPTED)
+        os._exit(SIGNAL_STATUS_BASE + int(signum))
 
 
 def _terminate(signum, frame):
     """SIGTERM while a command runs: stop as Ctrl-C stops it."""
+    note_stop(signum)
     raise KeyboardInterrupt
 
 
@@ -73,8 +92,8 @@ _DEFAULTS = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.S
 
 
 def catch_signals_while_starting(argv=None) -> None:
-    """On the command line, let SIGINT and SIGTERM end the process with one line and status
-    130 until :func:`end_of_start` (module docs)."""
+    """On the command line, let SIGINT and SIGTERM end the process with one line and the
+    signal's status until :func:`end_of_start` (module docs)."""
     if not command_line(argv)[0] or threading.current_thread() is not threading.main_thread():
         return
     for signum, default in _DEFAULTS.items():
@@ -84,8 +103,9 @@ def catch_signals_while_starting(argv=None) -> None:
 
 def end_of_start() -> None:
     """The command runs: Ctrl-C raises KeyboardInterrupt again, and so does SIGTERM (the
-    status 130 then comes from the command line's boundary, which may save a checkpoint
-    first)."""
+    status, :func:`interrupted_status`, then comes from the command line's boundary, which may
+    save a checkpoint first)."""
+    note_stop(signal.SIGINT)        # a command of its own: no earlier command's signal
     if threading.current_thread() is not threading.main_thread():
         return
     if signal.getsignal(signal.SIGINT) is _stopped_while_starting:
@@ -119,5 +139,5 @@ def run_and_exit(main, *args, **kwargs):
             status = 1
     except KeyboardInterrupt:
         print('interrupted', file=sys.stderr)
-        status = INTERRUPTED
+        status = interrupted_status()
     exit_now(status)

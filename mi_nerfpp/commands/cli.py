@@ -8,7 +8,7 @@ with the plugin's own message inside) and the operating system's (``OSError``: m
 read-only, full) say what was wrong and what to do; any other exception (a bug) is named with
 the input the command was working on (:func:`subject`). ``--debug`` (before or after the
 command) or ``MI_NERFPP_DEBUG=1`` prints the traceback above the line. Ctrl-C ends a command
-with status 130. Usage errors (an unknown option, a value of the wrong type) are argparse's:
+with status 130, SIGTERM with 143 (128 + the signal, as a shell reports it). Usage errors (an unknown option, a value of the wrong type) are argparse's:
 usage and message, status 2.
 
 ``--variant {llvm_ad_rgb,cuda_ad_rgb}`` (before or after the command) chooses the backend, over
@@ -140,11 +140,11 @@ def main(argv=None, *, replace=None):
         return args.func(args) or 0
     except KeyboardInterrupt:
         print('interrupted', file=sys.stderr)
-        return 130
+        return _start.interrupted_status()
     except Exception as e:
         if interrupt_in(e) is not None:     # a Ctrl-C in Python code that Dr.Jit called
             print('interrupted', file=sys.stderr)
-            return 130
+            return _start.interrupted_status()
         if debugging(args):
             traceback.print_exc()
         print(f'error: {args.command}: {describe(e, args)}', file=sys.stderr)

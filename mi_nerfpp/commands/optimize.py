@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 
+from mi_nerfpp import _start
 from mi_nerfpp.commands.colmap import add_frames_option
 from mi_nerfpp.commands.view import add_port_options
 from mi_nerfpp.core import budget
@@ -80,7 +81,7 @@ def train(args, observer):
     if not result.finished:
         print(f'interrupted at iteration {result.trainer.iteration}: checkpoint saved to '
               f'{result.trainer.checkpoint_path}; continue with --resume', file=sys.stderr)
-        return 130
+        return _start.interrupted_status()
     lines, warnings = runs.summary(result)
     print('\n' + '\n'.join(lines))
     for warning in warnings:

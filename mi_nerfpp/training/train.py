@@ -36,6 +36,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_nerfpp import _start
 from mi_nerfpp.core import appearance as app
 from mi_nerfpp.core import poses
 from mi_nerfpp.core.arrays import llvm_backend
@@ -666,6 +667,7 @@ def _signals_deferred(enabled):
 
 
 def _raise_interrupt(signum, frame):
+    _start.note_stop(signum)
     raise KeyboardInterrupt(f'signal {signum}')
 
 

@@ -48,7 +48,7 @@ def test_a_second_run_into_a_folder_in_use_is_refused(capsys, capture, tmp_path)
         status, err = first.stop(signal.SIGTERM)
     finally:
         first.kill()
-    assert status == 130 and 'checkpoint saved' in err
+    assert status == 143 and 'checkpoint saved' in err
     # The lock went with its process: the run can be continued.
     assert _train(capsys, capture, out, '--resume', '--iterations',
                   str(load_checkpoint(out / 'model.npz')[1]['iteration'] + 1))[0] == 0

@@ -147,7 +147,7 @@ def score(args):
                          f'median)', 'tone (stops of linear luminance against the truth)'],
                         rows, note=args.note)
     path = bench.write_results(args.name, 'The realistic stand-in of a phone capture', [table],
-                               figures=figures)
+                               figures=figures, variant=args.variant)
     print(f'wrote {path}')
 
 
@@ -197,6 +197,8 @@ def main(argv=None):
     p.add_argument('--truth', required=True, help='the clean capture (DATA/clean)')
     p.add_argument('--name', default='realistic')
     p.add_argument('--note', default=None)
+    p.add_argument('--variant', default=None,
+                   help='what this result measures (the benchmarks page keeps one of each)')
     p.add_argument('--truth-images', default=None, metavar='DIR',
                    help='the test views rendered anew with more samples (the truth command); '
                         'default: the capture\'s own')

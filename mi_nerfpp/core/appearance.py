@@ -9,10 +9,15 @@ learned jointly with the fields (its own learning rate) under an L2 prior pullin
 ``(g_i, b_i)`` to 0, the identity (as the original NeRF++'s auto-exposure option). The loss
 compares ``c'`` (sRGB-encoded for photos) with the pixels.
 
-Gauge: scaling the model's radiance and dividing every gain by the same factor changes no
-pixel, so one transform must be fixed. Training image 0 is the reference: its transform is the
-identity and is never updated. The model's own (neutral) colour is therefore that of training
-image 0, and a learned gain ``exp(g_i)`` estimates image ``i``'s exposure *relative to image 0*.
+Gauge: scaling the model's radiance and dividing every gain by the same factor (or adding a
+colour to it and subtracting it from every bias) changes no pixel, so the transforms' common
+part must be fixed. It is their mean: after every step the mean over the training images of
+each parameter is taken out (:func:`center`), so the log-gains and biases average to zero and
+the model's own (neutral) colour is that of the capture's *average* exposure and white balance,
+and a learned gain ``exp(g_i)`` estimates image ``i``'s exposure relative to that average. (It
+was training image 0's until 2026-11-29: renders then took the one photo's exposure, a colour
+shift wherever that photo was darker or warmer than the rest. A checkpoint of that time keeps
+its neutral colour; training it further moves it to the average.)
 
 The parameters are one ``(n_images, 6)`` tensor ``[g_r, g_g, g_b, b_r, b_g, b_b]``, stored in
 the checkpoint as ``param/appearance``. Rendering is neutral unless the integrator is asked for
@@ -49,13 +54,18 @@ def identity(n_images: int) -> mi.TensorXf:
 
 
 def transform_rays(params: mi.TensorXf, image, rgb: mi.Color3f) -> mi.Color3f:
-    """Apply the transform of image ``image[k]`` (UInt32 per ray) to ray ``k``'s linear colour.
-    Image 0 is the gauge: always the identity, so its parameters get no gradient."""
+    """Apply the transform of image ``image[k]`` (UInt32 per ray) to ray ``k``'s linear colour."""
     image = mi.UInt32(image)
-    active = image != 0
-    p = [dr.gather(mi.Float, params.array, image * PARAMS + j, active) for j in range(PARAMS)]
+    p = [dr.gather(mi.Float, params.array, image * PARAMS + j) for j in range(PARAMS)]
     gain = dr.exp(mi.Color3f(p[0], p[1], p[2]))
     return gain * rgb + mi.Color3f(p[3], p[4], p[5])
+
+
+def center(params) -> np.ndarray:
+    """The parameters (n, :data:`PARAMS`) with their mean over the images taken out: the
+    gauge (module docs)."""
+    p = np.asarray(params, dtype=np.float64).reshape(-1, PARAMS)
+    return p - p.mean(axis=0, keepdims=True)
 
 
 def prior(params: mi.TensorXf) -> mi.Float:

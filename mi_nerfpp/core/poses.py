@@ -13,9 +13,9 @@ positions ``p = o + t·d`` (the distances ``t`` along the ray are treated as con
 nerfstudio does; :func:`~mi_nerfpp.core.render.render_rays` with ``ray_gradients=True``).
 
 Gauge: moving every camera and the scene together by a similarity changes no pixel. Training
-image 0 is the reference: its pose is kept as given (its correction is never updated), as the
-appearance transforms fix image 0's colour (:mod:`.appearance`). One image does not hold the
-scale, and holds the rotation and position only through its own pixels, so the other cameras
+image 0 is the reference: its pose is kept as given (its correction is never updated). One
+image does not hold the scale, and holds the rotation and position only through its own
+pixels, so the other cameras
 drift together with the scene (their scale by 2-7 % in 3,000 steps, the more the larger the
 learning rate): renders from cameras given in the capture's frame would then miss the scene.
 So after every step the corrections of images 1.. are kept free of a common similarity

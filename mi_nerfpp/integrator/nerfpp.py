@@ -144,8 +144,8 @@ class NeRFPPIntegrator(ADIntegrator):
          transform (exposure, white balance) of a model trained with
          ``--appearance``, its appearance code of one trained with
          ``--appearance-embedding``; -1 renders neutral (the model's own colour,
-         that of training image 0, and the zero code). An index the model has no
-         appearance for is refused. (Default: -1)
+         of the capture's average exposure, and the zero code). An index the model
+         has no appearance for is refused. (Default: -1)
      * - max_samples
        - |int|
        - Largest film (pixels times samples per pixel) a render accepts; larger

@@ -316,6 +316,9 @@ class Trainer:
         if self.gauge is not None and inputs['phase']['refine']:
             self.opt['poses'] = mi.TensorXf(poses.pin_gauge(self.opt['poses'].numpy(),
                                                             self.gauge).astype(np.float32))
+        if 'appearance' in self.opt:            # the transforms' gauge: their mean
+            self.opt['appearance'] = mi.TensorXf(app.center(self.opt['appearance'].numpy())
+                                                 .astype(np.float32))
         # A replayed frozen step runs no Python, so the step itself cannot give the model the
         # updated parameters (previews and evaluations read them).
         optim.write_back(self.opt, self.model)

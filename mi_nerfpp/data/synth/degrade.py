@@ -42,9 +42,9 @@ def vary_exposure(src, out, stops: float = 0.5, white_balance: float = 0.1, seed
 
     Each image of ``splits`` gets per-channel gains ``2^(e + w_c)`` (``e`` uniform in
     ``±stops``, ``w_c`` uniform in ``±white_balance`` stops), applied in linear light, then
-    clipped and sRGB-encoded to 8 bits again. Training image 0 keeps gain 1: it is the
-    reference of the learned transforms (:mod:`mi_nerfpp.core.appearance`), so the learned gains
-    estimate the applied ones directly. The true gains are written to ``out/appearance.json``
+    clipped and sRGB-encoded to 8 bits again; training image 0 too, as a camera's first photo
+    has no special exposure (the learned transforms estimate the gains relative to their mean,
+    :mod:`mi_nerfpp.core.appearance`). The true gains are written to ``out/appearance.json``
     (``{split: [[r, g, b], ...]}`` in file order) and returned.
     """
 
@@ -58,10 +58,8 @@ def vary_exposure(src, out, stops: float = 0.5, white_balance: float = 0.1, seed
         folder = os.path.join(out, split, 'rgb')
         names = sorted(os.listdir(folder)) if os.path.isdir(folder) else []
         gains[split] = []
-        for i, name in enumerate(names):
+        for name in names:
             g = 2.0 ** (rng.uniform(-stops, stops) + rng.uniform(-white_balance, white_balance, 3))
-            if split == 'train' and i == 0:
-                g = np.ones(3)
             path = os.path.join(folder, name)
             image = read_image(path, what='capture image', remedy='write the capture '
                                'again')[..., :3].astype(np.float64) / 255.0

@@ -14,7 +14,8 @@ them:
 3. **lens distortion**: OpenCV's ``k1 k2 p1 p2``, written into ``transforms_train.json`` (the
    reader undistorts with COLMAP, :mod:`mi_nerfpp.data.undistort`). The coefficients are
    pincushion (``k1 > 0``), so that every distorted pixel lies inside the clean render;
-4. **auto-exposure and white balance**: per-view gains ``2^(e + w_c)`` in linear light;
+4. **auto-exposure and white balance**: per-view gains ``2^(e + w_c)`` in linear light (the
+   first view too);
 5. **sensor noise**: Poisson-Gaussian in linear light (variance ``shot · x + read``);
 6. **JPEG**: clipped, sRGB-encoded, 8-bit JPEG at ``jpeg_quality``;
 7. **pose error**: every training pose but the first turned by ``pose_degrees`` about a random
@@ -253,8 +254,6 @@ def _degrade(src, stem, K, pose, index, r: Realism, rng, radius, blur, transient
     if r.exposure_stops > 0 or r.white_balance > 0:
         gain = 2.0 ** (rng.uniform(-r.exposure_stops, r.exposure_stops)
                        + rng.uniform(-r.white_balance, r.white_balance, 3))
-        if index == 0:
-            gain = np.ones(3)       # the reference of --appearance's learned transforms
         linear = linear * gain
         view['gain'] = [float(g) for g in gain]
     if r.shot_noise > 0 or r.read_noise > 0:

@@ -15,6 +15,7 @@ step replays its kernels in one call, with no Python in between).
 from __future__ import annotations
 
 import contextlib
+import re
 import time
 from collections import defaultdict
 
@@ -44,6 +45,26 @@ def settle(*values):
         dr.eval(*values)
 
 
+# A whole-array read or write in a kernel's LLVM IR: a vector load or store (masked or not) of
+# one array element per lane; gathers, scatters and atomics (``@llvm.masked.gather`` ...) are not.
+_STREAMED = re.compile(r'(?:= load|store) <\d+ x (\w+)>|@llvm\.masked\.(?:load|store)\.v\d+(\w+?)\(')
+# Bytes of an element of each LLVM type.
+_TYPE_BYTES = {'i1': 1, 'i8': 1, 'i16': 2, 'half': 2, 'f16': 2, 'i32': 4, 'float': 4, 'f32': 4,
+               'i64': 8, 'double': 8, 'f64': 8, 'ptr': 8, 'p0': 8}
+
+
+def _ir_text(kernel) -> str:
+    ir = kernel.get('ir')
+    return ir.getvalue() if hasattr(ir, 'getvalue') else str(ir or '')
+
+
+def streamed_bytes(ir: str) -> int:
+    """Bytes a kernel reads and writes whole per element, from its LLVM IR (:data:`_STREAMED`):
+    each vector load or store of the code counted once (a loop's body once, whatever its
+    iterations)."""
+    return sum(_TYPE_BYTES.get(a or b, 4) for a, b in _STREAMED.findall(ir))
+
+
 def kernel_kind(kernel):
     """What a kernel of Dr.Jit's history does, from its type and its code."""
     kind = str(kernel.get('type', '')).rsplit('.', 1)[-1]
@@ -54,8 +75,7 @@ def kernel_kind(kernel):
     if kind in ('BlockReduce', 'BlockPrefixReduce', 'Reduce'):
         return 'block reductions'
     if kind == 'JIT':
-        ir = kernel.get('ir')
-        text = ir.getvalue() if hasattr(ir, 'getvalue') else str(ir or '')
+        text = _ir_text(kernel)
         if 'reduce_add' in text or 'atomicrmw' in text:
             return 'gradient scatter'
         return 'kernels'
@@ -68,6 +88,7 @@ class KernelProfile:
     def __init__(self):
         self.stack = ['(outside stages)']
         self.records = []            # (stage path, kind, milliseconds)
+        self.work = []               # per record: (elements, IR operations, bytes streamed each)
         self.python = defaultdict(float)
         self._t = None
 
@@ -75,6 +96,8 @@ class KernelProfile:
         path = ' / '.join(self.stack[1:]) or self.stack[0]
         for k in dr.kernel_history():
             self.records.append((path, kernel_kind(k), float(k.get('execution_time', 0.0))))
+            self.work.append((int(k.get('size') or 0), int(k.get('operation_count') or 0),
+                              streamed_bytes(_ir_text(k))))
         now = time.perf_counter()
         if self._t is not None:
             self.python[path] += now - self._t
@@ -118,3 +141,27 @@ class KernelProfile:
             entry[0] += ms
             entry[1] += 1
         return {s: {k: tuple(v) for k, v in kinds.items()} for s, kinds in out.items()}
+
+    def by_stage_work(self):
+        """``{(stage, kind): [milliseconds, launches, operations, bytes]}``: Dr.Jit's IR
+        operations (per element times elements; integer and address arithmetic included) and
+        the bytes of the arrays a kernel reads and writes whole (:func:`streamed_bytes` times
+        elements; what gathers and scatters touch is not counted), an estimate of the
+        arithmetic and a lower bound of the streaming traffic of each stage. A memset or a
+        reduction counts 4 bytes per element and no operations; the kernels that are not
+        Dr.Jit's generated code (matrix products, copies) are not estimated (None)."""
+        out = defaultdict(lambda: [0.0, 0, 0, 0])
+        for (path, kind, ms), (size, ops, streamed) in zip(self.records, self.work):
+            entry = out[(path, kind)]
+            entry[0] += ms
+            entry[1] += 1
+            if entry[2] is None:
+                continue
+            if kind in ('memset', 'block reductions'):
+                entry[3] += 4 * size
+            elif kind in ('kernels', 'gradient scatter'):
+                entry[2] += size * ops
+                entry[3] += size * streamed
+            else:
+                entry[2] = entry[3] = None
+        return dict(out)

@@ -57,7 +57,8 @@ from mi_nerfpp.commands.cli import main as cli
 from mi_nerfpp.data import load_dataset, video
 from mi_nerfpp.data.nerfpp import write_camera
 from mi_nerfpp.data.sfm import read_report
-from mi_nerfpp.data.synth import DEFAULT_FOV, DEFAULT_RADIUS, parse_res, scene_file
+from mi_nerfpp.data.synth import (CLIP_CRF, CLIP_FPS, DEFAULT_FOV, DEFAULT_RADIUS, encode_clip,
+                                  parse_res, scene_file)
 from mi_nerfpp.jobs import bench, run
 from mi_nerfpp.jobs.console import ConsoleObserver
 from mi_nerfpp.training import choices
@@ -65,8 +66,7 @@ from mi_nerfpp.training.config import TrainConfig
 from mi_nerfpp.training.evaluate import evaluate_split
 from mi_nerfpp.training.options import add_options, values
 
-FPS = 24
-CRF = '8'               # nearly lossless, as the test's clip
+FPS, CRF = CLIP_FPS, CLIP_CRF
 CLIP_VERSION = 1
 
 
@@ -90,20 +90,6 @@ def blurred_frames(args) -> list[int]:
         members = np.flatnonzero(window == k)
         out.append(int(members[(k // 2) % len(members)]))
     return out
-
-
-def encode(path, frames, fps=FPS):
-    """Frames (H, W, 3 uint8) as an H.264 video (as the test's ``encode``)."""
-    import av
-    h, w = frames[0].shape[:2]
-    with av.open(str(path), 'w') as container:
-        stream = container.add_stream('libx264', rate=fps, options={'crf': CRF})
-        stream.width, stream.height, stream.pix_fmt = w, h, 'yuv420p'
-        for image in frames:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format='rgb24')):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
 
 
 def render_clip(args) -> dict:
@@ -145,7 +131,7 @@ def render_clip(args) -> dict:
         poses.append(camera.c2w.tolist())
         if (i + 1) % 24 == 0 or i + 1 == args.video_frames:
             print(f'rendered {i + 1} of {args.video_frames} frames', flush=True)
-    encode(clip, frames)
+    encode_clip(clip, frames, fps=FPS, crf=CRF)
     record = {'params': params, 'K': K.tolist(), 'c2w': poses, 'blurred': sorted(blurred)}
     with open(record_path, 'w') as f:
         json.dump(record, f)

@@ -18,27 +18,15 @@ from mi_nerfpp.data import load_dataset                         # noqa: E402
 from mi_nerfpp.data import video                                # noqa: E402
 from mi_nerfpp.data.errors import DatasetError                  # noqa: E402
 from mi_nerfpp.data.sfm import run_sfm_on_videos                # noqa: E402
+from mi_nerfpp.data.synth.clip import CLIP_FPS, encode_clip      # noqa: E402
 from mi_nerfpp.data.synth.trajectories import DEFAULT_RADIUS    # noqa: E402
 from mi_nerfpp.jobs.run import photos_to_dataset                # noqa: E402
 
-FPS = 24
+FPS = CLIP_FPS
 SIZE = (64, 48)             # width, height
 COUNT = 48                  # frames of the small video: 2 s
 ASKED = 8                   # frames kept: windows of 0.25 s, 6 frames each
 BLURRED = {2, 9, 13, 14, 26, 33, 40, 47}
-
-
-def encode(path, frames, fps=FPS):
-    """Frames (H, W, 3 uint8) as an H.264 video, nearly lossless (crf 8)."""
-    h, w = frames[0].shape[:2]
-    with av.open(str(path), 'w') as container:
-        stream = container.add_stream('libx264', rate=fps, options={'crf': '8'})
-        stream.width, stream.height, stream.pix_fmt = w, h, 'yuv420p'
-        for image in frames:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format='rgb24')):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
 
 
 def pattern_frames(count=COUNT, blurred=BLURRED, seed=0):
@@ -59,7 +47,7 @@ def pattern_frames(count=COUNT, blurred=BLURRED, seed=0):
 @pytest.fixture(scope='module')
 def clip(tmp_path_factory):
     path = tmp_path_factory.mktemp('video') / 'walk.mp4'
-    encode(path, pattern_frames())
+    encode_clip(path, pattern_frames())
     return str(path)
 
 
@@ -139,7 +127,7 @@ def test_a_second_run_reuses_the_frames_and_a_change_extracts_again(clip, tmp_pa
     assert fewer['decoded'] and len(fewer['videos'][0]['chosen']) == 4
     assert len([n for n in os.listdir(folder) if n.endswith('.jpg')]) == 4
     changed = str(tmp_path / 'walk.mp4')        # same name, other content
-    encode(changed, pattern_frames(blurred=set(), seed=1))
+    encode_clip(changed, pattern_frames(blurred=set(), seed=1))
     redone = video.extract_frames([changed], folder, frames=4, progress=False)
     assert redone['decoded'] == [os.path.abspath(changed)]
     assert redone['videos'][0]['sha256'] != fewer['videos'][0]['sha256']
@@ -236,7 +224,7 @@ def rendered(tmp_path_factory):
         frames.append(image)
         poses.append(camera.c2w)
     path = tmp_path_factory.mktemp('arc') / 'clip.mp4'
-    encode(path, frames)
+    encode_clip(path, frames)
     return str(path), np.array(poses)
 
 

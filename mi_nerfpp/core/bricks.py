@@ -73,16 +73,23 @@ class BrickGrid:
         slots[bricks] = np.arange(1, bricks.size + 1, dtype=np.uint32)
         self.slots = mi.UInt32(slots)          # slot + 1 of each brick, 0: not allocated
 
-    def moved(self, pool, bricks):
+    def moved(self, pool, bricks, fill=None):
         """The pool (NumPy, of :meth:`pool_shape`) re-laid for an allocation of ``bricks``:
-        bricks kept keep their texels, new ones start at zero."""
-        pool = np.asarray(pool, dtype=np.float32)
-        out = np.zeros(self.pool_shape(len(bricks)), np.float32)
-        old = {int(b): s for s, b in enumerate(self.allocated)}
-        for s, b in enumerate(np.asarray(bricks, dtype=np.int64)):
-            if int(b) in old:
-                out[s] = pool[old[int(b)]]
+        bricks kept keep their texels; new ones take theirs from ``fill`` (an array of the new
+        pool's shape: a fresh level's starting values) or start at zero."""
+        pool = np.asarray(pool, dtype=np.float32).reshape(self.pool_shape())
+        out = np.zeros(self.pool_shape(len(bricks)), np.float32) if fill is None \
+            else np.array(fill, dtype=np.float32).reshape(self.pool_shape(len(bricks)))
+        new, old = self.kept(bricks)
+        out[new] = pool[old]
         return out
+
+    def kept(self, bricks):
+        """``(new slots, old slots)`` of the bricks that an allocation of ``bricks`` keeps."""
+        bricks = np.asarray(bricks, dtype=np.int64).ravel()
+        _, new, old = np.intersect1d(bricks, self.allocated, assume_unique=True,
+                                     return_indices=True)
+        return new, old
 
     def _axis(self, c, n, periodic):
         """Lower/upper texel index and weight of the upper one along an axis of ``n`` texels."""

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field, replace
 import drjit as dr
 
 from mi_nerfpp.core.arrays import llvm_backend
-from mi_nerfpp.core.encodings import plane_shapes, sparse_shape
+from mi_nerfpp.core.encodings import S_RATIO, plane_shapes, sparse_s, sparse_shape
 from mi_nerfpp.core.occupancy import grid_shape
 
 # Dr.Jit 1.x: "jit_var_counter(): tried to create an array with N entries, which exceeds the
@@ -386,13 +386,16 @@ def sparse_resolution(footprint: float, finest: int, occupancy_res: int) -> int 
 
 def sparse_brick_shapes(sizing: Sizing, domain) -> list[tuple]:
     """Texels (Z, Y, X) of one brick of each sparse level of one volume: the level's texels
-    over the occupancy cells (:class:`~.bricks.BrickGrid`; in the inverted sphere one texel
-    along s)."""
+    over the occupancy cells (:class:`~.bricks.BrickGrid`; in the inverted sphere along s as
+    :func:`~.encodings.sparse_s` has them)."""
     v = sizing.volume(domain)
-    if v is None:
+    if v is None or not v.sparse:
         return []
     blocks = grid_shape(domain, sizing.occupancy_res)
-    return [tuple(n // b for n, b in zip(sparse_shape(domain, r, blocks), blocks))
+    s = None
+    if domain == 'inverted_sphere':
+        s = sparse_s(v.sparse, (v.s_ratios or (S_RATIO,))[-1], blocks)
+    return [tuple(n // b for n, b in zip(sparse_shape(domain, r, blocks, s), blocks))
             for r in v.sparse]
 
 

@@ -28,6 +28,9 @@ from mi_nerfpp.core.bricks import BrickGrid
 
 # Channels per level unless told: the density logit and three features.
 CHANNELS = 4
+# Cells along the background's s per cell of colatitude unless told (dense levels; the sparse
+# levels follow the dense ones, :func:`sparse_s`).
+S_RATIO = 0.5
 
 # The coordinate pairs of a plane level: (first, second) texture axes, by index into
 # :func:`~mi_nerfpp.core.geometry.grid_coordinates`.
@@ -59,6 +62,14 @@ def sparse_shape(domain, r, blocks, s=None):
     if domain == 'ball':
         return (r, r, r)
     return (s or blocks[0], r, 2 * r)
+
+
+def sparse_s(resolutions, s_ratio, blocks):
+    """Texels along ``s`` of the inverted sphere's sparse levels of ``resolutions`` over
+    ``blocks`` bricks: as many as a dense level of the finest resolution and ``s_ratio`` has
+    (:meth:`DenseLevels.shape`), a whole number per brick."""
+    cells = max(int(max(resolutions) * float(s_ratio)), 4)
+    return max(round(cells / blocks[0]), 1) * int(blocks[0])
 
 
 def _inside(c, cells):
@@ -133,8 +144,8 @@ class DenseLevels(Levels):
 
     kind = 'dense'
 
-    def __init__(self, domain, resolutions=(32, 128), channels=CHANNELS, s_ratio=0.5, init=0.1,
-                 rng=None):
+    def __init__(self, domain, resolutions=(32, 128), channels=CHANNELS, s_ratio=S_RATIO,
+                 init=0.1, rng=None):
         super().__init__(domain, resolutions, channels)
         ratios = [s_ratio] * len(self) if isinstance(s_ratio, (int, float)) else list(s_ratio)
         if len(ratios) != len(self) or not all(0 < float(q) <= 1 for q in ratios):
@@ -239,10 +250,13 @@ class SparseLevels(Levels):
     kind = 'sparse'
     warped = False
 
-    def __init__(self, domain, resolutions=(), channels=CHANNELS, blocks=None, s=None):
+    def __init__(self, domain, resolutions=(), channels=CHANNELS, blocks=None, s=None,
+                 init=0.0, seed=0):
         super().__init__(domain, resolutions, channels)
         self.blocks = None if blocks is None else [int(b) for b in blocks]
         self.s = None if s is None else int(s)
+        self.init = float(init)
+        self._noise = np.random.default_rng(seed)    # new bricks' starting texels
         self.bricks = []
         if len(self) and (self.blocks is None or len(self.blocks) != 3):
             raise ValueError('GridField sparse levels need sparse_blocks, the bricks per '
@@ -267,17 +281,23 @@ class SparseLevels(Levels):
         """The allocated bricks of each level: ``{'sparse<i>': flat brick indices}``."""
         return {f'sparse{i}': g.allocated for i, g in enumerate(self.bricks)}
 
-    def allocate(self, values: dict):
+    def allocate(self, values: dict, start: bool = False):
         """Allocate the bricks of levels (``{'sparse<i>': flat brick indices}``): the texels
-        of bricks kept stay, new bricks start at zero, the others are let go. The parameter
-        changes shape (an optimiser must take it anew)."""
+        of bricks kept stay, the others are let go, new bricks start at zero (a level added
+        to what the dense levels learned adds nothing until trained) or, with ``start`` (the
+        level allocated at the run's first step, in place of a dense level), as a dense level
+        does: normal noise of standard deviation ``init``. The parameter changes shape (an
+        optimiser must take it anew)."""
         for key, chosen in values.items():
             i = int(key[len('sparse'):]) if key[len('sparse'):].isdigit() \
                 and key.startswith('sparse') else -1
             if not 0 <= i < len(self.bricks):
                 raise KeyError(f"field 'grid' has no sparse level '{key}'")
             grid = self.bricks[i]
-            pool = grid.moved(self.params[key].numpy(), chosen)
+            fill = None
+            if start and self.init > 0:
+                fill = self._noise.normal(0.0, self.init, grid.pool_shape(len(chosen)))
+            pool = grid.moved(self.params[key].numpy(), chosen, fill)
             grid.allocate(chosen)
             self.params[key] = mi.TensorXf(pool)
 

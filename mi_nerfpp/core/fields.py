@@ -411,10 +411,10 @@ class GridField(Field):
         """The allocated bricks of each sparse level: ``{'sparse<i>': flat brick indices}``."""
         return self.sparse.allocated()
 
-    def set_bricks(self, values):
+    def set_bricks(self, values, start=False):
         """Allocate the bricks of sparse levels (:meth:`~.encodings.SparseLevels.allocate`)."""
         if values:
-            self.sparse.allocate(values)
+            self.sparse.allocate(values, start)
 
     @property
     def deferred(self):
@@ -601,7 +601,9 @@ def grid_field(domain, seed=0, **config):
     rng = dr.rng(seed=seed)
     levels = [DenseLevels(domain, rng=rng, **args.get(DenseLevels, {})),
               PlaneLevels(domain, channels=channels, **args.get(PlaneLevels, {})),
-              SparseLevels(domain, channels=channels, **args.get(SparseLevels, {}))]
+              SparseLevels(domain, channels=channels, seed=seed,
+                           init=args.get(DenseLevels, {}).get('init', grid_default('init')),
+                           **args.get(SparseLevels, {}))]
     return GridField(domain, levels, network=ColorNetwork(**args.get(ColorNetwork, {})),
                      rng=rng, **args.get(GridField, {}))
 

@@ -30,6 +30,7 @@ from mi_nerfpp.core import appearance as app
 from mi_nerfpp.core import budget
 from mi_nerfpp.core import occupancy as occ
 from mi_nerfpp.core import poses
+from mi_nerfpp.core.encodings import sparse_s
 from mi_nerfpp.core.fields import (BACKGROUND_COLOR, COLOR_MODES, MAX_APPEARANCE_DIMS,
                                    MAX_COLOR_LAYERS, MAX_DIR_OCTAVES, grid_default)
 from mi_nerfpp.core.frame import NERF_CAMERA_RADIUS
@@ -363,6 +364,11 @@ class ModelOptions(_Options):
         name = GRID_FIELD_OPTIONS[entry][domain == 'inverted_sphere']
         return name and self.effective(name)
 
+    def s_ratio_of_sparse(self) -> float:
+        """The ``s`` ratio the background's sparse levels take: the finest dense level's
+        (``--bg-s-ratio``)."""
+        return (self.value_of('s_ratio', 'inverted_sphere') or (grid_default('s_ratio'),))[-1]
+
     def levels(self, domain):
         """The grid resolutions of one volume's grid field."""
         return self.value_of('resolutions', domain)
@@ -519,7 +525,9 @@ class ScheduleOptions(_Options):
                           'when a prior starts or the grids change resolution')
     sparse_at: tuple = option((0.1, 0.3), 'grid field: fractions of the run at which sparse '
                               'levels allocate their bricks where the occupancy grid is occupied '
-                              '(again at each: bricks kept keep their texels)', type=float,
+                              '(again at each: bricks kept keep their texels and Adam '
+                              'moments; 0: at the first step, every brick, since the occupancy '
+                              'knows nothing yet)', type=float,
                               nargs='+', metavar='F')
     sparse_entries: int = option(4_000_000, 'grid field: most entries of one sparse level (the '
                                  'densest occupied bricks are kept)')
@@ -539,9 +547,10 @@ class ScheduleOptions(_Options):
         self._check(('seed',), lambda v: 0 <= v <= MAX_SEED,
                     f'a whole number from 0 to {MAX_SEED} (2^64 - 2)')
         self._check(('sparse_entries',), lambda v: v >= 1, 'at least 1')
-        for name in ('pyramid', 'sparse_at'):
-            if not all(_finite(f) and 0 < f < 1 for f in getattr(self, name)):
-                self._bad(name, 'fractions between 0 and 1')
+        if not all(_finite(f) and 0 < f < 1 for f in self.pyramid):
+            self._bad('pyramid', 'fractions between 0 and 1')
+        if not all(_finite(f) and 0 <= f < 1 for f in self.sparse_at):
+            self._bad('sparse_at', 'fractions from 0 (the first step) to below 1')
         if len(self.pyramid) > MAX_PYRAMID_LEVELS:
             self._bad('pyramid', f'at most {MAX_PYRAMID_LEVELS} fractions (the first level '
                                  f'averages 2^n x 2^n stored pixels per ray inside the training '
@@ -748,7 +757,11 @@ class TrainConfig:
                 value = value[0] if entry == 's_ratio' and len(value) == 1 else list(value)
             config[entry] = value
         if config['sparse']:        # (files without sparse levels stay as they were)
-            config['sparse_blocks'] = list(occ.grid_shape(domain, self.sampling.occupancy_res))
+            blocks = occ.grid_shape(domain, self.sampling.occupancy_res)
+            config['sparse_blocks'] = list(blocks)
+            if domain == 'inverted_sphere':
+                config['sparse_s'] = sparse_s(config['sparse'], self.model.s_ratio_of_sparse(),
+                                              blocks)
         else:
             del config['sparse']
         return config

@@ -14,9 +14,11 @@ the pose refinement its start and blur (:mod:`mi_nerfpp.core.poses`).
 from __future__ import annotations
 
 import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from mi_nerfpp.core import bricks
+from mi_nerfpp.core.arrays import owned
 from mi_nerfpp.core.fields import GridField
 from mi_nerfpp.core.profiling import stage
 
@@ -45,6 +47,26 @@ def sparse_levels(model):
     """``(volume, field, level)`` of every sparse grid level of ``model``."""
     return [(volume, field, i) for volume, field in (('fg', model.fg), ('bg', model.bg))
             if isinstance(field, GridField) for i in range(len(field.sparse))]
+
+
+def moved_moments(opt, key, grid, chosen):
+    """The Adam state of the sparse level ``key`` (a :class:`~mi_nerfpp.core.bricks.BrickGrid`
+    ``grid``) re-laid for an allocation of ``chosen``, so that a reallocation does not restart
+    every brick's Adam (a fresh state's first steps are a full learning rate for every entry):
+    the kept bricks keep their moments and the step count. New bricks start with no first
+    moment and the kept entries' mean second moment: with a zero second moment and the step
+    count of the others (no bias correction left), their first steps would be
+    ``(1 − β₁)/√(1 − β₂)`` ≈ 3x the learning rate. None: no state yet."""
+    state = opt.state.get(key)
+    if state is None or state[3][1] is None:
+        return None
+    t, m, v, v_max = state[3]
+    v_old = dr.detach(v).numpy()
+    kept = grid.kept(chosen)[1]
+    start = float(v_old.reshape(grid.pool_shape())[kept].mean()) if kept.size else 0.0
+    m = grid.moved(dr.detach(m).numpy(), chosen)
+    v = grid.moved(v_old, chosen, np.full(grid.pool_shape(len(chosen)), start, np.float32))
+    return t, owned(m.ravel(), mi.Float), owned(v.ravel(), mi.Float), v_max
 
 
 class SparseAllocation:
@@ -76,9 +98,13 @@ class SparseAllocation:
             limit = self.max_entries // (brick.texels_per_brick * brick.channels)
             chosen = bricks.choose(mask, score, max(limit, 1))
             key = f'{volume}.sparse{i}'
+            moments = moved_moments(params, key, brick, chosen)
             field.set_parameters({f'sparse{i}': dr.detach(params[key])})
-            field.set_bricks({f'sparse{i}': chosen})
-            params[key] = field.params[f'sparse{i}']     # new shape: fresh Adam moments
+            field.set_bricks({f'sparse{i}': chosen}, start=iteration == 0)
+            params[key] = field.params[f'sparse{i}']     # new shape: new Adam state
+            if moments is not None:
+                value, promoted, lr, _ = params.state[key]
+                params.state[key] = (value, promoted, lr, moments)
             self.records.append({'iteration': iteration, 'level': key,
                                  'bricks': int(chosen.size), 'of': brick.n_blocks,
                                  'occupied': int(mask.sum()),

@@ -135,8 +135,59 @@ def test_reallocating_keeps_the_texels_of_bricks_kept():
     assert moved.shape == (4,) + grid.brick + (2,)
     assert np.all(moved[0] == 0) and np.all(moved[3] == 0)
     assert np.array_equal(moved[1], pool[1]) and np.array_equal(moved[2], pool[2])
+    # New bricks take their texels from a fill (a fresh level's noise), kept ones do not.
+    fill = np.full(grid.pool_shape(4), 0.5, np.float32)
+    filled = grid.moved(pool, [1, 7, 9, 20], fill)
+    assert np.all(filled[0] == 0.5) and np.all(filled[3] == 0.5)
+    assert np.array_equal(filled[1], pool[1]) and np.array_equal(filled[2], pool[2])
+    assert [a.tolist() for a in grid.kept([1, 7, 9, 20])] == [[1, 2], [1, 2]]
     with pytest.raises(ValueError, match='distinct'):
         grid.allocate([1, 1])
+
+
+def test_reallocating_carries_adam_moments_of_bricks_kept():
+    """A reallocation keeps the kept bricks' Adam moments and step count; new bricks start
+    with no first moment and the kept entries' mean second moment, so that their first step
+    is about a learning rate, not the ~3x of zero moments without bias correction."""
+    from mi_nerfpp.training import optim
+    from mi_nerfpp.training.schedule import moved_moments
+    grid = BrickGrid(SHAPE, BLOCKS, 2)
+    grid.allocate([3, 7, 9])
+    opt = optim.adam({'fg.sparse0': mi.TensorXf(np.zeros(grid.pool_shape(), np.float32))})
+    t, m0, v0, _ = moved_moments(opt, 'fg.sparse0', grid, [7, 20])      # no step yet
+    assert t.numpy().tolist() == [0] and not m0.numpy().any() and not v0.numpy().any()
+    assert dr.width(m0) == 2 * grid.texels_per_brick * 2
+    rng = np.random.default_rng(2)
+    m = rng.normal(size=grid.pool_shape()).astype(np.float32)
+    v = rng.uniform(1, 2, size=grid.pool_shape()).astype(np.float32)
+    value, promoted, lr, _ = opt.state['fg.sparse0']
+    opt.state['fg.sparse0'] = (value, promoted, lr,
+                               (mi.UInt32(17), mi.Float(m.ravel()), mi.Float(v.ravel()), None))
+    t, m2, v2, _ = moved_moments(opt, 'fg.sparse0', grid, [7, 20])
+    m2, v2 = (a.numpy().reshape(grid.pool_shape(2)) for a in (m2, v2))
+    assert t.numpy().tolist() == [17]
+    assert np.array_equal(m2[0], m[1]) and np.array_equal(v2[0], v[1])
+    assert np.all(m2[1] == 0)
+    np.testing.assert_allclose(v2[1], v[1].mean(), rtol=1e-6)
+
+
+def test_new_bricks_start_as_a_dense_level_does():
+    """A sparse level allocated at the first step (in place of a dense level) starts as
+    normal noise of the dense levels' ``init``; bricks kept keep their texels, and bricks
+    added later start at zero (they add nothing to what was learned until trained)."""
+    from mi_nerfpp.core.encodings import SparseLevels
+    levels = SparseLevels('ball', (16,), blocks=(4, 4, 4), init=0.1, seed=3)
+    levels.allocate({'sparse0': np.arange(40)}, start=True)
+    first = levels.params['sparse0'].numpy()
+    assert first.shape == (40, 4, 4, 4, 4)
+    assert abs(first.std() - 0.1) < 0.005 and abs(first.mean()) < 0.005
+    levels.allocate({'sparse0': np.arange(20, 60)})
+    again = levels.params['sparse0'].numpy()
+    assert np.array_equal(again[:20], first[20:])                 # kept
+    assert not again[20:].any()                                   # added later: zero
+    zero = SparseLevels('ball', (16,), blocks=(4, 4, 4), init=0.1)
+    zero.allocate({'sparse0': np.arange(5)})                      # not at the start: zeros
+    assert not zero.params['sparse0'].numpy().any()
 
 
 def _sparse_model():
@@ -186,7 +237,7 @@ def test_training_allocates_the_occupied_bricks(capture, tmp_path, capsys):
     # Bricks of 2³ texels x 4 channels: at most 40,000 entries -> 1,250 bricks of 4,096.
     assert 0 < fg.size <= 40000 // 32 and fg.size < 16 ** 3
     assert model.parameters()['fg.sparse0'].shape == (fg.size, 2, 2, 2, 4)
-    # Learned after allocation: the texels moved from zero.
+    # Learned after allocation (bricks allocated after the first step start at zero).
     assert np.abs(model.parameters()['fg.sparse0'].numpy()).max() > 0
     # The run says, and records, what each level holds of what the occupancy asked for.
     with open(out / 'metrics.json') as f:
@@ -209,3 +260,28 @@ def test_sparse_levels_need_occupancy_cells_that_cut_them(capsys, capture, tmp_p
             '32), got 24') in capsys.readouterr().err
     assert main(base + ['--grid-sparse', '64', '--no-occupancy']) == 1
     assert '--grid-sparse 64 needs empty-space skipping' in capsys.readouterr().err
+
+
+def test_sparse_levels_allocated_at_the_first_step(capture, tmp_path):
+    """--sparse-at 0 allocates at the first step, where the occupancy grid still holds every
+    cell: every brick, started as a dense level (noise of --grid-init); the background's sparse
+    level has as many texels along s as a dense level of its resolution (--bg-s-ratio)."""
+    from mi_nerfpp.commands.cli import main
+    out = tmp_path / 'run'
+    assert main(['optimize', capture, '--out', str(out), '--iterations', '20', '--batch-rays',
+                 '128', '--samples', '8', '8', '8', '--grid-levels', '8', '--occupancy-res',
+                 '16', '--grid-sparse', '32', '--bg-grid-sparse', '32', '--sparse-at', '0',
+                 '--preview-every', '0', '--checkpoint-every', '0']) == 0
+    with open(out / 'metrics.json') as f:
+        records = json.load(f)['sparse_allocations']
+    assert [(a['iteration'], a['level'], a['bricks'] == a['of']) for a in records] == \
+        [(0, 'fg.sparse0', True), (0, 'bg.sparse0', True)]
+    model, _, _ = load_checkpoint(out / 'model.npz')
+    # Behind: 32 x 0.5 = 16 texels along s over the occupancy grid's 4 cells of s.
+    assert model.parameters()['bg.sparse0'].shape == (4 * 8 * 16, 4, 4, 4, 4)
+    assert model.bg.sparse.bricks[0].shape == (16, 32, 64)
+    fg = model.parameters()['fg.sparse0'].numpy()
+    # Started as noise: no texel is exactly 0. Bricks started at zero would keep zeros
+    # wherever no sample reached, as in the cube's corners outside the ball (48 % of it).
+    assert fg.shape == (16 ** 3, 2, 2, 2, 4) and (fg == 0).mean() < 0.001
+    assert 0.05 < np.median(np.abs(fg)) < 0.12

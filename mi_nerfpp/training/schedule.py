@@ -56,14 +56,15 @@ def moved_moments(opt, key, grid, chosen):
     the kept bricks keep their moments and the step count. New bricks start with no first
     moment and the kept entries' mean second moment: with a zero second moment and the step
     count of the others (no bias correction left), their first steps would be
-    ``(1 − β₁)/√(1 − β₂)`` ≈ 3x the learning rate. None: no state yet."""
+    ``(1 − β₁)/√(1 − β₂)`` ≈ 3x the learning rate. None (a fresh state, whose bias correction
+    starts over) where no brick is kept, as at a level's first allocation."""
     state = opt.state.get(key)
-    if state is None or state[3][1] is None:
+    kept = grid.kept(chosen)[1]
+    if state is None or state[3][1] is None or not kept.size:
         return None
     t, m, v, v_max = state[3]
     v_old = dr.detach(v).numpy()
-    kept = grid.kept(chosen)[1]
-    start = float(v_old.reshape(grid.pool_shape())[kept].mean()) if kept.size else 0.0
+    start = float(v_old.reshape(grid.pool_shape())[kept].mean())
     m = grid.moved(dr.detach(m).numpy(), chosen)
     v = grid.moved(v_old, chosen, np.full(grid.pool_shape(len(chosen)), start, np.float32))
     return t, owned(m.ravel(), mi.Float), owned(v.ravel(), mi.Float), v_max

@@ -157,6 +157,9 @@ def test_reallocating_carries_adam_moments_of_bricks_kept():
     t, m0, v0, _ = moved_moments(opt, 'fg.sparse0', grid, [7, 20])      # no step yet
     assert t.numpy().tolist() == [0] and not m0.numpy().any() and not v0.numpy().any()
     assert dr.width(m0) == 2 * grid.texels_per_brick * 2
+    # No brick kept (a level's first allocation, after steps of its empty placeholder): a
+    # fresh state, whose bias correction starts over, not zero moments at a late step count.
+    assert moved_moments(opt, 'fg.sparse0', grid, [1, 20]) is None
     rng = np.random.default_rng(2)
     m = rng.normal(size=grid.pool_shape()).astype(np.float32)
     v = rng.uniform(1, 2, size=grid.pool_shape()).astype(np.float32)

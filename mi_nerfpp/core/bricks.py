@@ -64,14 +64,19 @@ class BrickGrid:
 
     def allocate(self, bricks) -> None:
         """Allocate ``bricks`` (flat brick indices over ``blocks``, z slowest), in slot order."""
-        bricks = np.asarray(bricks, dtype=np.int64).ravel()
-        if bricks.size and (bricks.min() < 0 or bricks.max() >= self.n_blocks
-                            or np.unique(bricks).size != bricks.size):
-            raise ValueError(f'brick indices must be distinct and in [0, {self.n_blocks})')
+        bricks = self._checked(bricks)
         self.allocated = bricks
         slots = np.zeros(self.n_blocks, dtype=np.uint32)
         slots[bricks] = np.arange(1, bricks.size + 1, dtype=np.uint32)
         self.slots = mi.UInt32(slots)          # slot + 1 of each brick, 0: not allocated
+
+    def _checked(self, bricks):
+        """``bricks`` as flat brick indices, refused unless distinct and in range."""
+        bricks = np.asarray(bricks, dtype=np.int64).ravel()
+        if bricks.size and (bricks.min() < 0 or bricks.max() >= self.n_blocks
+                            or np.unique(bricks).size != bricks.size):
+            raise ValueError(f'brick indices must be distinct and in [0, {self.n_blocks})')
+        return bricks
 
     def moved(self, pool, bricks, fill=None):
         """The pool (NumPy, of :meth:`pool_shape`) re-laid for an allocation of ``bricks``:
@@ -86,7 +91,7 @@ class BrickGrid:
 
     def kept(self, bricks):
         """``(new slots, old slots)`` of the bricks that an allocation of ``bricks`` keeps."""
-        bricks = np.asarray(bricks, dtype=np.int64).ravel()
+        bricks = self._checked(bricks)
         _, new, old = np.intersect1d(bricks, self.allocated, assume_unique=True,
                                      return_indices=True)
         return new, old

@@ -43,6 +43,8 @@ DEFAULT_EVERY = 16           # training steps between refreshes
 DEFAULT_BINS = {'ball': 128, 'inverted_sphere': 64}
 # Density a new grid starts with: every cell occupied until the first update from the field.
 INITIAL_DENSITY = 1e4
+# Jittered points per cell at which :meth:`OccupancyGrid.sampled` takes the field's density.
+ALLOCATION_POINTS = 4
 
 
 def grid_shape(domain, resolution):
@@ -119,6 +121,20 @@ class OccupancyGrid:
         self.density = sigma if self.fresh else dr.maximum(self.density * decay, sigma)
         self.fresh = False
         dr.eval(self.density)
+
+    def sampled(self, field, seed, points=ALLOCATION_POINTS):
+        """The field's density now, as NumPy over the cells: the largest at ``points``
+        jittered points per cell, without the running maximum's memory of densities that
+        training has since carved away (what sparse levels allocate their bricks from)."""
+        out = None
+        for k in range(int(points)):
+            n = dr.width(self.density)
+            rng = mi.PCG32(size=n, initstate=dr.opaque(mi.UInt64, seed * points + k))
+            xi = mi.Point3f(rng.next_float32(), rng.next_float32(), rng.next_float32())
+            with dr.suspend_grad():
+                sigma = dr.detach(field.density(self.cell_points(xi)))
+            out = sigma if out is None else dr.maximum(out, sigma)
+        return out.numpy().reshape(self.shape)
 
     def numpy(self):
         return self.density.numpy().reshape(self.shape)

@@ -219,8 +219,9 @@ class ModelOptions(_Options):
                                           shapes_model=True)
     grid_sparse: tuple | None = option(None, 'grid field: resolution of each sparse level of '
                                        'the foreground grid: RES³ texels stored only in the '
-                                       'bricks (one per occupancy cell) that the occupancy grid '
-                                       'finds occupied at each --sparse-at (RES: a multiple of '
+                                       'bricks (one per occupancy cell) where the field is '
+                                       'denser than the occupancy threshold at each --sparse-at '
+                                       '(RES: a multiple of '
                                        '--occupancy-res); none: no '
                                        'sparse level', type=int, nargs='*', metavar='RES',
                                        default_help="(default: chosen from the capture and "
@@ -524,7 +525,8 @@ class ScheduleOptions(_Options):
                           '(drjit.freeze) instead of tracing every step in Python; re-recorded '
                           'when a prior starts or the grids change resolution')
     sparse_at: tuple = option((0.1, 0.3), 'grid field: fractions of the run at which sparse '
-                              'levels allocate their bricks where the occupancy grid is occupied '
+                              "levels allocate their bricks where the field's density is above "
+                              'the occupancy threshold '
                               '(again at each: bricks kept keep their texels and Adam '
                               'moments; 0: at the first step, every brick, since the occupancy '
                               'knows nothing yet)', type=float,

@@ -72,7 +72,9 @@ def moved_moments(opt, key, grid, chosen):
 
 class SparseAllocation:
     """At each of ``fractions`` of the run passed, allocates the sparse levels' bricks where
-    the occupancy grid is occupied (grown by :data:`~mi_nerfpp.core.bricks.DILATION`), at most
+    the field's density now, at :data:`~mi_nerfpp.core.occupancy.ALLOCATION_POINTS` points of
+    each occupancy cell (:meth:`~mi_nerfpp.core.occupancy.OccupancyGrid.sampled`), is above the
+    occupancy threshold (grown by :data:`~mi_nerfpp.core.bricks.DILATION`), at most
     ``max_entries`` entries a level, the densest first; bricks kept keep their texels. A
     resumed run that has bricks has the fractions before its ``progress`` behind it."""
 
@@ -91,7 +93,10 @@ class SparseAllocation:
         self.done = passed(self.fractions, progress)
         for volume, field, i in sparse_levels(model):
             grid, brick = model.occupancy[volume], field.sparse.bricks[i]
-            density = grid.numpy()
+            # The field's density now, not the grid's running maximum, which remembers for
+            # hundreds of steps what training has carved away; at the first step, every cell.
+            density = grid.numpy() if grid.fresh or iteration == 0 \
+                else grid.sampled(field, iteration)
             occupied = bricks.block_mask(density > grid.threshold, brick.blocks)
             mask = bricks.dilate(occupied, bricks.DILATION[field.domain],
                                  periodic_x=field.domain == 'inverted_sphere')

@@ -87,6 +87,20 @@ def test_update_marks_the_occupied_half():
     np.testing.assert_allclose(grid.numpy(), 0.5 * before, rtol=1e-6)
 
 
+def test_sampled_density_is_the_field_now_not_the_running_maximum():
+    """What sparse levels allocate from: the field's density at jittered points of each cell
+    now. A cell that training emptied reads 0 at once, where the running maximum keeps it
+    occupied for many refreshes."""
+    grid = half_space_grid()                            # x > 0 occupied
+    grid.update(lambda_field(0.0), seed=2)              # the field emptied everywhere
+    assert (grid.numpy()[:, :, 8:] > grid.threshold).all()          # still remembered
+    assert not grid.sampled(lambda_field(0.0), seed=3).any()
+    # Of the half-space field, the largest of 4 points per cell: the occupied half exactly.
+    now = grid.sampled(half_space_field(), seed=4)
+    assert (now[:, :, 8:] > grid.threshold).all() and not now[:, :, :8].any()
+    assert np.array_equal(grid.sampled(half_space_field(), seed=4), now)     # seeded
+
+
 def lambda_field(sigma):
     class Const:
         def density(self, x):

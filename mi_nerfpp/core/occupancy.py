@@ -108,16 +108,19 @@ class OccupancyGrid:
         sin_p, cos_p = dr.sincos(lon)
         return [sin_t * cos_p, sin_t * sin_p, cos_t, c[2]]
 
-    def update(self, field, seed, decay=DEFAULT_DECAY):
-        """``density ← max(decay·density, σ(x))`` at one jittered point per cell."""
+    def _density_at_jittered(self, field, seed):
+        """The field's density at one point per cell, jittered by ``seed`` (detached)."""
         n = dr.width(self.density)
         # An opaque seed: as a literal, each refresh's new seed compiled the kernel anew
         # (~100 ms against ~6 ms per refresh, every 16 training steps).
         rng = mi.PCG32(size=n, initstate=dr.opaque(mi.UInt64, seed))
         xi = mi.Point3f(rng.next_float32(), rng.next_float32(), rng.next_float32())
         with dr.suspend_grad():
-            sigma = field.density(self.cell_points(xi))
-        sigma = dr.detach(sigma)
+            return dr.detach(field.density(self.cell_points(xi)))
+
+    def update(self, field, seed, decay=DEFAULT_DECAY):
+        """``density ← max(decay·density, σ(x))`` at one jittered point per cell."""
+        sigma = self._density_at_jittered(field, seed)
         self.density = sigma if self.fresh else dr.maximum(self.density * decay, sigma)
         self.fresh = False
         dr.eval(self.density)
@@ -128,11 +131,7 @@ class OccupancyGrid:
         training has since carved away (what sparse levels allocate their bricks from)."""
         out = None
         for k in range(int(points)):
-            n = dr.width(self.density)
-            rng = mi.PCG32(size=n, initstate=dr.opaque(mi.UInt64, seed * points + k))
-            xi = mi.Point3f(rng.next_float32(), rng.next_float32(), rng.next_float32())
-            with dr.suspend_grad():
-                sigma = dr.detach(field.density(self.cell_points(xi)))
+            sigma = self._density_at_jittered(field, seed * points + k)
             out = sigma if out is None else dr.maximum(out, sigma)
         return out.numpy().reshape(self.shape)
 

@@ -229,9 +229,9 @@ class ModelOptions(_Options):
                                        "cells span at least two training pixels at the scene's "
                                        "centre, else none)", shapes_model=True)
     bg_grid_sparse: tuple = option((), 'grid field: resolution of each sparse level of the '
-                                   'background grid (longitude x colatitude 2RES x RES, one '
-                                   'texel per occupancy cell along s; RES: a multiple of half '
-                                   '--occupancy-res)', type=int, nargs='*', metavar='RES',
+                                   'background grid (longitude x colatitude 2RES x RES, and '
+                                   'along s as many texels as a dense level of RES and '
+                                   '--bg-s-ratio has; RES: a multiple of half --occupancy-res)', type=int, nargs='*', metavar='RES',
                                    default_help='(default: none)', shapes_model=True)
     grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
                                 shapes_model=True)

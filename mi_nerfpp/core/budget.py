@@ -399,18 +399,22 @@ def sparse_brick_shapes(sizing: Sizing, domain) -> list[tuple]:
             for r in v.sparse]
 
 
+def sparse_level_sizes(sizing: Sizing, domain) -> list[int]:
+    """Entries of each sparse level of one volume's grid field with every brick allocated
+    (what ``--sparse-at 0`` allocates at the first step); empty without sparse levels."""
+    cells = math.prod(grid_shape(domain, sizing.occupancy_res))
+    return [cells * max(math.prod(brick) * sizing.grid_channels, 1)
+            for brick in sparse_brick_shapes(sizing, domain)]
+
+
 def sparse_level_entries(sizing: Sizing, domain) -> list[int]:
     """Entries of each sparse level of one volume's grid field at most
     (:class:`~.bricks.BrickGrid`): its bricks up to ``sparse_entries`` (one brick at least),
     or all of them when fewer; empty without a grid field or sparse levels."""
-    v, limit, channels = sizing.volume(domain), sizing.sparse_entries, sizing.grid_channels
-    if v is None:
-        return []
-    cells = math.prod(grid_shape(domain, sizing.occupancy_res))
-    out = []
-    for brick in sparse_brick_shapes(sizing, domain):
-        per_brick = max(math.prod(brick) * channels, 1)
-        out.append(min(cells * per_brick, max(limit // per_brick, 1) * per_brick))
+    limit, out = sizing.sparse_entries, []
+    for brick, full in zip(sparse_brick_shapes(sizing, domain), sparse_level_sizes(sizing, domain)):
+        per_brick = max(math.prod(brick) * sizing.grid_channels, 1)
+        out.append(min(full, max(limit // per_brick, 1) * per_brick))
     return out
 
 

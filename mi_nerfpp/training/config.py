@@ -529,7 +529,8 @@ class ScheduleOptions(_Options):
                               'the occupancy threshold '
                               '(again at each: bricks kept keep their texels and Adam '
                               'moments; 0: at the first step, every brick, since the occupancy '
-                              'knows nothing yet)', type=float,
+                              'knows nothing yet, so --sparse-entries must hold the whole '
+                              'level)', type=float,
                               nargs='+', metavar='F')
     sparse_entries: int = option(4_000_000, 'grid field: most entries of one sparse level (the '
                                  'densest occupied bricks are kept)')
@@ -614,6 +615,23 @@ class TrainConfig:
                 raise ValueError(f'{self.flag(option)} must be multiples of {cells_y} (the '
                                  f'occupancy cells, --occupancy-res {s.occupancy_res}), got '
                                  f'{shown}')
+        if 0 in self.schedule.sparse_at:
+            self._check_first_allocation()
+
+    def _check_first_allocation(self):
+        """``--sparse-at 0`` allocates every brick at the first step, where the occupancy knows
+        nothing yet to choose the densest by: a level larger than ``--sparse-entries`` would get
+        the bricks first in memory order (half the ball), so it is refused by name."""
+        sizing = self.sizing()
+        for v in sizing.volumes:
+            for r, full in zip(v.sparse, budget.sparse_level_sizes(sizing, v.domain)):
+                if full > sizing.sparse_entries:
+                    raise ValueError(
+                        f'--sparse-at 0 allocates every brick of {self.flag(v.sparse_by)} {r} at '
+                        f'the first step, {full:,} entries, but --sparse-entries is '
+                        f'{sizing.sparse_entries:,}: give --sparse-entries {full} or more, or '
+                        f'start the allocation later (--sparse-at 0.1 ...), once the occupancy '
+                        f'grid knows where the surfaces are')
 
     # ------------------------------------------------------------------ flat options
     @classmethod

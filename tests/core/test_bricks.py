@@ -288,3 +288,28 @@ def test_sparse_levels_allocated_at_the_first_step(capture, tmp_path):
     # wherever no sample reached, as in the cube's corners outside the ball (48 % of it).
     assert fg.shape == (16 ** 3, 2, 2, 2, 4) and (fg == 0).mean() < 0.001
     assert 0.05 < np.median(np.abs(fg)) < 0.12
+
+
+def test_a_first_step_allocation_larger_than_the_budget_is_refused(capsys, capture, tmp_path):
+    """--sparse-at 0 allocates every brick before the occupancy knows where the surfaces are, so
+    a level that --sparse-entries cannot hold whole would get the bricks first in memory order
+    (the lower half of the ball): refused before any work, naming the entries it needs."""
+    from mi_nerfpp.commands.cli import main
+    base = ['optimize', capture, '--out', str(tmp_path / 'r'), '--iterations', '1',
+            '--grid-levels', '8', '--occupancy-res', '16', '--sparse-at', '0']
+    # 32³ texels x 4 channels = 131,072 entries in the ball.
+    assert main(base + ['--grid-sparse', '32', '--sparse-entries', '131071']) == 1
+    err = capsys.readouterr().err
+    assert ('--sparse-at 0 allocates every brick of --grid-sparse 32 at the first step, 131,072 '
+            'entries, but --sparse-entries is 131,071: give --sparse-entries 131072 or more') \
+        in err
+    assert not (tmp_path / 'r' / 'model.npz').exists()
+    # Behind, 64 x 32 x 16 texels along s (32 x --bg-s-ratio 0.5) x 4 channels = 131,072.
+    assert main(base + ['--grid-sparse', '--bg-grid-sparse', '32',
+                        '--sparse-entries', '100000']) == 1
+    assert '--sparse-at 0 allocates every brick of --bg-grid-sparse 32 at the first step, ' \
+        '131,072 entries' in capsys.readouterr().err
+    # Later fractions choose the densest bricks within the budget instead.
+    assert main(base[:-2] + ['--sparse-at', '0.5', '--grid-sparse', '32', '--sparse-entries',
+                             '100000', '--batch-rays', '64', '--samples', '4', '4', '4',
+                             '--preview-every', '0', '--checkpoint-every', '0']) == 0

@@ -221,9 +221,8 @@ class ModelOptions(_Options):
                                        'the foreground grid: RES³ texels stored only in the '
                                        'bricks (one per occupancy cell) where the field is '
                                        'denser than the occupancy threshold at each --sparse-at '
-                                       '(RES: a multiple of '
-                                       '--occupancy-res); none: no '
-                                       'sparse level', type=int, nargs='*', metavar='RES',
+                                       '(RES: a multiple of --occupancy-res); none: no sparse '
+                                       'level', type=int, nargs='*', metavar='RES',
                                        default_help="(default: chosen from the capture and "
                                        "announced: twice the finest --grid-levels where its "
                                        "cells span at least two training pixels at the scene's "
@@ -231,7 +230,8 @@ class ModelOptions(_Options):
     bg_grid_sparse: tuple = option((), 'grid field: resolution of each sparse level of the '
                                    'background grid (longitude x colatitude 2RES x RES, and '
                                    'along s as many texels as a dense level of RES and '
-                                   '--bg-s-ratio has; RES: a multiple of half --occupancy-res)', type=int, nargs='*', metavar='RES',
+                                   '--bg-s-ratio has; RES: a multiple of half --occupancy-res)',
+                                   type=int, nargs='*', metavar='RES',
                                    default_help='(default: none)', shapes_model=True)
     grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
                                 shapes_model=True)
@@ -623,15 +623,16 @@ class TrainConfig:
         nothing yet to choose the densest by: a level larger than ``--sparse-entries`` would get
         the bricks first in memory order (half the ball), so it is refused by name."""
         sizing = self.sizing()
+        at, entries = self.flag('sparse_at'), self.flag('sparse_entries')
         for v in sizing.volumes:
             for r, full in zip(v.sparse, budget.sparse_level_sizes(sizing, v.domain)):
                 if full > sizing.sparse_entries:
                     raise ValueError(
-                        f'--sparse-at 0 allocates every brick of {self.flag(v.sparse_by)} {r} at '
-                        f'the first step, {full:,} entries, but --sparse-entries is '
-                        f'{sizing.sparse_entries:,}: give --sparse-entries {full} or more, or '
-                        f'start the allocation later (--sparse-at 0.1 ...), once the occupancy '
-                        f'grid knows where the surfaces are')
+                        f'{at} 0 allocates every brick of {self.flag(v.sparse_by)} {r} at the '
+                        f'first step, {full:,} entries, but {entries} is '
+                        f'{sizing.sparse_entries:,}: give {entries} {full} or more, or start '
+                        f'the allocation later ({at} 0.1 ...), once the occupancy grid knows '
+                        f'where the surfaces are')
 
     # ------------------------------------------------------------------ flat options
     @classmethod

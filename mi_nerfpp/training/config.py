@@ -528,9 +528,9 @@ class ScheduleOptions(_Options):
                               "levels allocate their bricks where the field's density is above "
                               'the occupancy threshold '
                               '(again at each: bricks kept keep their texels and Adam '
-                              'moments; 0: at the first step, every brick, since the occupancy '
-                              'knows nothing yet, so --sparse-entries must hold the whole '
-                              'level)', type=float,
+                              'moments; 0: at the first step, every brick of each level that '
+                              '--sparse-entries holds whole, since the occupancy knows nothing '
+                              'yet; a larger level waits for the next fraction)', type=float,
                               nargs='+', metavar='F')
     sparse_entries: int = option(4_000_000, 'grid field: most entries of one sparse level (the '
                                  'densest occupied bricks are kept)')
@@ -615,13 +615,13 @@ class TrainConfig:
                 raise ValueError(f'{self.flag(option)} must be multiples of {cells_y} (the '
                                  f'occupancy cells, --occupancy-res {s.occupancy_res}), got '
                                  f'{shown}')
-        if 0 in self.schedule.sparse_at:
+        if not any(self.schedule.sparse_at):
             self._check_first_allocation()
 
     def _check_first_allocation(self):
-        """``--sparse-at 0`` allocates every brick at the first step, where the occupancy knows
-        nothing yet to choose the densest by: a level larger than ``--sparse-entries`` would get
-        the bricks first in memory order (half the ball), so it is refused by name."""
+        """``--sparse-at 0`` alone allocates only at the first step, where the occupancy knows
+        nothing yet: a level larger than ``--sparse-entries`` waits for a later fraction there,
+        so with none it would never be allocated, and is refused by name."""
         sizing = self.sizing()
         at, entries = self.flag('sparse_at'), self.flag('sparse_entries')
         for v in sizing.volumes:
@@ -630,9 +630,9 @@ class TrainConfig:
                     raise ValueError(
                         f'{at} 0 allocates every brick of {self.flag(v.sparse_by)} {r} at the '
                         f'first step, {full:,} entries, but {entries} is '
-                        f'{sizing.sparse_entries:,}: give {entries} {full} or more, or start '
-                        f'the allocation later ({at} 0.1 ...), once the occupancy grid knows '
-                        f'where the surfaces are')
+                        f'{sizing.sparse_entries:,}, so the level would never be allocated: '
+                        f'give {entries} {full} or more, or a later fraction too ({at} 0 0.1 '
+                        f'...), where the occupancy grid chooses its densest bricks')
 
     # ------------------------------------------------------------------ flat options
     @classmethod

@@ -75,8 +75,11 @@ class SparseAllocation:
     the field's density now, at :data:`~mi_nerfpp.core.occupancy.ALLOCATION_POINTS` points of
     each occupancy cell (:meth:`~mi_nerfpp.core.occupancy.OccupancyGrid.sampled`), is above the
     occupancy threshold (grown by :data:`~mi_nerfpp.core.bricks.DILATION`), at most
-    ``max_entries`` entries a level, the densest first; bricks kept keep their texels. A
-    resumed run that has bricks has the fractions before its ``progress`` behind it."""
+    ``max_entries`` entries a level, the densest first; bricks kept keep their texels. At the
+    first step (a fraction of 0), where the occupancy grid knows nothing yet, a level is
+    allocated whole, started as a dense level would be, if ``max_entries`` holds it; a level
+    that it does not hold waits for the next fraction. A resumed run that has bricks has the
+    fractions before its ``progress`` behind it."""
 
     def __init__(self, fractions, max_entries: int, model=None, progress: float = 0.0):
         self.fractions, self.max_entries = tuple(fractions), int(max_entries)
@@ -93,6 +96,9 @@ class SparseAllocation:
         self.done = passed(self.fractions, progress)
         for volume, field, i in sparse_levels(model):
             grid, brick = model.occupancy[volume], field.sparse.bricks[i]
+            limit = self.max_entries // (brick.texels_per_brick * brick.channels)
+            if iteration == 0 and brick.n_blocks > limit:
+                continue        # not whole within the budget: waits for the occupancy
             # The field's density now, not the grid's running maximum, which remembers for
             # hundreds of steps what training has carved away; at the first step, every cell.
             density = grid.numpy() if grid.fresh or iteration == 0 \
@@ -101,7 +107,6 @@ class SparseAllocation:
             mask = bricks.dilate(occupied, bricks.DILATION[field.domain],
                                  periodic_x=field.domain == 'inverted_sphere')
             score = bricks.block_max(density, brick.blocks)
-            limit = self.max_entries // (brick.texels_per_brick * brick.channels)
             chosen = bricks.choose(mask, score, max(limit, 1))
             key = f'{volume}.sparse{i}'
             moments = moved_moments(params, key, brick, chosen)

@@ -290,10 +290,11 @@ def test_sparse_levels_allocated_at_the_first_step(capture, tmp_path):
     assert 0.05 < np.median(np.abs(fg)) < 0.12
 
 
-def test_a_first_step_allocation_larger_than_the_budget_is_refused(capsys, capture, tmp_path):
-    """--sparse-at 0 allocates every brick before the occupancy knows where the surfaces are, so
-    a level that --sparse-entries cannot hold whole would get the bricks first in memory order
-    (the lower half of the ball): refused before any work, naming the entries it needs."""
+def test_a_level_larger_than_the_budget_waits_for_the_occupancy(capsys, capture, tmp_path):
+    """At the first step the occupancy knows nothing yet, so a level that --sparse-entries holds
+    whole is allocated whole there (started as noise) and a larger one waits for the next
+    fraction, where the densest occupied bricks are chosen within the budget. With no later
+    fraction it would never be allocated: refused before any work, naming what would do."""
     from mi_nerfpp.commands.cli import main
     base = ['optimize', capture, '--out', str(tmp_path / 'r'), '--iterations', '1',
             '--grid-levels', '8', '--occupancy-res', '16', '--sparse-at', '0']
@@ -301,15 +302,29 @@ def test_a_first_step_allocation_larger_than_the_budget_is_refused(capsys, captu
     assert main(base + ['--grid-sparse', '32', '--sparse-entries', '131071']) == 1
     err = capsys.readouterr().err
     assert ('--sparse-at 0 allocates every brick of --grid-sparse 32 at the first step, 131,072 '
-            'entries, but --sparse-entries is 131,071: give --sparse-entries 131072 or more') \
-        in err
+            'entries, but --sparse-entries is 131,071, so the level would never be allocated: '
+            'give --sparse-entries 131072 or more, or a later fraction too') in err
     assert not (tmp_path / 'r' / 'model.npz').exists()
     # Behind, 64 x 32 x 16 texels along s (32 x --bg-s-ratio 0.5) x 4 channels = 131,072.
     assert main(base + ['--grid-sparse', '--bg-grid-sparse', '32',
                         '--sparse-entries', '100000']) == 1
     assert '--sparse-at 0 allocates every brick of --bg-grid-sparse 32 at the first step, ' \
         '131,072 entries' in capsys.readouterr().err
-    # Later fractions choose the densest bricks within the budget instead.
-    assert main(base[:-2] + ['--sparse-at', '0.5', '--grid-sparse', '32', '--sparse-entries',
-                             '100000', '--batch-rays', '64', '--samples', '4', '4', '4',
-                             '--preview-every', '0', '--checkpoint-every', '0']) == 0
+    # With a later fraction: the 16 level (16,384 entries) whole at the first step, the 32
+    # level at the tenth step, at most 100,000 entries (3,125 bricks of 2³ x 4) of its 4,096.
+    out = tmp_path / 'run'
+    assert main(['optimize', capture, '--out', str(out), '--iterations', '20',
+                 '--grid-levels', '8', '--occupancy-res', '16', '--sparse-at', '0', '0.5',
+                 '--grid-sparse', '16', '32', '--sparse-entries', '100000', '--batch-rays',
+                 '64', '--samples', '4', '4', '4', '--preview-every', '0',
+                 '--checkpoint-every', '0']) == 0
+    with open(out / 'metrics.json') as f:
+        records = json.load(f)['sparse_allocations']
+    assert [(a['iteration'], a['level'], a['bricks'], a['of']) for a in records][:2] == \
+        [(0, 'fg.sparse0', 4096, 4096), (10, 'fg.sparse0', records[1]['bricks'], 4096)]
+    late = [a for a in records if a['level'] == 'fg.sparse1']
+    assert [a['iteration'] for a in late] == [10] and 0 < late[0]['bricks'] <= 3125
+    model, _, _ = load_checkpoint(out / 'model.npz')
+    assert model.allocated_bricks()['fg.sparse1'].size == late[0]['bricks']
+    # The level allocated later starts at zero and has learned since.
+    assert np.abs(model.parameters()['fg.sparse1'].numpy()).max() > 0

@@ -200,8 +200,9 @@ class ModelOptions(_Options):
                                   choices=FIELD_KINDS, default_help='(default: as --field)',
                                   shapes_model=True)
     grid_levels: tuple = option(tuple(_grid_default('resolutions')),
-                                'grid field: resolution of each level',
-                                metavar='RES', shapes_model=True)
+                                'grid field: resolution of each level (unless --grid-sparse is '
+                                "given, the foreground's finest is stored in bricks: see "
+                                '--grid-sparse)', metavar='RES', shapes_model=True)
     bg_grid_levels: tuple | None = option(None, 'grid field: resolution of each level of the '
                                           'background grid', type=int, nargs='+', metavar='RES',
                                           default_help='(default: as --grid-levels)',
@@ -224,9 +225,10 @@ class ModelOptions(_Options):
                                        '(RES: a multiple of --occupancy-res); none: no sparse '
                                        'level', type=int, nargs='*', metavar='RES',
                                        default_help="(default: chosen from the capture and "
-                                       "announced: twice the finest --grid-levels where its "
-                                       "cells span at least two training pixels at the scene's "
-                                       "centre, else none)", shapes_model=True)
+                                       "announced: the finest --grid-levels, taken out of the "
+                                       "dense ones (the background keeps it dense), and twice "
+                                       "it where those cells span at least two training pixels "
+                                       "at the scene's centre)", shapes_model=True)
     bg_grid_sparse: tuple = option((), 'grid field: resolution of each sparse level of the '
                                    'background grid (longitude x colatitude 2RES x RES, and '
                                    'along s as many texels as a dense level of RES and '
@@ -524,7 +526,7 @@ class ScheduleOptions(_Options):
     freeze: bool = option(True, 'record the kernels of a training step once and replay them '
                           '(drjit.freeze) instead of tracing every step in Python; re-recorded '
                           'when a prior starts or the grids change resolution')
-    sparse_at: tuple = option((0.1, 0.3), 'grid field: fractions of the run at which sparse '
+    sparse_at: tuple = option((0, 0.1, 0.2, 0.3, 0.5, 0.7), 'grid field: fractions of the run at which sparse '
                               "levels allocate their bricks where the field's density is above "
                               'the occupancy threshold '
                               '(again at each: bricks kept keep their texels and Adam '
@@ -532,7 +534,7 @@ class ScheduleOptions(_Options):
                               '--sparse-entries holds whole, since the occupancy knows nothing '
                               'yet; a larger level waits for the next fraction)', type=float,
                               nargs='+', metavar='F')
-    sparse_entries: int = option(4_000_000, 'grid field: most entries of one sparse level (the '
+    sparse_entries: int = option(9_000_000, 'grid field: most entries of one sparse level (the '
                                  'densest occupied bricks are kept)')
     pyramid: tuple = option((0.1, 0.3), 'image pyramid: fractions of the run at which training '
                             'moves to the next finer level of box-filtered images (it starts at '

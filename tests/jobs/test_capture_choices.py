@@ -56,22 +56,70 @@ def test_the_sparse_level_is_chosen_from_the_capture_and_announced(capture, tmp_
     assert footprint == pytest.approx(np.median(
         [np.linalg.norm(c.c2w[:3, 3]) / c.K[0, 0] for c in cameras]))
     # --occupancy-res 4: the level is twice the finest dense level; a finest
-    # level whose doubled cells span two pixels gets one, one four times finer does not.
+    # level whose doubled cells span two pixels gets one, one four times finer does not. A
+    # finest level above one texel an occupancy cell (here 8 and more) goes into bricks itself.
     fits = max(int(1 / (2 * footprint)) // 2 * 2, 2)
     for finest, chosen in ((fits, 2 * fits), (4 * fits, None)):
         inputs, notices = notices_of(capture, tmp_path / str(finest), grid_levels=(4, finest),
                                      occupancy_res=4, iterations=1)
+        moved = (finest,) if finest % 4 == 0 and finest > 4 else ()
         line = [n for n in notices if 'sparse foreground level' in n][0]
-        assert inputs.config.model.grid_sparse == ((chosen,) if chosen else ())
+        assert inputs.config.model.grid_sparse == moved + ((chosen,) if chosen else ())
+        assert inputs.config.model.grid_levels == ((4,) if moved else (4, finest))
+        assert inputs.config.model.levels('inverted_sphere') == (4, finest)
+        if moved:
+            assert f'foreground level {finest}³ stored in bricks where the surfaces are, the ' \
+                   f'coarser 4 dense; --grid-sparse alone to keep it dense' in notices
         if chosen:
             assert line.startswith(f'sparse foreground level {chosen}³ (a training pixel is '
                                    f'{footprint:.4f} of the unit ball wide at the centre')
         else:
-            assert line.startswith(f'no sparse foreground level: a training pixel is '
-                                   f'{footprint:.4f}')
+            assert line.startswith(f'no {"finer " if moved else ""}sparse foreground level: a '
+                                   f'training pixel is {footprint:.4f}')
     # Told: kept as told (none, or a resolution).
     inputs, notices = notices_of(capture, tmp_path / 'told', grid_sparse=(), iterations=1)
     assert inputs.config.model.grid_sparse == () and not any('sparse' in n for n in notices)
+
+
+def test_the_finest_dense_level_goes_into_bricks_where_it_can():
+    """The finest foreground level moves into bricks when a coarser one stays dense and it is
+    a whole multiple of the occupancy cells above one texel a cell; the background keeps its
+    dense levels (it took the foreground's before)."""
+    moved, finest = choices.finest_in_bricks(TrainConfig())       # 32 128, occupancy 64
+    assert finest == 128
+    assert (moved.model.grid_levels, moved.model.bg_grid_levels) == ((32,), (32, 128))
+    given = TrainConfig.from_options(grid_levels=(16, 64, 192), bg_grid_levels=(8, 24),
+                                     occupancy_res=32)
+    moved, finest = choices.finest_in_bricks(given)
+    assert finest == 192 and moved.model.levels('inverted_sphere') == (8, 24)
+    assert moved.model.grid_levels == (16, 64)
+    for options in (dict(grid_levels=(128,)),                           # nothing stays dense
+                    dict(grid_levels=(32, 96)),                          # not a multiple of 64
+                    dict(grid_levels=(32, 128), occupancy_res=128)):    # one texel a cell
+        config = TrainConfig.from_options(**options)
+        assert choices.finest_in_bricks(config) == (config, None)
+
+
+def test_a_resumed_run_keeps_its_levels_and_its_allocation_schedule(capture, tmp_path):
+    """A run resumed with the options left at their defaults takes the dense and sparse
+    levels it was trained with (the chooser moved one, or had none to move) and its own
+    --sparse-at / --sparse-entries, not today's defaults."""
+    default = TrainConfig()
+    trained = TrainConfig.from_options(grid_levels=(32,), bg_grid_levels=(32, 128),
+                                       grid_sparse=(128,), sparse_at=(0.1, 0.3),
+                                       sparse_entries=4_000_000).to_dict()
+    config = choices.from_capture(default, load_dataset(capture), trained)
+    assert (config.model.grid_levels, config.model.bg_grid_levels, config.model.grid_sparse) \
+        == ((32,), (32, 128), (128,))
+    assert (config.schedule.sparse_at, config.schedule.sparse_entries) == ((0.1, 0.3), 4_000_000)
+    before = TrainConfig.from_options(grid_sparse=(256,)).to_dict()     # dense 32 128 (older)
+    config = choices.from_capture(default, load_dataset(capture), before)
+    assert (config.model.grid_levels, config.model.levels('inverted_sphere'),
+            config.model.grid_sparse) == ((32, 128), (32, 128), (256,))
+    # Given on the command line: kept.
+    told = TrainConfig.from_options(sparse_at=(0.2,), sparse_entries=1000)
+    config = choices.from_capture(told, load_dataset(capture), trained)
+    assert (config.schedule.sparse_at, config.schedule.sparse_entries) == ((0.2,), 1000)
 
 
 def test_rays_are_uniform_unless_told_and_a_resumed_run_draws_as_it_did(capture, tmp_path):
@@ -95,8 +143,14 @@ def test_rays_are_uniform_unless_told_and_a_resumed_run_draws_as_it_did(capture,
 def test_the_chosen_resolution_and_budget_are_announced_and_respected(capture, tmp_path):
     inputs, notices = notices_of(capture, tmp_path)
     n = len(inputs.dataset.train)
-    resolution, sparse_line, schedule_line = notices
-    assert sparse_line.startswith('no sparse foreground level: a training pixel is ')
+    resolution, moved_line, sparse_line, schedule_line = notices
+    assert moved_line == ('foreground level 128³ stored in bricks where the surfaces are, the '
+                          'coarser 32 dense; --grid-sparse alone to keep it dense')
+    assert sparse_line.startswith('no finer sparse foreground level: a training pixel is ')
+    assert sparse_line.endswith('; --grid-sparse 128 RES to add one')
+    model = inputs.config.model
+    assert (model.grid_levels, model.levels('inverted_sphere'), model.grid_sparse) == (
+        (32,), (32, 128), (128,))
     assert inputs.config.schedule.error_rays == 0.0
     assert resolution.startswith(f"training at the images' own resolution, {n} views of "
                                  f'32x24 (images ')

@@ -436,7 +436,7 @@ def test_a_video_frame_beyond_memory_names_res(capsys, tiny_run, tmp_path, monke
 
 @pytest.mark.parametrize('option, flag, brick', [
     (['--grid-sparse', '65536'], '--grid-sparse 65536', '1024x1024x1024'),
-    (['--grid-sparse', '128', '6464'], '--grid-sparse 128 6464', '101x101x101'),
+    (['--grid-sparse', '128', '8448'], '--grid-sparse 128 8448', '132x132x132'),
     (['--bg-grid-sparse', '131072'], '--bg-grid-sparse 131072', '4096x4096x4096'),
 ])
 def test_a_sparse_level_whose_brick_outgrows_its_entries_names_the_largest(capsys, tmp_path,
@@ -450,14 +450,15 @@ def test_a_sparse_level_whose_brick_outgrows_its_entries_names_the_largest(capsy
     line = one_clear_line(err)
     assert status == 1, line
     assert line.startswith(f'error: optimize: {flag} is too large: one brick '), line
-    assert f'holds {brick} texels' in line and 'more than --sparse-entries 4000000' in line
+    entries = TrainConfig().schedule.sparse_entries
+    assert f'holds {brick} texels' in line and f'more than --sparse-entries {entries}' in line
     best = int(re.search(r'fits at resolution ([\d,]+) at most$', line).group(1).replace(',', ''))
     cells = 64 if option[0] == '--grid-sparse' else 32       # --occupancy-res 64
     assert best % cells == 0
     # Behind, a brick spans R/32 texels of colatitude, 2R/64 of longitude and, along s, as a
     # dense level of --bg-s-ratio 0.5 has them over 16 cells: R/32.
-    entries = (best // 64) ** 3 * 4 if option[0] == '--grid-sparse' else (best // 32) ** 3 * 4
-    assert entries <= 4_000_000 < (
+    brick = (best // 64) ** 3 * 4 if option[0] == '--grid-sparse' else (best // 32) ** 3 * 4
+    assert brick <= entries < (
         ((best + 64) // 64) ** 3 * 4 if option[0] == '--grid-sparse'
         else ((best + 32) // 32) ** 3 * 4)
     assert not (tmp_path / 'run').exists()

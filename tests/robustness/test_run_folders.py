@@ -12,6 +12,7 @@ import pytest
 
 from mi_nerfpp.files.checkpoint import load_checkpoint
 from mi_nerfpp.files.atomic import LOCK_NAME
+from mi_nerfpp.training.config import TrainConfig
 from tests.robustness.common import TINY, Training, one_clear_line, run_cli
 
 
@@ -291,10 +292,11 @@ def test_a_resume_that_changes_the_sparse_allocation_after_it_took_effect_is_ref
     assert _train(capsys, capture, out, *sparse, '--iterations', '4')[0] == 0
     status, _, err = _train(capsys, capture, out, *sparse, '--iterations', '6', '--resume',
                             '--sparse-entries', '1000')
+    entries = TrainConfig().schedule.sparse_entries          # (the default it was trained with)
     assert status == 1 and one_clear_line(err) == (
         f'error: optimize: {out / "model.npz"}: its sparse levels were allocated with '
-        f'--sparse-entries 4000000, and no allocation is ahead of this run to take other '
-        f'values: resume with --sparse-entries 4000000 (other values need a new run, or a '
+        f'--sparse-entries {entries}, and no allocation is ahead of this run to take other '
+        f'values: resume with --sparse-entries {entries} (other values need a new run, or a '
         f'--sparse-at fraction still ahead)')
     assert _train(capsys, capture, out, *sparse[:4], '--sparse-at', '0.1', '0.9',
                   '--sparse-entries', '1000', '--iterations', '8', '--resume')[0] == 0

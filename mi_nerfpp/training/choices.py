@@ -84,7 +84,7 @@ def choose_sparse_level(config: TrainConfig, dataset, stored: dict, notice=_quie
     footprint = centre_footprint(dataset.train.cameras)
     finest = max(m.levels('ball'))
     r = budget.sparse_resolution(footprint, finest, config.sampling.occupancy_res)
-    cells = f'{2 / finest / footprint:.1f} pixels per cell of --grid-levels {finest}'
+    cells = f'{2 / finest / footprint:.1f} pixels per cell of the {finest}³ level'
     config, moved = finest_in_bricks(config)
     kept = (moved,) if moved else ()
     if moved:

@@ -226,9 +226,10 @@ class ModelOptions(_Options):
                                        'level', type=int, nargs='*', metavar='RES',
                                        default_help="(default: chosen from the capture and "
                                        "announced: the finest --grid-levels, taken out of the "
-                                       "dense ones (the background keeps it dense), and twice "
-                                       "it where those cells span at least two training pixels "
-                                       "at the scene's centre)", shapes_model=True)
+                                       "dense ones (the background keeps it dense) where its "
+                                       "cells span at least two training pixels at the scene's "
+                                       "centre, and twice it where those cells do)",
+                                       shapes_model=True)
     bg_grid_sparse: tuple = option((), 'grid field: resolution of each sparse level of the '
                                    'background grid (longitude x colatitude 2RES x RES, and '
                                    'along s as many texels as a dense level of RES and '

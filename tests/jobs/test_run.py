@@ -64,12 +64,10 @@ def test_a_run_reports_to_its_observer_writes_its_files_and_prints_nothing(
     assert point['minutes'] == 1e-4 and point['iteration'] == 1
     assert os.path.exists(os.path.join(out, 'test_at_0.0001min', 'test_000.exr'))
     assert result.metrics['progress'] == [point] and result.progress == [point]
-    # (what the run chose from the capture: the resolution, the finest level in bricks and no
-    # finer one, uniform rays at 32x24, no per-photo appearance and no pose refinement for a
-    # rendered capture)
-    assert result.metrics['config'] == cfg.replace(downscale=1, grid_levels=(32,),
-                                                   bg_grid_levels=(32, 128), grid_sparse=(128,),
-                                                   error_rays=0.0,
+    # (what the run chose from the capture: the resolution, no level in bricks (a cell of the
+    # 128 level spans under two pixels at 32x24) and uniform rays, no per-photo appearance and
+    # no pose refinement for a rendered capture)
+    assert result.metrics['config'] == cfg.replace(downscale=1, grid_sparse=(), error_rays=0.0,
                                                    appearance=False,
                                                    refine_poses=False).to_dict()
     # training.png: the loss named as it is computed, the held-out PSNR as points.

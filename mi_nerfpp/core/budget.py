@@ -381,7 +381,15 @@ def sparse_resolution(footprint: float, finest: int, occupancy_res: int) -> int 
     None when they would not."""
     r = SPARSE_FACTOR * int(finest)
     r = -(-r // occupancy_res) * occupancy_res
-    return r if 2.0 / r >= SPARSE_PIXELS * footprint else None
+    return r if spans_pixels(r, footprint) else None
+
+
+def spans_pixels(resolution: int, footprint: float) -> bool:
+    """Whether a cell of a foreground level of ``resolution`` (``2/R`` of the unit ball) spans
+    at least :data:`SPARSE_PIXELS` training pixels ``footprint`` wide: the rule for storing a
+    level in bricks (:func:`sparse_resolution`,
+    :func:`mi_nerfpp.training.choices.choose_sparse_level`)."""
+    return 2.0 / resolution >= SPARSE_PIXELS * footprint
 
 
 def sparse_brick_shapes(sizing: Sizing, domain) -> list[tuple]:

@@ -89,7 +89,7 @@ def choose_sparse_level(config: TrainConfig, dataset, stored: dict, notice=_quie
     # (Only a level whose cells span two training pixels: on the 32x24 test capture, cells of
     # 0.7 pixels, 600 steps scored 20.0 dB held out in bricks against 23.2 dense, cause not
     # found: not the pruning, the brick size or the antialiasing; docs/experiments.md.)
-    config, moved = (finest_in_bricks(config) if 2.0 / finest >= budget.SPARSE_PIXELS * footprint
+    config, moved = (finest_in_bricks(config) if budget.spans_pixels(finest, footprint)
                      else (config, None))
     kept = (moved,) if moved else ()
     if moved:

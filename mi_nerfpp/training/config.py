@@ -527,7 +527,8 @@ class ScheduleOptions(_Options):
     freeze: bool = option(True, 'record the kernels of a training step once and replay them '
                           '(drjit.freeze) instead of tracing every step in Python; re-recorded '
                           'when a prior starts or the grids change resolution')
-    sparse_at: tuple = option((0, 0.1, 0.2, 0.3, 0.5, 0.7), 'grid field: fractions of the run at which sparse '
+    sparse_at: tuple = option((0, 0.1, 0.2, 0.3, 0.5, 0.7),
+                              'grid field: fractions of the run at which sparse '
                               "levels allocate their bricks where the field's density is above "
                               'the occupancy threshold '
                               '(again at each: bricks kept keep their texels and Adam '

@@ -1,11 +1,13 @@
 """Where a training step's and a render's time goes: kernels by stage and kind, launches, cores.
 
     python benchmarks/profile.py [--data DATA] [--steps 20] [--warmup 20] [--run RUN]
-                                 [--width 1280 --height 720] [--base REV --base-run RUN]
-                                 [name=value ...]
+                                 [--resume RUN] [--width 1280 --height 720]
+                                 [--base REV --base-run RUN --base-resume RUN] [name=value ...]
 
-Training (the default capture without DATA, default options; ``name=value`` sets options of the
-training config), at fraction ``--at`` of a run (0.6: past the schedule's phases, as
+Training (the default capture without DATA, default options with what ``optimize.py`` chooses
+from the capture; ``name=value`` sets options of the training config; ``--resume RUN``: from
+that trained run's checkpoint, whose sparse levels hold the bricks training left them, where a
+fresh model holds every brick), at fraction ``--at`` of a run (0.6: past the schedule's phases, as
 ``benchmarks/versus.py train``): after ``--warmup`` steps, ``--steps`` steps are traced without
 ``drjit.freeze`` under a :class:`mi_nerfpp.core.profiling.KernelProfile`, which attributes every
 kernel to the stage that launched it (occupancy refresh and sampling, field evaluations, the
@@ -58,28 +60,13 @@ def stage_rows(profile, per):
     return sorted(rows, key=lambda r: -r[2])
 
 
-def training_config(options, freeze):
-    """A training config of this version (flat TrainConfig before the option groups)."""
-    import mi_nerfpp.training.train as T
-    make = getattr(T.TrainConfig, 'from_options', T.TrainConfig)
-    cfg = make(iterations=10 ** 9, checkpoint_every=0, preview_every=0,
-               **dict(options, freeze=freeze))
-    batch = cfg.schedule.batch_rays if hasattr(cfg, 'schedule') else cfg.batch_rays
-    return cfg, batch
-
-
-def profile_training(data, options, steps, warmup, at):
+def profile_training(data, options, steps, warmup, at, resume=None):
     import drjit as dr
-    from mi_nerfpp.data import load_dataset
     from mi_nerfpp.core.profiling import KernelProfile
-    from mi_nerfpp.data.synth import default_capture
-    from mi_nerfpp.training.train import Trainer
-    dataset = load_dataset(data or default_capture(progress=False))
+    from stepping import make_trainer
     out = {}
     for freeze in (False, True):
-        cfg, batch = training_config(options, freeze)
-        trainer = Trainer(dataset, tempfile.mkdtemp(prefix='mi_nerfpp_profile_'), cfg)
-        trainer.iteration = int(at * 10 ** 9)     # the phase of the run (see --at)
+        trainer, batch = make_trainer(data, options, at, resume, freeze)
         for _ in range(warmup):
             trainer.step()
         dr.sync_thread()
@@ -134,7 +121,8 @@ def worker(args):
     """Measure the version this process imports; print the result as JSON."""
     import mi_nerfpp  # noqa: F401  (libLLVM, variant, plugin registration)
     result = {'training': profile_training(args['data'], args['options'], args['steps'],
-                                           args['warmup'], args.get('at', 0.0))}
+                                           args['warmup'], args.get('at', 0.0),
+                                           args.get('resume'))}
     if args.get('run'):
         result['render'] = profile_render(args['run'], args['width'], args['height'])
     print(json.dumps(result))
@@ -170,6 +158,10 @@ def main():
                     help='the fraction of a run at which the steps are taken (as '
                          'benchmarks/versus.py train --at)')
     ap.add_argument('--run', help='also profile a render of this run folder')
+    ap.add_argument('--resume', metavar='RUN',
+                    help="take the steps from this trained run's checkpoint (its bricks as "
+                         "trained; a fresh model holds every brick)")
+    ap.add_argument('--base-resume', metavar='RUN', help='--resume for the base revision')
     ap.add_argument('--width', type=int, default=1280)
     ap.add_argument('--height', type=int, default=720)
     ap.add_argument('--base', help='also measure this git revision')
@@ -182,16 +174,19 @@ def main():
               'warmup': a.warmup, 'width': a.width, 'height': a.height, 'at': a.at}
     versions = {'this checkout': measure(ROOT, dict(
         common, options={k: json.loads(v) for k, v in (o.split('=', 1) for o in a.options)},
-        run=a.run and os.path.abspath(a.run)))}
+        run=a.run and os.path.abspath(a.run), resume=a.resume and os.path.abspath(a.resume)))}
     if a.base:
         tmp = tempfile.mkdtemp(prefix='mi_nerfpp_profile_base_')
         archive = subprocess.run(['git', '-C', ROOT, 'archive', a.base], check=True,
                                  stdout=subprocess.PIPE).stdout
         subprocess.run(['tar', '-x', '-C', tmp], input=archive, check=True)
-        shutil.copy(os.path.join(ROOT, 'mi_nerfpp', 'profiling.py'),
-                    os.path.join(tmp, 'mi_nerfpp', 'profiling.py'))
+        os.makedirs(os.path.join(tmp, 'mi_nerfpp', 'core'), exist_ok=True)
+        shutil.copy(os.path.join(ROOT, 'mi_nerfpp', 'core', 'profiling.py'),
+                    os.path.join(tmp, 'mi_nerfpp', 'core', 'profiling.py'))
         versions[a.base] = measure(tmp, dict(common, options={},
-                                             run=a.base_run and os.path.abspath(a.base_run)))
+                                             run=a.base_run and os.path.abspath(a.base_run),
+                                             resume=a.base_resume and os.path.abspath(
+                                                 a.base_resume)))
 
     columns = ['version', 'step (ms, median)', 'rays per step', 'rays/s', 'kernel launches',
                'kernel ms', 'cores busy']

@@ -1,6 +1,7 @@
 """Two versions of mi-nerfpp side by side: training steps or renders, alternating, one machine.
 
-    python benchmarks/versus.py train  --base c93a164 [--rounds 8 --block 16] [-- NEW OPTIONS]
+    python benchmarks/versus.py train  --base c93a164 [--rounds 8 --block 16] [--data DATA]
+                                       [--resume RUN --base-resume RUN] [-- NEW OPTIONS]
     python benchmarks/versus.py render --base c93a164 --base-run RUN_A --run RUN_B
                                        [--width 1280 --height 720 --rounds 5]
 
@@ -10,11 +11,15 @@ The base revision is exported from git (``git archive``) into a temporary folder
 is the new version. Each version runs in a worker process of its own (its own package on
 ``PYTHONPATH``, its own defaults), and the workers take turns: ``--rounds`` rounds, each running
 ``--block`` training steps (or one render) in each worker, the order swapped every round, so both
-see the same machine - its fast and slow modes, whatever else runs. Reported per version: the
+see the same machine - its fast and slow modes, whatever else runs. Each worker makes its
+trainer as its version's ``optimize.py`` does (``benchmarks/stepping.py``: what the options
+leave to the capture chosen by the version's own ``jobs.run.prepare``), on the embedded default
+capture or ``--data``; ``--resume`` / ``--base-resume`` continue trained runs of each version
+(on a fresh model a sparse level holds every brick). Reported per version: the
 median and mean step (or frame) time of the warm blocks, training rays/s from the mean (the
 mean includes the periodic occupancy refresh when ``--block`` is a multiple of its period), the
 worker's peak RSS, and the ratio new/base. ``train`` uses each version's default training
-options on the embedded default capture (``-- OPTIONS`` are keyword options of the new
+options (``-- OPTIONS`` are keyword options of the new
 version's config, as ``name=value``, e.g. ``batch_rays=2048``); both versions take their steps
 at fraction ``--at`` of a run (0.6: past the phases of the schedule, where most of a run's steps
 are). ``render`` renders each run's ``render.xml`` (its model, its sample counts) with the film
@@ -34,22 +39,11 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 TRAIN_WORKER = r'''
 import json, resource, sys, time
+sys.path.insert(0, sys.argv[2])         # this checkout's benchmarks/ (stepping.py)
 import mi_nerfpp, drjit as dr
-from mi_nerfpp.data import load_dataset
-try:                        # the layered package (issue 48), or the flat one of older revisions
-    from mi_nerfpp.data.synth import default_capture
-    import mi_nerfpp.training.train as T
-except ImportError:
-    from mi_nerfpp.synth import default_capture
-    import mi_nerfpp.train as T
+from stepping import make_trainer
 args = json.loads(sys.argv[1])
-dataset = load_dataset(default_capture(progress=False))
-# The flat config of older versions, or the option groups of newer ones (from_options).
-make = getattr(T.TrainConfig, 'from_options', T.TrainConfig)
-cfg = make(iterations=10 ** 9, checkpoint_every=0, preview_every=0, **args['options'])
-batch = cfg.schedule.batch_rays if hasattr(cfg, 'schedule') else cfg.batch_rays
-trainer = T.Trainer(dataset, args['out'], cfg)
-trainer.iteration = int(args['at'] * 10 ** 9)    # the phase of the run the steps are taken in
+trainer, batch = make_trainer(args['data'], args['options'], args['at'], args['resume'])
 for _ in range(args['warmup']):
     trainer.step()
 dr.sync_thread()
@@ -110,17 +104,21 @@ class Worker:
     def __init__(self, name, tree, code, args):
         env = dict(os.environ, PYTHONPATH=tree, PYTHONUNBUFFERED='1')
         self.name = name
-        self.proc = subprocess.Popen([sys.executable, '-c', code, json.dumps(args)], cwd=tree,
+        self.proc = subprocess.Popen([sys.executable, '-c', code, json.dumps(args),
+                                      os.path.join(ROOT, 'benchmarks')], cwd=tree,
                                      env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      text=True)
         self.batch = self._read()['batch']
         self.times = []
 
     def _read(self):
-        line = self.proc.stdout.readline()
-        if not line:
-            raise SystemExit(f'{self.name}: the worker stopped (see its error output above)')
-        return json.loads(line)
+        while True:
+            line = self.proc.stdout.readline()
+            if not line:
+                raise SystemExit(f'{self.name}: the worker stopped (see its error output above)')
+            if line.startswith('{'):
+                return json.loads(line)
+            print(f'{self.name}: {line}', end='', file=sys.stderr)   # the run's announcements
 
     def run(self, n):
         self.proc.stdin.write(f'{n}\n')
@@ -146,6 +144,11 @@ def main():
                     help='train: the fraction of a run at which the steps are taken (what the '
                          'schedule has switched on by then: the image pyramid at full size '
                          'from 0.3, the background\'s sparsity prior from 0.5)')
+    ap.add_argument('--data', help='train: dataset folder (default: the embedded default capture)')
+    ap.add_argument('--resume', metavar='RUN',
+                    help="train: this version's steps from this trained run's checkpoint (its "
+                         "bricks as trained; a fresh model holds every brick)")
+    ap.add_argument('--base-resume', metavar='RUN', help='train: --resume for the base version')
     ap.add_argument('--base-run', help='render: the base version\'s run folder')
     ap.add_argument('--run', help='render: this version\'s run folder')
     ap.add_argument('--width', type=int, default=1280)
@@ -166,8 +169,10 @@ def main():
                 for item in a.options:
                     key, value = item.split('=', 1)
                     options[key] = json.loads(value)
-            args = {'options': options, 'out': os.path.join(tmp, f'run_{name}'),
-                    'warmup': a.warmup, 'at': a.at}
+            resume = a.base_resume if name == 'base' else a.resume
+            args = {'options': options, 'warmup': a.warmup, 'at': a.at,
+                    'data': a.data and os.path.abspath(a.data),
+                    'resume': resume and os.path.abspath(resume)}
             workers[name] = Worker(name, trees[name], TRAIN_WORKER, args)
         else:
             run = a.base_run if name == 'base' else a.run

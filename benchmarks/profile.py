@@ -13,9 +13,9 @@ fresh model holds every brick), at fraction ``--at`` of a run (0.6: past the sch
 kernel to the stage that launched it (occupancy refresh and sampling, field evaluations, the
 merge of coarse and fine samples, quadrature, deferred colour, losses and the reverse pass,
 Adam) and tells kernels apart by kind (gradient scatters, memsets, block reductions, matrix
-products). Then the same number of frozen steps (how training runs) are timed: wall time,
-kernel launches and kernel time per step, and the cores busy (process CPU time over wall time;
-2 = both cores of this machine). With ``--run RUN`` one frame of the run's ``render.xml`` at
+products). Then the same number of frozen steps (how training runs) are timed: wall time and
+the cores busy (process CPU time over wall time; 2 = both cores of this machine); and as many
+again profiled: kernel launches and kernel time per step. With ``--run RUN`` one frame of the run's ``render.xml`` at
 ``--width x --height`` (1 spp) is profiled the same way.
 
 ``--base REV`` measures the same for git revision ``REV`` too (exported with ``git archive``,
@@ -77,15 +77,20 @@ def profile_training(data, options, steps, warmup, at, resume=None):
             out['traced'] = {'step_ms': 1e3 * wall / steps, 'cores_busy': busy,
                              'launches': profile.launches() / steps}
             continue
+        # Timed without the profile (under it, the first occupancy refresh compiles its kernels
+        # again: one step of ~0.4 s in the mean), then the same steps profiled for the kernels.
         times = []
+        c0, t0 = time.process_time(), time.perf_counter()
+        for _ in range(steps):
+            s = time.perf_counter()
+            trainer.step()
+            dr.sync_thread()
+            times.append(time.perf_counter() - s)
+        busy = (time.process_time() - c0) / (time.perf_counter() - t0)
         with KernelProfile() as profile:
-            c0, t0 = time.process_time(), time.perf_counter()
             for _ in range(steps):
-                s = time.perf_counter()
                 trainer.step()
-                dr.sync_thread()
-                times.append(time.perf_counter() - s)
-            busy = (time.process_time() - c0) / (time.perf_counter() - t0)
+            dr.sync_thread()
         out['frozen'] = {'step_ms': 1e3 * statistics.median(times),
                          'mean_step_ms': 1e3 * statistics.mean(times),
                          'kernel_ms': sum(ms for _, _, ms in profile.records) / steps,

@@ -145,33 +145,45 @@ def test_reallocating_keeps_the_texels_of_bricks_kept():
         grid.allocate([1, 1])
 
 
-def test_reallocating_carries_adam_moments_of_bricks_kept():
+@pytest.mark.parametrize('first_moment', [True, False])
+def test_reallocating_carries_adam_moments_of_bricks_kept(first_moment):
     """A reallocation keeps the kept bricks' Adam moments and step count; new bricks start
     with no first moment and the kept entries' mean second moment, so that their first step
-    is about a learning rate, not the ~3x of zero moments without bias correction."""
+    is about a learning rate, not the ~3x of zero moments without bias correction. A grid that
+    learns without a first moment (training's optimizer, optim.GRID_BETA1) keeps its one-entry
+    placeholder."""
     from mi_nerfpp.training import optim
     from mi_nerfpp.training.schedule import moved_moments
     grid = BrickGrid(SHAPE, BLOCKS, 2)
     grid.allocate([3, 7, 9])
-    opt = optim.adam({'fg.sparse0': mi.TensorXf(np.zeros(grid.pool_shape(), np.float32))})
+    start = {'fg.sparse0': mi.TensorXf(np.zeros(grid.pool_shape(), np.float32))}
+    opt = optim.adam(start) if not first_moment else optim.Adam(lr=optim.LR_GRID)
+    if first_moment:
+        opt['fg.sparse0'] = start['fg.sparse0']
+    entries = 2 * grid.texels_per_brick * 2
     t, m0, v0, _ = moved_moments(opt, 'fg.sparse0', grid, [7, 20])      # no step yet
     assert t.numpy().tolist() == [0] and not m0.numpy().any() and not v0.numpy().any()
-    assert dr.width(m0) == 2 * grid.texels_per_brick * 2
+    assert dr.width(m0) == (entries if first_moment else 1) and dr.width(v0) == entries
     # No brick kept (a level's first allocation, after steps of its empty placeholder): a
     # fresh state, whose bias correction starts over, not zero moments at a late step count.
     assert moved_moments(opt, 'fg.sparse0', grid, [1, 20]) is None
     rng = np.random.default_rng(2)
     m = rng.normal(size=grid.pool_shape()).astype(np.float32)
     v = rng.uniform(1, 2, size=grid.pool_shape()).astype(np.float32)
-    value, promoted, lr, _ = opt.state['fg.sparse0']
+    value, promoted, lr, (_, placeholder, _, _) = opt.state['fg.sparse0']
     opt.state['fg.sparse0'] = (value, promoted, lr,
-                               (mi.UInt32(17), mi.Float(m.ravel()), mi.Float(v.ravel()), None))
+                               (mi.UInt32(17), mi.Float(m.ravel()) if first_moment
+                                else placeholder, mi.Float(v.ravel()), None))
     t, m2, v2, _ = moved_moments(opt, 'fg.sparse0', grid, [7, 20])
-    m2, v2 = (a.numpy().reshape(grid.pool_shape(2)) for a in (m2, v2))
+    v2 = v2.numpy().reshape(grid.pool_shape(2))
     assert t.numpy().tolist() == [17]
-    assert np.array_equal(m2[0], m[1]) and np.array_equal(v2[0], v[1])
-    assert np.all(m2[1] == 0)
+    assert np.array_equal(v2[0], v[1])
     np.testing.assert_allclose(v2[1], v[1].mean(), rtol=1e-6)
+    if first_moment:
+        m2 = m2.numpy().reshape(grid.pool_shape(2))
+        assert np.array_equal(m2[0], m[1]) and np.all(m2[1] == 0)
+    else:
+        assert m2 is placeholder
 
 
 def test_new_bricks_start_as_a_dense_level_does():

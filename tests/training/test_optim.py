@@ -71,34 +71,75 @@ def test_unknown_color_loss_is_rejected():
 
 def test_adam_matches_drjit_adam_and_fuses_the_updates():
     """optim.Adam takes the steps of drjit.opt.Adam (learning rates as opaque arrays, as in
-    training), and evaluates the updates of all parameters of one size in one kernel."""
+    training): the grids' with a first-moment decay of optim.GRID_BETA1 (none stored), the rest
+    with Adam's own; and it evaluates the updates of all parameters of one size in one
+    kernel."""
     rng = np.random.default_rng(0)
     start = {'grid': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
              'grid2': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
              'w': rng.normal(size=96).astype(np.float32)}
     ours = optim.adam({k: mi.TensorXf(v) if v.ndim > 1 else mi.Float(v) for k, v in start.items()})
-    theirs = dr.opt.Adam(lr=optim.LR_MLP, beta_2=optim.ADAM_BETA2)
+    theirs = {'grid': dr.opt.Adam(lr=optim.LR_MLP, beta_1=optim.GRID_BETA1,
+                                  beta_2=optim.ADAM_BETA2),
+              'w': dr.opt.Adam(lr=optim.LR_MLP, beta_2=optim.ADAM_BETA2)}
     for k, v in start.items():
-        theirs[k] = mi.TensorXf(v) if v.ndim > 1 else mi.Float(v)
+        theirs['w' if k == 'w' else 'grid'][k] = mi.TensorXf(v) if v.ndim > 1 else mi.Float(v)
     assert type(ours) is optim.Adam and isinstance(ours, dr.opt.Adam)
+    assert optim.is_grid('fg.grid1') and optim.GRID_BETA1 == 0.0
     for it in range(5):
-        for opt in (ours, theirs):
-            optim.set_learning_rates(opt, it / 5)
-            x = opt['grid'].array
+        for opts in ([ours], list(theirs.values())):
+            for opt in opts:
+                optim.set_learning_rates(opt, it / 5)
+            get = (lambda k: ours[k]) if opts[0] is ours else \
+                (lambda k: theirs['w' if k == 'w' else 'grid'][k])
+            x = get('grid').array
             loss = (dr.sum(dr.square(x - 0.3) * dr.select((dr.arange(mi.UInt32, dr.width(x)) + it) % 3 == 0,
                                                         0.0, 1.0))
-                    + dr.sum(dr.exp(opt['grid2'].array) * 0.1) + dr.sum(dr.sin(opt['w'])))
+                    + dr.sum(dr.exp(get('grid2').array) * 0.1) + dr.sum(dr.sin(get('w'))))
             dr.backward(loss)
-            if opt is ours:
+            if opts[0] is ours:
                 with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
                     dr.eval()
                     dr.kernel_history_clear()
-                    opt.step(eval=False)
+                    ours.step(eval=False)
                     dr.eval()
                     sizes = [k['size'] for k in dr.kernel_history() if k.get('size', 0) > 1]
                 assert sorted(sizes) == [96, 128], sizes     # the two grids in one kernel
             else:
-                opt.step()
+                for opt in opts:
+                    opt.step()
         for k in start:
-            np.testing.assert_allclose(np.array(ours[k]), np.array(theirs[k]), rtol=1e-5,
-                                       atol=1e-6)
+            mine = np.array(ours[k])
+            np.testing.assert_allclose(mine, np.array(theirs['w' if k == 'w' else 'grid'][k]),
+                                       rtol=1e-5, atol=1e-6)
+    # The grids store no first moment (a one-entry placeholder), the MLP's a full one.
+    widths = {k: dr.width(ours.state[k][3][1]) for k in start}
+    assert widths == {'grid': 1, 'grid2': 1, 'w': 96}
+
+def test_a_checkpoint_whose_grids_kept_a_first_moment_resumes_without_it():
+    """Adam state saved by a version whose grids kept a first moment: restored, the grids drop
+    it for the placeholder (their steps take none from here on), the MLP keeps its own; a new
+    checkpoint stores the placeholder and restores to the same steps."""
+    rng = np.random.default_rng(1)
+    params = {'fg.grid0': rng.normal(size=(2, 2, 2, 2)).astype(np.float32),
+              'w': rng.normal(size=8).astype(np.float32)}
+    old = {}
+    for k, v in params.items():
+        old[f'adam.t/{k}'] = np.array([5], np.uint32)
+        old[f'adam.m/{k}'] = rng.normal(size=v.size).astype(np.float32)
+        old[f'adam.v/{k}'] = rng.uniform(1, 2, size=v.size).astype(np.float32)
+    opt = optim.adam({k: mi.TensorXf(v) if v.ndim > 1 else mi.Float(v) for k, v in params.items()})
+    optim.restore_adam(opt, old)
+    t, m, v, _ = opt.state['fg.grid0'][3]
+    assert dr.width(m) == 1 and np.array_equal(v.numpy(), old['adam.v/fg.grid0'])
+    assert t.numpy().tolist() == [5]
+    np.testing.assert_array_equal(opt.state['w'][3][1].numpy(), old['adam.m/w'])
+    saved = optim.adam_state(opt)
+    assert saved['adam.m/fg.grid0'].size == 1 and saved['adam.m/w'].size == 8
+    again = optim.adam({k: mi.TensorXf(v) if v.ndim > 1 else mi.Float(v) for k, v in params.items()})
+    optim.restore_adam(again, saved)
+    for o in (opt, again):
+        dr.backward(dr.sum(dr.square(o['fg.grid0'].array)) + dr.sum(o['w']))
+        o.step()
+    for k in params:
+        np.testing.assert_array_equal(np.array(opt[k]), np.array(again[k]))

@@ -1,7 +1,7 @@
 """What a sparse grid level costs a training step against the dense level it would replace.
 
     python benchmarks/sparse_level.py [--resolutions 64 128 256] [--rays 1024] [--samples 40]
-                                      [--rounds 10] [--name NAME]
+                                      [--rounds 10] [--all-bricks] [--name NAME]
 
 Issue 61 asks for the fine levels to be stored only where the surfaces are: a step's Adam
 update, gradient buffers and memsets then scale with the allocated bricks instead of the
@@ -10,7 +10,10 @@ resolution ``R`` this benchmark builds one ball level of ``R³`` texels of 4 cha
 a dense level (:class:`~mi_nerfpp.core.encodings.DenseLevels`, a ``Texture3f``) and as a sparse
 level (:class:`~mi_nerfpp.core.encodings.SparseLevels`, bricks over the training's 64³
 occupancy cells). The sparse level's allocated bricks are those that the batch's samples reach,
-grown by one brick as training grows them (:data:`~mi_nerfpp.core.bricks.DILATION`). Both levels
+grown by one brick as training grows them (:data:`~mi_nerfpp.core.bricks.DILATION`); with
+``--all-bricks`` every brick, so that both levels store the same entries and only the layout
+and the lookup differ (what a level whose occupancy does not thin out, as the background's
+before its sparsity prior starts, would cost in bricks). Both levels
 are looked up at the same ``--rays`` x ``--samples`` points (:func:`grid_costs.sample_points`:
 a training batch's shape). Three stages are timed, each the median of ``--rounds`` warm rounds,
 with the two kinds taking turns:
@@ -62,7 +65,7 @@ class Level:
     """One level of ``kind`` (``'dense'`` or ``'sparse'``) at ``resolution``, its optimizer
     and the three measurements."""
 
-    def __init__(self, kind, resolution, points):
+    def __init__(self, kind, resolution, points, all_bricks=False):
         self.kind, self.points = kind, points
         self.coords = [(c + 1.0) * 0.5 for c in points]
         if kind == 'dense':
@@ -70,7 +73,9 @@ class Level:
             self.key = 'grid0'
         else:
             self.levels = SparseLevels('ball', (resolution,), blocks=BLOCKS)
-            self.levels.allocate({'sparse0': reached_bricks(points, resolution)})
+            chosen = (np.arange(int(np.prod(BLOCKS))) if all_bricks
+                      else reached_bricks(points, resolution))
+            self.levels.allocate({'sparse0': chosen})
             self.key = 'sparse0'
         self.opt = optim.adam({self.key: self.levels.params[self.key]}, lr=optim.LR_GRID)
         optim.set_learning_rates(self.opt, 0.5)
@@ -106,13 +111,16 @@ def main():
     ap.add_argument('--rays', type=int, default=1024)
     ap.add_argument('--samples', type=int, default=40)
     ap.add_argument('--rounds', type=int, default=10)
+    ap.add_argument('--all-bricks', action='store_true',
+                    help='allocate every brick of the sparse level (equal entries stored)')
     ap.add_argument('--name', default='sparse_level')
     a = ap.parse_args()
     if any(r % BLOCKS[0] for r in a.resolutions):
         ap.error(f'--resolutions must be multiples of {BLOCKS[0]} (the bricks per axis)')
 
     points = sample_points(a.rays, a.samples)
-    levels = {(k, r): Level(k, r, points) for r in a.resolutions for k in ('dense', 'sparse')}
+    levels = {(k, r): Level(k, r, points, a.all_bricks) for r in a.resolutions
+              for k in ('dense', 'sparse')}
     stages = ('lookup', 'gradient sum', 'Adam')
     times = {key: {s: [] for s in stages} for key in levels}
     for i in range(a.rounds + 2):                 # two warm-up rounds, not counted
@@ -139,9 +147,11 @@ def main():
         bench.table('One ball level of 4 channels: dense texture against bricks where the '
                     'samples are', columns, rows,
                     note=f'{a.rays} rays x {a.samples} samples looked up (the same points for '
-                         f'both kinds and every resolution); the sparse level holds the bricks '
-                         f'(of a {BLOCKS[0]}³ brick grid) those samples reach, grown by one '
-                         f'brick; medians of {a.rounds} warm rounds, the kinds taking turns.')],
+                         f'both kinds and every resolution); the sparse level holds '
+                         + (f'every brick of a {BLOCKS[0]}³ brick grid' if a.all_bricks else
+                            f'the bricks (of a {BLOCKS[0]}³ brick grid) those samples reach, '
+                            f'grown by one brick')
+                         + f'; medians of {a.rounds} warm rounds, the kinds taking turns.')],
         notes='Adam streams every stored entry: the dense grid, or the sparse level\'s brick '
               'pool.')
 

@@ -16,14 +16,16 @@ LR_GRID = 0.1      # learning rate of feature grids
 LR_MLP = 5e-3      # learning rate of everything else (MLP weights and biases)
 LR_FINAL = 0.1     # learning rates decay exponentially to this fraction of their start
 ADAM_BETA2 = 0.999  # decay of Adam's second-moment estimate (drjit.opt's default)
-# Decay of Adam's first moment for the feature grids (:func:`is_grid`): none, so a grid's step is
-# its gradient over the root of its second moment, debiased as Adam's (RMSProp with Adam's bias
-# correction). A step's samples touch a few per cent of a grid's entries (4 % of the background's
-# 128 level), so a grid's momentum mostly carries old steps into entries no ray reached; without
-# it Adam streams five of a grid's arrays instead of seven (no first moment read or written).
-# Default capture, 5,000 steps, seeds 0 / 1: the background's levels alone without it 27.06 /
-# 27.08 dB held out, against 27.18 / 26.96 with it (docs/experiments.md).
-GRID_BETA1 = 0.0
+# Decay of Adam's first moment for the background's feature grids (:func:`without_momentum`):
+# none, so such a grid's step is its gradient over the root of its second moment, debiased as
+# Adam's (RMSProp with Adam's bias correction), and no first moment is stored. A step's samples
+# touch 4 % of the background's 128 level (8.4 M entries), the largest array Adam streams;
+# without momentum Adam reads and writes five of its arrays instead of seven. Default capture,
+# 5,000 steps, seeds 0 / 1: 27.06 / 27.08 dB held out against 27.18 / 26.96 with it. The
+# foreground's grids keep Adam's β₁: without it the tests' 600-step run of a 32×24 capture
+# textured its proxy 1.4-2.6 dB above flat grey instead of 4.5-5.3 (three runs each;
+# docs/experiments.md).
+BACKGROUND_GRID_BETA1 = 0.0
 CHARBONNIER_EPS = 1e-3   # the Charbonnier loss's ε (mip-NeRF 360's)
 # The Charbonnier loss's weight: the priors' weights (sparsity, distortion) were tuned against
 # the squared error, whose gradient is ~10x smaller at typical errors. Measured at 1,500 steps
@@ -56,6 +58,12 @@ def colour_weights_attached(model):
         model.set_parameters({k: dr.detach(v) for k, v in colour.items()})
 
 
+def without_momentum(name: str) -> bool:
+    """Whether parameter ``name`` learns without Adam's first moment
+    (:data:`BACKGROUND_GRID_BETA1`): the background's grids (``bg.grid1``, ``bg.sparse0``, ...)."""
+    return name.startswith('bg.') and is_grid(name)
+
+
 def is_grid(name: str) -> bool:
     """Whether a parameter is a feature grid (a dense level ``grid0``, ``fg.grid1``, ..., a
     plane of a plane level, ``fg.plane0xy``, ..., or the bricks of a sparse level,
@@ -66,7 +74,8 @@ def is_grid(name: str) -> bool:
 class Adam(dr.opt.Adam):
     """``drjit.opt.Adam`` whose step schedules every parameter's update before evaluating any,
     with a first-moment decay of its own for the parameters that ``momentless(key)`` names
-    (:data:`GRID_BETA1`, 0: no first moment stored, a one-entry placeholder in its place).
+    (:data:`BACKGROUND_GRID_BETA1`, 0: no first moment stored, a one-entry placeholder in its
+    place).
 
     Dr.Jit's step makes each parameter's step size (learning rate times the debiasing factor)
     opaque as it reaches the parameter, and evaluating it evaluates everything scheduled so far:
@@ -81,7 +90,7 @@ class Adam(dr.opt.Adam):
         super().__init__(lr, **kwargs)
 
     def beta_1_of(self, key) -> float:
-        return GRID_BETA1 if self.momentless(key) else self.beta_1
+        return BACKGROUND_GRID_BETA1 if self.momentless(key) else self.beta_1
 
     def _reset(self, key, value, promoted):
         super()._reset(key, value, promoted)
@@ -126,16 +135,16 @@ class Adam(dr.opt.Adam):
 
 def without_first_moment(state):
     """An Adam ``state`` entry ``(value, promoted, lr, (t, m, v, v_max))`` whose first moment is
-    a one-entry placeholder (a parameter of :data:`GRID_BETA1` 0 keeps none)."""
+    a one-entry placeholder (a parameter of :data:`BACKGROUND_GRID_BETA1` 0 keeps none)."""
     value, promoted, lr, (t, m, v, v_max) = state
     return value, promoted, lr, (t, dr.zeros(type(m), 1), v, v_max)
 
 
 def adam(params: dict, lr: float = LR_MLP, beta_2: float = ADAM_BETA2):
-    """An Adam optimizer holding ``params`` (name -> array), the grids without a first moment
-    (:data:`GRID_BETA1`); ``beta_2``: decay of the second-moment estimate (instant-ngp uses 0.99
-    for its sparsely touched grids)."""
-    opt = Adam(lr=lr, beta_2=beta_2, momentless=is_grid)
+    """An Adam optimizer holding ``params`` (name -> array), the background's grids without a
+    first moment (:func:`without_momentum`); ``beta_2``: decay of the second-moment estimate
+    (instant-ngp uses 0.99 for its sparsely touched grids)."""
+    opt = Adam(lr=lr, beta_2=beta_2, momentless=without_momentum)
     for k, v in params.items():
         opt[k] = v
     return opt

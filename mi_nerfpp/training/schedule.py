@@ -65,7 +65,7 @@ def moved_moments(opt, key, grid, chosen):
     t, m, v, v_max = state[3]
     v_old = dr.detach(v).numpy()
     start = float(v_old.reshape(grid.pool_shape())[kept].mean())
-    if dr.width(m) > 1:      # (none kept where the grids learn without one, optim.GRID_BETA1)
+    if dr.width(m) > 1:      # (none where a grid learns without one, optim.without_momentum)
         m = owned(grid.moved(dr.detach(m).numpy(), chosen).ravel(), mi.Float)
     v = grid.moved(v_old, chosen, np.full(grid.pool_shape(len(chosen)), start, np.float32))
     return t, m, owned(v.ravel(), mi.Float), v_max

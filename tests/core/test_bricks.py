@@ -149,32 +149,30 @@ def test_reallocating_keeps_the_texels_of_bricks_kept():
 def test_reallocating_carries_adam_moments_of_bricks_kept(first_moment):
     """A reallocation keeps the kept bricks' Adam moments and step count; new bricks start
     with no first moment and the kept entries' mean second moment, so that their first step
-    is about a learning rate, not the ~3x of zero moments without bias correction. A grid that
-    learns without a first moment (training's optimizer, optim.GRID_BETA1) keeps its one-entry
+    is about a learning rate, not the ~3x of zero moments without bias correction. A background
+    grid, which learns without a first moment (optim.without_momentum), keeps its one-entry
     placeholder."""
     from mi_nerfpp.training import optim
     from mi_nerfpp.training.schedule import moved_moments
     grid = BrickGrid(SHAPE, BLOCKS, 2)
     grid.allocate([3, 7, 9])
-    start = {'fg.sparse0': mi.TensorXf(np.zeros(grid.pool_shape(), np.float32))}
-    opt = optim.adam(start) if not first_moment else optim.Adam(lr=optim.LR_GRID)
-    if first_moment:
-        opt['fg.sparse0'] = start['fg.sparse0']
+    key = 'fg.sparse0' if first_moment else 'bg.sparse0'
+    opt = optim.adam({key: mi.TensorXf(np.zeros(grid.pool_shape(), np.float32))})
     entries = 2 * grid.texels_per_brick * 2
-    t, m0, v0, _ = moved_moments(opt, 'fg.sparse0', grid, [7, 20])      # no step yet
+    t, m0, v0, _ = moved_moments(opt, key, grid, [7, 20])      # no step yet
     assert t.numpy().tolist() == [0] and not m0.numpy().any() and not v0.numpy().any()
     assert dr.width(m0) == (entries if first_moment else 1) and dr.width(v0) == entries
     # No brick kept (a level's first allocation, after steps of its empty placeholder): a
     # fresh state, whose bias correction starts over, not zero moments at a late step count.
-    assert moved_moments(opt, 'fg.sparse0', grid, [1, 20]) is None
+    assert moved_moments(opt, key, grid, [1, 20]) is None
     rng = np.random.default_rng(2)
     m = rng.normal(size=grid.pool_shape()).astype(np.float32)
     v = rng.uniform(1, 2, size=grid.pool_shape()).astype(np.float32)
-    value, promoted, lr, (_, placeholder, _, _) = opt.state['fg.sparse0']
-    opt.state['fg.sparse0'] = (value, promoted, lr,
+    value, promoted, lr, (_, placeholder, _, _) = opt.state[key]
+    opt.state[key] = (value, promoted, lr,
                                (mi.UInt32(17), mi.Float(m.ravel()) if first_moment
                                 else placeholder, mi.Float(v.ravel()), None))
-    t, m2, v2, _ = moved_moments(opt, 'fg.sparse0', grid, [7, 20])
+    t, m2, v2, _ = moved_moments(opt, key, grid, [7, 20])
     v2 = v2.numpy().reshape(grid.pool_shape(2))
     assert t.numpy().tolist() == [17]
     assert np.array_equal(v2[0], v[1])

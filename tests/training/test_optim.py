@@ -71,31 +71,34 @@ def test_unknown_color_loss_is_rejected():
 
 def test_adam_matches_drjit_adam_and_fuses_the_updates():
     """optim.Adam takes the steps of drjit.opt.Adam (learning rates as opaque arrays, as in
-    training): the grids' with a first-moment decay of optim.GRID_BETA1 (none stored), the rest
-    with Adam's own; and it evaluates the updates of all parameters of one size in one
-    kernel."""
+    training): the background's grids with a first-moment decay of
+    optim.BACKGROUND_GRID_BETA1 (none stored), the foreground's grids and the MLPs with Adam's
+    own; and it evaluates the updates of all parameters of one size in one kernel."""
     rng = np.random.default_rng(0)
-    start = {'grid': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
-             'grid2': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
+    start = {'bg.grid0': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
+             'fg.grid0': rng.normal(size=(4, 4, 4, 2)).astype(np.float32),
              'w': rng.normal(size=96).astype(np.float32)}
     ours = optim.adam({k: mi.TensorXf(v) if v.ndim > 1 else mi.Float(v) for k, v in start.items()})
-    theirs = {'grid': dr.opt.Adam(lr=optim.LR_MLP, beta_1=optim.GRID_BETA1,
-                                  beta_2=optim.ADAM_BETA2),
-              'w': dr.opt.Adam(lr=optim.LR_MLP, beta_2=optim.ADAM_BETA2)}
+    theirs = {'bg': dr.opt.Adam(lr=optim.LR_MLP, beta_1=optim.BACKGROUND_GRID_BETA1,
+                                beta_2=optim.ADAM_BETA2),
+              'rest': dr.opt.Adam(lr=optim.LR_MLP, beta_2=optim.ADAM_BETA2)}
+
+    def holder(k):
+        return theirs['bg' if k.startswith('bg.') else 'rest']
     for k, v in start.items():
-        theirs['w' if k == 'w' else 'grid'][k] = mi.TensorXf(v) if v.ndim > 1 else mi.Float(v)
+        holder(k)[k] = mi.TensorXf(v) if v.ndim > 1 else mi.Float(v)
     assert type(ours) is optim.Adam and isinstance(ours, dr.opt.Adam)
-    assert optim.is_grid('fg.grid1') and optim.GRID_BETA1 == 0.0
+    assert optim.BACKGROUND_GRID_BETA1 == 0.0 and optim.without_momentum('bg.sparse0')
+    assert not optim.without_momentum('fg.grid1') and not optim.without_momentum('bg.color.w0')
     for it in range(5):
         for opts in ([ours], list(theirs.values())):
             for opt in opts:
                 optim.set_learning_rates(opt, it / 5)
-            get = (lambda k: ours[k]) if opts[0] is ours else \
-                (lambda k: theirs['w' if k == 'w' else 'grid'][k])
-            x = get('grid').array
+            get = (lambda k: ours[k]) if opts[0] is ours else (lambda k: holder(k)[k])
+            x = get('bg.grid0').array
             loss = (dr.sum(dr.square(x - 0.3) * dr.select((dr.arange(mi.UInt32, dr.width(x)) + it) % 3 == 0,
                                                         0.0, 1.0))
-                    + dr.sum(dr.exp(get('grid2').array) * 0.1) + dr.sum(dr.sin(get('w'))))
+                    + dr.sum(dr.exp(get('fg.grid0').array) * 0.1) + dr.sum(dr.sin(get('w'))))
             dr.backward(loss)
             if opts[0] is ours:
                 with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
@@ -109,19 +112,19 @@ def test_adam_matches_drjit_adam_and_fuses_the_updates():
                 for opt in opts:
                     opt.step()
         for k in start:
-            mine = np.array(ours[k])
-            np.testing.assert_allclose(mine, np.array(theirs['w' if k == 'w' else 'grid'][k]),
-                                       rtol=1e-5, atol=1e-6)
-    # The grids store no first moment (a one-entry placeholder), the MLP's a full one.
+            np.testing.assert_allclose(np.array(ours[k]), np.array(holder(k)[k]), rtol=1e-5,
+                                       atol=1e-6)
+    # The background's grid stores no first moment (a one-entry placeholder), the others theirs.
     widths = {k: dr.width(ours.state[k][3][1]) for k in start}
-    assert widths == {'grid': 1, 'grid2': 1, 'w': 96}
+    assert widths == {'bg.grid0': 1, 'fg.grid0': 128, 'w': 96}
+
 
 def test_a_checkpoint_whose_grids_kept_a_first_moment_resumes_without_it():
-    """Adam state saved by a version whose grids kept a first moment: restored, the grids drop
-    it for the placeholder (their steps take none from here on), the MLP keeps its own; a new
+    """Adam state saved by a version whose background grids kept a first moment: restored, they
+    drop it for the placeholder (their steps take none from here on), the MLP keeps its own; a new
     checkpoint stores the placeholder and restores to the same steps."""
     rng = np.random.default_rng(1)
-    params = {'fg.grid0': rng.normal(size=(2, 2, 2, 2)).astype(np.float32),
+    params = {'bg.grid0': rng.normal(size=(2, 2, 2, 2)).astype(np.float32),
               'w': rng.normal(size=8).astype(np.float32)}
     old = {}
     for k, v in params.items():
@@ -130,16 +133,16 @@ def test_a_checkpoint_whose_grids_kept_a_first_moment_resumes_without_it():
         old[f'adam.v/{k}'] = rng.uniform(1, 2, size=v.size).astype(np.float32)
     opt = optim.adam({k: mi.TensorXf(v) if v.ndim > 1 else mi.Float(v) for k, v in params.items()})
     optim.restore_adam(opt, old)
-    t, m, v, _ = opt.state['fg.grid0'][3]
-    assert dr.width(m) == 1 and np.array_equal(v.numpy(), old['adam.v/fg.grid0'])
+    t, m, v, _ = opt.state['bg.grid0'][3]
+    assert dr.width(m) == 1 and np.array_equal(v.numpy(), old['adam.v/bg.grid0'])
     assert t.numpy().tolist() == [5]
     np.testing.assert_array_equal(opt.state['w'][3][1].numpy(), old['adam.m/w'])
     saved = optim.adam_state(opt)
-    assert saved['adam.m/fg.grid0'].size == 1 and saved['adam.m/w'].size == 8
+    assert saved['adam.m/bg.grid0'].size == 1 and saved['adam.m/w'].size == 8
     again = optim.adam({k: mi.TensorXf(v) if v.ndim > 1 else mi.Float(v) for k, v in params.items()})
     optim.restore_adam(again, saved)
     for o in (opt, again):
-        dr.backward(dr.sum(dr.square(o['fg.grid0'].array)) + dr.sum(o['w']))
+        dr.backward(dr.sum(dr.square(o['bg.grid0'].array)) + dr.sum(o['w']))
         o.step()
     for k in params:
         np.testing.assert_array_equal(np.array(opt[k]), np.array(again[k]))

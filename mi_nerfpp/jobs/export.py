@@ -428,11 +428,9 @@ def _signals_held():
     where Python handles them): one that arrives meanwhile is only noted, and at the end the
     handler it would have met runs there (a Python handler is called: Ctrl-C raises
     KeyboardInterrupt; a default action is raised again). Handlers, not a blocked signal mask:
-    a signal that the main thread blocks goes to another thread of the process (Dr.Jit's), and
-    its Python handler then runs in the main thread at whatever point that has reached; once,
-    in a fresh-clone CI run, the KeyboardInterrupt of a SIGINT sent during the swap never
-    reached the export's caller (where it went was not found; code that drops exceptions, a
-    finalizer, would)."""
+    a signal that the main thread blocks goes to another thread of the process (Dr.Jit's),
+    and its Python handler then ran in the main thread wherever that was, at times inside code
+    that drops exceptions (a finalizer), so that a Ctrl-C sent during the swap was lost."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return

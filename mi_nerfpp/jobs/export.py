@@ -425,37 +425,17 @@ def _move_in(out, staging, old, new):
 @contextlib.contextmanager
 def _signals_held():
     """Hold back SIGINT, SIGTERM and SIGHUP for the time of the ``with`` (in the main thread,
-    where Python handles them): one that arrives meanwhile is only noted, and at the end the
-    handler it would have met runs there (a Python handler is called: Ctrl-C raises
-    KeyboardInterrupt; a default action is raised again). Handlers, not a blocked signal mask:
-    a signal that the main thread blocks goes to another thread of the process (Dr.Jit's),
-    and its Python handler then ran in the main thread wherever that was, at times inside code
-    that drops exceptions (a finalizer), so that a Ctrl-C sent during the swap was lost."""
-    if threading.current_thread() is not threading.main_thread():
+    where Python handles them); they are delivered at its end."""
+    held = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+    if threading.current_thread() is not threading.main_thread() or \
+            not hasattr(signal, 'pthread_sigmask'):
         yield
         return
-    arrived = []
-
-    def note(signum, frame):
-        arrived.append(signum)
-
-    held = [getattr(signal, name) for name in ('SIGINT', 'SIGTERM', 'SIGHUP')
-            if hasattr(signal, name)]
-    # (A handler that C code installed is not Python's to restore: that signal is not held.)
-    before = {s: signal.getsignal(s) for s in held if signal.getsignal(s) is not None}
-    for s in before:
-        signal.signal(s, note)
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:
         yield
     finally:
-        for s, handler in before.items():
-            signal.signal(s, handler)
-        for s in dict.fromkeys(arrived):
-            handler = before[s]
-            if callable(handler):
-                handler(s, None)
-            elif handler == signal.SIG_DFL:
-                signal.raise_signal(s)
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def _previous_export(out) -> list[str]:

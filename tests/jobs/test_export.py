@@ -236,14 +236,19 @@ def _export(run, out, resolution=16, **kw):
 @contextlib.contextmanager
 def _sigterm_raises():
     """SIGTERM raises SystemExit for the time of the ``with``, rather than end the test process
-    (its default action, which the swap holds back the same way)."""
+    (its default action, which the swap holds back the same way), and SIGINT raises
+    KeyboardInterrupt as in a terminal: a process started in the background by a shell
+    without job control (``cmd &`` in a script, as a CI runner may start the tests) inherits
+    SIGINT ignored, and then nothing is sent to hold back."""
     def handler(signum, frame):
         raise SystemExit(143)
     before = signal.signal(signal.SIGTERM, handler)
+    before_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, before)
+        signal.signal(signal.SIGINT, before_int)
 
 
 def test_an_export_cut_short_at_any_write_leaves_the_earlier_export_whole(tiny_run, tmp_path,

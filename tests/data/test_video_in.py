@@ -193,7 +193,10 @@ ARC_SPAN = 40.0             # degrees of azimuth the camera sweeps
 ARC_RES = (240, 180)
 ARC_SPP = 8
 MIN_REGISTERED = 0.9
-CENTRE_ERROR = 0.01         # of the arc's radius, after a similarity (measured: 0.0049-0.0068)
+# Camera centres against the truth, as fractions of the arc's radius after a similarity: the
+# largest frame's and the mean (measured max 0.0049-0.0112, mean 0.0024-0.0038: COLMAP is seeded,
+# but its floating point differs between CPU models; 0.0112 was an Intel CI machine's).
+CENTRE_ERROR, CENTRE_MEAN = 0.02, 0.006
 
 
 @pytest.fixture(scope='module')
@@ -256,10 +259,10 @@ def test_colmap_on_a_rendered_video_registers_the_sharp_frames(rendered, tmp_pat
     align = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
     angles = np.degrees([np.arccos(np.clip((np.trace(true.T @ align @ found) - 1) / 2, -1, 1))
                          for true, found in pairs])
-    # Camera centres within 1 % of the arc's radius (3.5; the arc's chord is 0.64 of it) of the
-    # truth after the best similarity (Umeyama) between the two frames: measured max 0.49 to
-    # 0.68 %, mean 0.32 to 0.38 % (the 12 frames 3.6 degrees apart); a frame placed wrong, or the scale
-    # drifting along the arc, is several per cent.
+    # Camera centres within 2 % of the arc's radius (3.5; the arc's chord is 0.64 of it) of the
+    # truth after the best similarity (Umeyama) between the two frames, 0.6 % on average (the 12
+    # frames 3.6 degrees apart; measured values at CENTRE_ERROR); a frame placed wrong, or the
+    # scale drifting along the arc, is several per cent.
     true_centres = np.array([poses[f['index']][:3, 3] for f in entry['chosen']])
     by_name = {f['file'].rsplit('.', 1)[0]: k for k, f in enumerate(entry['chosen'])}
     found = np.array([c.c2w[:3, 3] for c in cams])
@@ -272,7 +275,7 @@ def test_colmap_on_a_rendered_video_registers_the_sharp_frames(rendered, tmp_pat
               f'camera centre error after a similarity max {100 * centres.max():.3f} %, mean '
               f'{100 * centres.mean():.3f} % of the arc radius')
     assert angles.max() < 2.0 and angles.mean() < 1.0, angles
-    assert centres.max() < CENTRE_ERROR, centres
+    assert centres.max() < CENTRE_ERROR and centres.mean() < CENTRE_MEAN, centres
     # A second run (and optimize.py CLIP, through its sfm folder) decodes and solves nothing.
     database = os.path.join(out, 'colmap', 'database.db')
     stamp = os.path.getmtime(database)

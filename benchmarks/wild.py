@@ -1,6 +1,6 @@
 """A photo collection in the wild: what per-photo appearance and the transients' handling buy.
 
-    python benchmarks/wild.py make CLEAN --out WORK
+    python benchmarks/wild.py make CLEAN --out WORK [--without lens noise ...]
     python benchmarks/wild.py train WORK --minutes 3 [--cases ...] [--options LABEL=ARGS ...]
     python benchmarks/wild.py score WORK [--name NAME] [--note T]
 
@@ -8,7 +8,9 @@
 capture of ``python -m mi_nerfpp synth``, with ``gt/``) into ``WORK/data``
 (:meth:`mi_nerfpp.data.synth.realistic.Realism.in_the_wild`: the phone's degradations, wider
 exposure and white balance, the sky and the haze changing from photo to photo, passers-by in a
-third of the photos; the held-out views clean). ``train`` trains each case on it, alone, one
+third of the photos; the held-out views clean); ``--without`` switches named degradations off
+(:data:`mi_nerfpp.data.synth.realistic.DEGRADATIONS`; e.g. the phone's own, to measure what
+appearance and transients alone cost). ``train`` trains each case on it, alone, one
 after the other, into ``WORK/runs/<case>``. ``score`` reports, per run: its steps; the
 held-out PSNR against the clean views as ``metrics.json`` has it (with per-photo appearance,
 NeRF-W's: each view's colour transform fitted on its left half, the right half scored) and
@@ -30,7 +32,7 @@ import numpy as np
 import mi_nerfpp  # noqa: F401
 from mi_nerfpp.data.nerfpp import _split_frames
 from mi_nerfpp.data.cameras import Camera
-from mi_nerfpp.data.synth.realistic import Realism, realistic_copy
+from mi_nerfpp.data.synth.realistic import DEGRADATIONS, Realism, realistic_copy
 from mi_nerfpp.jobs import bench
 from mi_nerfpp.jobs.run import open_run
 from mi_nerfpp.output.views import ViewRenderer, encoded_rgb
@@ -41,8 +43,8 @@ CASES = {'defaults': [], 'appearance': ['--appearance'],
 
 
 def make(args):
-    realistic_copy(args.clean, os.path.join(args.out, 'data'), Realism.in_the_wild(),
-                   seed=args.seed)
+    realistic_copy(args.clean, os.path.join(args.out, 'data'),
+                   Realism.in_the_wild().without(*args.without), seed=args.seed)
     with open(os.path.join(args.out, 'clean.txt'), 'w') as f:
         f.write(os.path.abspath(args.clean))
 
@@ -128,6 +130,9 @@ def main(argv=None):
     p.add_argument('clean')
     p.add_argument('--out', required=True)
     p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--without', nargs='+', default=[], choices=sorted(DEGRADATIONS),
+                   metavar='NAME', help='degradations switched off: '
+                   + ', '.join(DEGRADATIONS))
     p.set_defaults(func=make)
     bench.add_train_command(sub, train, minutes=3.0, cases=CASES)
     bench.add_score_command(sub, score, 'wild')

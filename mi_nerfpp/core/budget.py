@@ -368,7 +368,8 @@ def grid_plane_entries(sizing: Sizing, domain, largest: bool = False) -> list[in
 # 512x384 (a pixel ~0.0018 of the unit ball there), after 10 minutes alone: 27.21 against
 # 26.80 dB with a sparse level of 256 in both volumes, the foreground's error down 0.8 dB and
 # the background's up 0.25 dB (benchmarks/results/error_split_plaza512_*.json), so the
-# background has none unless told (``--bg-grid-sparse``).
+# background gets no finer level unless told (``--bg-grid-sparse``; its finest dense level goes
+# into bricks with the foreground's, mi_nerfpp.training.choices.background_in_bricks).
 SPARSE_FACTOR = 2
 SPARSE_PIXELS = 2
 

@@ -584,15 +584,19 @@ def evaluation_line(point: dict) -> str:
 
 def allocation_lines(allocations: list[dict]) -> list[str]:
     """The last allocation of each sparse level in words: how many bricks it holds of those
-    the occupancy grid asked for."""
+    its rule asked for (the foreground's occupancy grid, the background's training rays:
+    :class:`~mi_nerfpp.training.schedule.SparseAllocation`)."""
     last = {a['level']: a for a in allocations}
     lines = []
     for level, a in last.items():
         capped = a['bricks'] < a['occupied']
+        rule, where = (('the training rays', 'where the training rays take their colour from')
+                       if level.startswith('bg.') else
+                       ('the occupancy grid', 'where the occupancy grid found surfaces'))
         lines.append(f'sparse level {level}: {a["bricks"]:,} bricks ({a["entries"] / 1e6:.1f} M '
-                     f'entries) ' + (f'of the {a["occupied"]:,} the occupancy grid asked for: '
+                     f'entries) ' + (f'of the {a["occupied"]:,} {rule} asked for: '
                                      f'--sparse-entries held it back' if capped else
-                                     f'where the occupancy grid found surfaces, of {a["of"]:,}'))
+                                     f'{where}, of {a["of"]:,}'))
     return lines
 
 

@@ -40,6 +40,9 @@ def from_capture(config: TrainConfig, dataset, stored: dict | None = None, notic
     stored = stored or {}
     if sparse and config.model.grid_sparse is None:
         config = choose_sparse_level(config, dataset, stored, notice)
+    if config.model.bg_grid_sparse is None:     # none chosen: none (a stored run's own)
+        options = TrainConfig.stored_options(stored) if stored else {}
+        config = config.replace(bg_grid_sparse=tuple(options.get('bg_grid_sparse') or ()))
     config = keep_sparse_schedule(config, stored)
     config = choose_error_rays(config, stored)
     config = choose_for_photos(config, dataset, stored, notice)
@@ -53,27 +56,56 @@ def centre_footprint(cameras) -> float:
     return float(np.median([np.linalg.norm(c.center) / c.K[0, 0] for c in cameras]))
 
 
+def _finest_movable(levels, cells):
+    """The finest of ``levels`` where it can go into bricks of one occupancy cell each
+    (``cells`` along the grid's colatitude, or along every axis in the ball): a coarser level
+    stays dense and it is a whole multiple of the cells, above one texel a cell; else None."""
+    finest = max(levels)
+    if len(levels) < 2 or finest % cells or finest <= cells:
+        return None
+    return finest
+
+
 def finest_in_bricks(config: TrainConfig):
     """``(config, R)``: ``config`` with the foreground's finest dense level ``R`` (of
-    ``--grid-levels``) moved into bricks, the background keeping its dense levels; ``R`` None
+    ``--grid-levels``) moved into bricks, the background's dense levels as they were
+    (:func:`background_in_bricks` moves its own finest); ``R`` None
     (``config`` as it was) where no coarser level would stay dense or ``R`` is no whole
     multiple of the occupancy cells (a brick each) above one texel a cell. On the embedded
     capture, gt_plaza and the 1/4-phone stand-in a 10-minute run made 1.02-1.25x the steps
     at equal or higher held-out PSNR (docs/experiments.md)."""
     m = config.model
     levels = tuple(m.levels('ball'))
-    finest = max(levels)
-    cells = occ.grid_shape('ball', config.sampling.occupancy_res)[0]
-    if len(levels) < 2 or finest % cells or finest <= cells:
+    finest = _finest_movable(levels, occ.grid_shape('ball', config.sampling.occupancy_res)[0])
+    if finest is None:
         return config, None
     return config.replace(grid_levels=tuple(r for r in levels if r != finest),
                           bg_grid_levels=tuple(m.levels('inverted_sphere'))), finest
 
 
+def background_in_bricks(config: TrainConfig):
+    """``(config, R)``: ``config`` with the background's finest dense level ``R`` (of
+    ``--bg-grid-levels``) moved into bricks, which hold it where the training rays take their
+    colour from (:class:`~mi_nerfpp.training.schedule.SparseAllocation`); ``R`` None (``config``
+    as it was) where that grid has no such level (:func:`_finest_movable`) or its sparse levels
+    are given."""
+    m = config.model
+    if m.bg_grid_sparse is not None or m.field_of('inverted_sphere') != 'grid':
+        return config, None
+    levels = tuple(m.levels('inverted_sphere'))
+    cells = occ.grid_shape('inverted_sphere', config.sampling.occupancy_res)[1]
+    finest = _finest_movable(levels, cells)
+    if finest is None:
+        return config, None
+    return config.replace(bg_grid_levels=tuple(r for r in levels if r != finest),
+                          bg_grid_sparse=(finest,)), finest
+
+
 def choose_sparse_level(config: TrainConfig, dataset, stored: dict, notice=_quiet):
     """``config`` with its sparse foreground levels chosen (``--grid-sparse`` not given): a
-    resumed run's own (with the dense levels it kept), else the finest dense level in bricks
-    (:func:`finest_in_bricks`) where its cells span at least
+    resumed run's own (with the dense levels it kept, and its background's), else the finest
+    dense level in bricks (:func:`finest_in_bricks`, and the background's with it unless
+    ``--bg-grid-sparse`` is given: :func:`background_in_bricks`) where its cells span at least
     :data:`~mi_nerfpp.core.budget.SPARSE_PIXELS` training pixels at the centre, and a finer one of
     :func:`~mi_nerfpp.core.budget.sparse_resolution` of the capture's
     :func:`centre_footprint`, announced."""
@@ -96,6 +128,12 @@ def choose_sparse_level(config: TrainConfig, dataset, stored: dict, notice=_quie
         notice(f'foreground level {moved}³ stored in bricks where the surfaces are, the '
                f'coarser {" ".join(map(str, config.model.grid_levels))} dense; --grid-sparse '
                f'alone to keep it dense')
+        config, behind = background_in_bricks(config)
+        if behind:
+            notice(f'background level {behind} stored in bricks where the training rays take '
+                   f'their colour from, the coarser '
+                   f'{" ".join(map(str, config.model.bg_grid_levels))} dense; --bg-grid-sparse '
+                   f'alone to keep it dense')
     if r is None:
         notice(f'no {"finer " if moved else ""}sparse foreground level: a training pixel is '
                f'{footprint:.4f} of the unit ball wide at the centre ({cells}); --grid-sparse '
@@ -121,6 +159,8 @@ def _stored_sparse_levels(config: TrainConfig, options: dict) -> TrainConfig:
     if moved in sparse and levels and moved not in levels:
         config = config.replace(grid_levels=levels,
                                 bg_grid_levels=options.get('bg_grid_levels'))
+    if config.model.bg_grid_sparse is None:     # (older runs: none, their background dense)
+        config = config.replace(bg_grid_sparse=tuple(options.get('bg_grid_sparse') or ()))
     return config
 
 

@@ -94,6 +94,10 @@ LIST_ENTRIES = ('resolutions', 'planes', 'sparse', 's_ratio')
 # What a field config written without an entry had (files from before sparse levels and
 # appearance codes have none); other entries it lacks are not read back.
 ABSENT_ENTRIES = {'sparse': (), 'appearance_dims': 0}
+# The options that, left unset (None), are chosen from the capture when a run is prepared
+# (:mod:`mi_nerfpp.training.choices`): a model built before that has none, and the background's
+# does not take the foreground's (:meth:`ModelOptions.source`).
+CHOSEN_OPTIONS = ('grid_sparse', 'bg_grid_sparse')
 # The entries a checkpoint's weights do not fix (:func:`weight_options`): its stored config has
 # the resolutions, and the noise the grids started with shapes nothing.
 UNFIXED_ENTRIES = ('resolutions', 'init')
@@ -226,16 +230,23 @@ class ModelOptions(_Options):
                                        'level', type=int, nargs='*', metavar='RES',
                                        default_help="(default: chosen from the capture and "
                                        "announced: the finest --grid-levels, taken out of the "
-                                       "dense ones (the background keeps it dense) where its "
+                                       "dense ones (the background's finest with it: see "
+                                       "--bg-grid-sparse) where its "
                                        "cells span at least two training pixels at the scene's "
                                        "centre, and twice it where those cells do)",
                                        shapes_model=True)
-    bg_grid_sparse: tuple = option((), 'grid field: resolution of each sparse level of the '
-                                   'background grid (longitude x colatitude 2RES x RES, and '
-                                   'along s as many texels as a dense level of RES and '
-                                   '--bg-s-ratio has; RES: a multiple of half --occupancy-res)',
-                                   type=int, nargs='*', metavar='RES',
-                                   default_help='(default: none)', shapes_model=True)
+    bg_grid_sparse: tuple | None = option(None, 'grid field: resolution of each sparse level '
+                                          'of the background grid (longitude x colatitude '
+                                          '2RES x RES, and along s as many texels as a dense '
+                                          'level of RES and --bg-s-ratio has; RES: a multiple '
+                                          'of half --occupancy-res), stored only in the bricks '
+                                          "where the training rays take their colour from at "
+                                          'each --sparse-at; none: no sparse level',
+                                          type=int, nargs='*', metavar='RES',
+                                          default_help="(default: the finest --bg-grid-levels, "
+                                          "taken out of the dense ones, where the foreground's "
+                                          'finest goes into bricks; none otherwise)',
+                                          shapes_model=True)
     grid_channels: int = option(_grid_default('channels'), 'grid field: channels per level',
                                 shapes_model=True)
     fg_warp: float = option(_grid_default('warp_radius'), 'grid field: radius of the inner ball '
@@ -323,7 +334,8 @@ class ModelOptions(_Options):
             self.bg_grid_planes = _as_tuple(self.bg_grid_planes)
         if self.grid_sparse is not None:
             self.grid_sparse = _as_tuple(self.grid_sparse)
-        self.bg_grid_sparse = _as_tuple(self.bg_grid_sparse)
+        if self.bg_grid_sparse is not None:
+            self.bg_grid_sparse = _as_tuple(self.bg_grid_sparse)
         for name in ('grid_planes', 'bg_grid_planes'):
             if any(r < 2 for r in getattr(self, name) or ()):
                 self._bad(name, 'resolutions of at least 2')
@@ -340,17 +352,17 @@ class ModelOptions(_Options):
         """The option whose value option ``name`` takes effect with: ``name``, or for a
         background option left unset (None) the foreground's of its pair
         (:data:`GRID_FIELD_OPTIONS`)."""
-        if getattr(self, name) is None:
+        if getattr(self, name) is None and name not in CHOSEN_OPTIONS:
             return next((fg for fg, bg in GRID_FIELD_OPTIONS.values() if bg == name and fg),
                         name)
         return name
 
     def effective(self, name):
-        """The value option ``name`` takes effect with (:meth:`source`; ``--grid-sparse``
-        unset: none, a model built now has none - jobs.run.prepare chooses it), sequences as
-        tuples."""
+        """The value option ``name`` takes effect with (:meth:`source`; the sparse levels
+        unset: none, a model built now has none - jobs.run.prepare chooses them,
+        :data:`CHOSEN_OPTIONS`), sequences as tuples."""
         value = getattr(self, self.source(name))
-        if value is None and name == 'grid_sparse':
+        if value is None and name in CHOSEN_OPTIONS:
             value = ()
         if value is None and name in ('appearance', 'refine_poses'):
             value = False       # unset: a model built now has none
@@ -529,15 +541,17 @@ class ScheduleOptions(_Options):
                           'when a prior starts or the grids change resolution')
     sparse_at: tuple = option((0, 0.1, 0.2, 0.3, 0.5, 0.7),
                               'grid field: fractions of the run at which sparse '
-                              "levels allocate their bricks where the field's density is above "
-                              'the occupancy threshold '
+                              "levels allocate their bricks: the foreground's where the field's "
+                              "density is above the occupancy threshold, the background's where "
+                              'the training rays take their colour from '
                               '(again at each: bricks kept keep their texels and Adam '
                               'moments; 0: at the first step, every brick of each level that '
                               '--sparse-entries holds whole, since the occupancy knows nothing '
                               'yet; a larger level waits for the next fraction)', type=float,
                               nargs='+', metavar='F')
     sparse_entries: int = option(9_000_000, 'grid field: most entries of one sparse level (the '
-                                 'densest occupied bricks are kept)')
+                                 'densest bricks are kept, behind those that take most of a '
+                                 "ray's colour)")
     pyramid: tuple = option((0.1, 0.3), 'image pyramid: fractions of the run at which training '
                             'moves to the next finer level of box-filtered images (it starts at '
                             '1/2^n of their size, the last fraction reaches full size; none: '
@@ -699,8 +713,11 @@ class TrainConfig:
         options = cls._stored_names(stored)[0]
         if 'bg_s_ratio' in options and isinstance(options['bg_s_ratio'], (int, float)):
             options['bg_s_ratio'] = [options['bg_s_ratio']]     # before per-level ratios
-        if 'bg_grid_sparse' in options and options['bg_grid_sparse'] is None:
-            # Runs of 15f237e stored None for "as --grid-sparse" (today: none unless given).
+        if (options.get('bg_grid_sparse', ()) is None
+                and options.get('grid_sparse') is not None):
+            # Runs of 15f237e stored None for "as --grid-sparse", which they always gave
+            # (today None is chosen from the capture, CHOSEN_OPTIONS, and a run stores the
+            # choice).
             options['bg_grid_sparse'] = options.get('grid_sparse') or ()
         if stored and 'error_rays' not in options:
             options['error_rays'] = 0.0     # runs from before the error map drew uniformly
@@ -753,8 +770,9 @@ class TrainConfig:
         fixed = weight_options(weights)
         wrong = {name: value for name, value in fixed.items()
                  if config.effective(name) != value}
-        if config.model.grid_sparse is None and 'grid_sparse' in fixed:   # chosen: the weights'
-            wrong['grid_sparse'] = fixed['grid_sparse']
+        for name in CHOSEN_OPTIONS:         # chosen: the weights'
+            if getattr(config.model, name) is None and name in fixed:
+                wrong[name] = fixed[name]
         return config.replace(**wrong) if wrong else config
 
     def effective(self, name: str):
@@ -897,6 +915,8 @@ class TrainConfig:
             stored.setdefault('bg_color', stored['color'])
         for _, f in options_of(type(self)):
             name = option_name(f)
+            if name in CHOSEN_OPTIONS and now[name] is None:
+                continue        # chosen on resume: the checkpoint's own (training.choices)
             if (f.metadata.get('shapes_model') and name not in fixed and name in stored
                     and stored[name] != now[name]):
                 out.append(f'{flag(TrainConfig, name)}: the checkpoint has {stored[name]!r}, '

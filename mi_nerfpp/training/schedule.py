@@ -4,7 +4,8 @@ due and calls it, in order:
 
 * :class:`OccupancyRefresh` — the occupancy grids, every ``--occupancy-every`` steps;
 * :class:`SparseAllocation` — the sparse levels' bricks, at each ``--sparse-at`` fraction of
-  the run passed;
+  the run passed: the foreground's where its density is, the background's where the training
+  rays' colour comes from (:func:`background_shares`);
 * :class:`ImagePyramid` — the level of the training images, coarse to fine at the
   ``--pyramid`` fractions.
 
@@ -20,7 +21,19 @@ import numpy as np
 from mi_nerfpp.core import bricks
 from mi_nerfpp.core.arrays import owned
 from mi_nerfpp.core.fields import GridField
+from mi_nerfpp.core.geometry import grid_coordinates
 from mi_nerfpp.core.profiling import stage
+from mi_nerfpp.core.render import Background, RenderOptions, render_rays
+from mi_nerfpp.core.sampling import flat_index
+
+# The background's bricks after the first allocation: those where one background sample of a
+# training ray carries at least BACKGROUND_SHARE of the ray's colour (its weight times the light
+# the foreground lets through), over BACKGROUND_RAYS random training rays - Plenoxels' pruning
+# by weight. The density alone keeps 73-87 % of the inverted sphere (the far side of every
+# wall, haze that no ray sees through to); this keeps 12-23 % on the embedded capture and
+# gt_plaza (docs/experiments.md).
+BACKGROUND_SHARE = 0.02
+BACKGROUND_RAYS = 1 << 15
 
 
 def passed(fractions, progress) -> int:
@@ -41,6 +54,29 @@ class OccupancyRefresh:
     def __call__(self, model, seed: int):
         with stage('occupancy refresh'):
             model.update_occupancy(seed)
+
+
+def background_shares(model, bank, blocks, seed: int, n_rays: int = BACKGROUND_RAYS):
+    """Per brick of ``blocks`` bricks (Z, Y, X) over the inverted sphere, the largest share of a
+    training ray's colour that one of its background samples there carries (its weight times
+    ``1 - the foreground's opacity``), over ``n_rays`` rays of ``bank``
+    (:class:`~mi_nerfpp.training.raybank.RayBank`) drawn with ``seed`` and rendered without
+    gradients; a float32 array of ``blocks``."""
+    with dr.suspend_grad():
+        rng = dr.rng(seed=seed)
+        rays, _ = bank.batch(rng.integers(mi.UInt32, n_rays, 0, bank.size),
+                             footprint=model.antialias)
+        rays.seed = rng.integers(mi.UInt32, n_rays, 0, 2 ** 32 - 1)
+        res = render_rays(rays, *model.radiance_fields(), model.sampling, RenderOptions())
+        ray, _ = flat_index(n_rays, res.bg.n)
+        c = grid_coordinates('inverted_sphere', Background(rays).inputs(ray, res.bg.position))
+        cells = [mi.UInt32(dr.clip(mi.Int32(dr.floor(c[axis] * n)), 0, n - 1))
+                 for axis, n in zip((2, 1, 0), blocks)]
+        brick = (cells[0] * blocks[1] + cells[1]) * blocks[2] + cells[2]
+        through = 1.0 - dr.gather(mi.Float, res.fg.shading.opacity, ray)
+        share = dr.zeros(mi.Float, int(np.prod(blocks)))
+        dr.scatter_reduce(dr.ReduceOp.Max, share, res.bg.weights * through, brick)
+    return share.numpy().reshape(blocks)
 
 
 def sparse_levels(model):
@@ -72,18 +108,22 @@ def moved_moments(opt, key, grid, chosen):
 
 
 class SparseAllocation:
-    """At each of ``fractions`` of the run passed, allocates the sparse levels' bricks where
-    the field's density now, at :data:`~mi_nerfpp.core.occupancy.ALLOCATION_POINTS` points of
-    each occupancy cell (:meth:`~mi_nerfpp.core.occupancy.OccupancyGrid.sampled`), is above the
-    occupancy threshold (grown by :data:`~mi_nerfpp.core.bricks.DILATION`), at most
-    ``max_entries`` entries a level, the densest first; bricks kept keep their texels. At the
-    first step (a fraction of 0), where the occupancy grid knows nothing yet, a level is
-    allocated whole, started as a dense level would be, if ``max_entries`` holds it; a level
-    that it does not hold waits for the next fraction. A resumed run that has bricks has the
+    """At each of ``fractions`` of the run passed, allocates the sparse levels' bricks, grown
+    by :data:`~mi_nerfpp.core.bricks.DILATION`, at most ``max_entries`` entries a level, the
+    highest scores first; bricks kept keep their texels. A foreground level takes the bricks
+    where the field's density now, at :data:`~mi_nerfpp.core.occupancy.ALLOCATION_POINTS`
+    points of each occupancy cell (:meth:`~mi_nerfpp.core.occupancy.OccupancyGrid.sampled`),
+    is above the occupancy threshold; a background level, the bricks where the rays of ``bank``
+    (the training rays) take at least :data:`BACKGROUND_SHARE` of their colour
+    (:func:`background_shares`; by density as the foreground without a ``bank``). At the
+    first step (a fraction of 0), where neither knows anything yet, a level is allocated
+    whole, started as a dense level would be, if ``max_entries`` holds it; a level that it
+    does not hold waits for the next fraction. A resumed run that has bricks has the
     fractions before its ``progress`` behind it."""
 
-    def __init__(self, fractions, max_entries: int, model=None, progress: float = 0.0):
-        self.fractions, self.max_entries = tuple(fractions), int(max_entries)
+    def __init__(self, fractions, max_entries: int, model=None, progress: float = 0.0,
+                 bank=None):
+        self.fractions, self.max_entries, self.bank = tuple(fractions), int(max_entries), bank
         allocated = model is not None and any(len(g) for g in model.allocated_bricks().values())
         self.done = passed(self.fractions, progress) if allocated else 0
         self.records = []       # one dict per level and allocation (metrics.json)
@@ -96,18 +136,13 @@ class SparseAllocation:
         the parameters) gets each level's new texel pool, with fresh Adam moments."""
         self.done = passed(self.fractions, progress)
         for volume, field, i in sparse_levels(model):
-            grid, brick = model.occupancy[volume], field.sparse.bricks[i]
+            brick = field.sparse.bricks[i]
             limit = self.max_entries // (brick.texels_per_brick * brick.channels)
             if iteration == 0 and brick.n_blocks > limit:
                 continue        # not whole within the budget: waits for the occupancy
-            # The field's density now, not the grid's running maximum, which remembers for
-            # hundreds of steps what training has carved away; at the first step, every cell.
-            density = grid.numpy() if grid.fresh or iteration == 0 \
-                else grid.sampled(field, iteration)
-            occupied = bricks.block_mask(density > grid.threshold, brick.blocks)
+            occupied, score = self._scores(model, volume, field, brick, iteration)
             mask = bricks.dilate(occupied, bricks.DILATION[field.domain],
                                  periodic_x=field.domain == 'inverted_sphere')
-            score = bricks.block_max(density, brick.blocks)
             chosen = bricks.choose(mask, score, max(limit, 1))
             key = f'{volume}.sparse{i}'
             moments = moved_moments(params, key, brick, chosen)
@@ -121,6 +156,21 @@ class SparseAllocation:
                                  'bricks': int(chosen.size), 'of': brick.n_blocks,
                                  'occupied': int(mask.sum()),
                                  'entries': int(np.prod(brick.pool_shape()))})
+
+    def _scores(self, model, volume, field, brick, iteration):
+        """``(wanted, score)`` per brick of the level ``brick`` of ``field``: the bricks its
+        rule asks for (bool) and the score that ranks them within the budget."""
+        grid = model.occupancy[volume]
+        if field.domain == 'inverted_sphere' and self.bank is not None and iteration > 0:
+            with stage('background shares'):
+                share = background_shares(model, self.bank, brick.blocks, iteration)
+            return share >= BACKGROUND_SHARE, share
+        # The field's density now, not the grid's running maximum, which remembers for
+        # hundreds of steps what training has carved away; at the first step, every cell.
+        density = grid.numpy() if grid.fresh or iteration == 0 \
+            else grid.sampled(field, iteration)
+        return (bricks.block_mask(density > grid.threshold, brick.blocks),
+                bricks.block_max(density, brick.blocks))
 
 
 class ImagePyramid:

@@ -143,7 +143,7 @@ class Trainer:
         self.occupancy = (OccupancyRefresh(config.sampling.occupancy_every)
                           if self.model.occupancy else None)
         self.sparse = SparseAllocation(s.sparse_at, s.sparse_entries, self.model,
-                                       self.progress())
+                                       self.progress(), bank=self.rays)
         self.pyramid = ImagePyramid(self.rays, s.pyramid)
         self.sparsity = priors.Sparsity(per_volume(losses.sparsity),
                                         per_volume(losses.sparsity_start))

@@ -68,19 +68,32 @@ def test_the_sparse_level_is_chosen_from_the_capture_and_announced(capture, tmp_
         line = [n for n in notices if 'sparse foreground level' in n][0]
         assert inputs.config.model.grid_sparse == moved + ((chosen,) if chosen else ())
         assert inputs.config.model.grid_levels == ((4,) if moved else (4, finest))
-        assert inputs.config.model.levels('inverted_sphere') == (4, finest)
+        # The background's finest goes into bricks with the foreground's (colatitude cells of
+        # the occupancy: 4 here).
+        assert inputs.config.model.levels('inverted_sphere') == ((4,) if moved else (4, finest))
+        assert inputs.config.model.bg_grid_sparse == moved
         if moved:
             assert f'foreground level {finest}³ stored in bricks where the surfaces are, the ' \
                    f'coarser 4 dense; --grid-sparse alone to keep it dense' in notices
+            assert f'background level {finest} stored in bricks where the training rays take ' \
+                   f'their colour from, the coarser 4 dense; --bg-grid-sparse alone to keep it ' \
+                   f'dense' in notices
         if chosen:
             assert line.startswith(f'sparse foreground level {chosen}³ (a training pixel is '
                                    f'{footprint:.4f} of the unit ball wide at the centre')
         else:
             assert line.startswith(f'no {"finer " if moved else ""}sparse foreground level: a '
                                    f'training pixel is {footprint:.4f}')
-    # Told: kept as told (none, or a resolution).
+    # Told: kept as told (none, or a resolution); the background's bricks come with the
+    # foreground's choice, or as told.
     inputs, notices = notices_of(capture, tmp_path / 'told', grid_sparse=(), iterations=1)
     assert inputs.config.model.grid_sparse == () and not any('sparse' in n for n in notices)
+    assert inputs.config.model.bg_grid_sparse == ()
+    inputs, notices = notices_of(capture, tmp_path / 'bg', grid_levels=(4, fits),
+                                 occupancy_res=4, bg_grid_sparse=(), iterations=1)
+    assert inputs.config.model.levels('inverted_sphere') == (4, fits)
+    assert inputs.config.model.bg_grid_sparse == () and not any('background' in n
+                                                                for n in notices)
 
 
 def test_the_finest_dense_level_goes_into_bricks_where_it_can():
@@ -102,22 +115,48 @@ def test_the_finest_dense_level_goes_into_bricks_where_it_can():
         assert choices.finest_in_bricks(config) == (config, None)
 
 
+def test_the_background_finest_level_goes_into_bricks_where_it_can():
+    """The background's finest level moves into bricks where a coarser one stays dense and it
+    is a whole multiple of the occupancy's colatitude cells above one texel a cell, unless its
+    sparse levels are given."""
+    moved, finest = choices.background_in_bricks(TrainConfig())   # 32 128, occupancy 64: 32
+    assert finest == 128
+    assert (moved.model.levels('inverted_sphere'), moved.model.bg_grid_sparse) == ((32,), (128,))
+    assert moved.model.grid_levels == (32, 128)
+    for options in (dict(bg_grid_levels=(128,)),                        # nothing stays dense
+                    dict(bg_grid_levels=(32, 80)),                       # not a multiple of 32
+                    dict(bg_grid_levels=(16, 32)),                       # one texel a cell
+                    dict(bg_grid_sparse=()), dict(bg_grid_sparse=(256,)),   # given
+                    dict(bg_field='nerf')):
+        config = TrainConfig.from_options(**options)
+        assert choices.background_in_bricks(config) == (config, None)
+
+
 def test_a_resumed_run_keeps_its_levels_and_its_allocation_schedule(capture, tmp_path):
     """A run resumed with the options left at their defaults takes the dense and sparse
     levels it was trained with (the chooser moved one, or had none to move) and its own
     --sparse-at / --sparse-entries, not today's defaults."""
     default = TrainConfig()
     trained = TrainConfig.from_options(grid_levels=(32,), bg_grid_levels=(32, 128),
-                                       grid_sparse=(128,), sparse_at=(0.1, 0.3),
+                                       grid_sparse=(128,), bg_grid_sparse=(), sparse_at=(0.1, 0.3),
                                        sparse_entries=4_000_000).to_dict()
     config = choices.from_capture(default, load_dataset(capture), trained)
     assert (config.model.grid_levels, config.model.bg_grid_levels, config.model.grid_sparse) \
         == ((32,), (32, 128), (128,))
     assert (config.schedule.sparse_at, config.schedule.sparse_entries) == ((0.1, 0.3), 4_000_000)
-    before = TrainConfig.from_options(grid_sparse=(256,)).to_dict()     # dense 32 128 (older)
+    assert config.model.bg_grid_sparse == ()        # (its background dense, as trained)
+    before = TrainConfig.from_options(grid_sparse=(256,), bg_grid_sparse=()).to_dict()  # older
     config = choices.from_capture(default, load_dataset(capture), before)
     assert (config.model.grid_levels, config.model.levels('inverted_sphere'),
-            config.model.grid_sparse) == ((32, 128), (32, 128), (256,))
+            config.model.grid_sparse, config.model.bg_grid_sparse) == \
+        ((32, 128), (32, 128), (256,), ())
+    # Trained with the background's finest level in bricks: kept.
+    today = TrainConfig.from_options(grid_levels=(32,), bg_grid_levels=(32,), grid_sparse=(128,),
+                                     bg_grid_sparse=(128,)).to_dict()
+    config = choices.from_capture(default, load_dataset(capture), today)
+    assert (config.model.grid_levels, config.model.levels('inverted_sphere'),
+            config.model.grid_sparse, config.model.bg_grid_sparse) == \
+        ((32,), (32,), (128,), (128,))
     # Given on the command line: kept.
     told = TrainConfig.from_options(sparse_at=(0.2,), sparse_entries=1000)
     config = choices.from_capture(told, load_dataset(capture), trained)

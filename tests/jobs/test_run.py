@@ -64,10 +64,11 @@ def test_a_run_reports_to_its_observer_writes_its_files_and_prints_nothing(
     assert point['minutes'] == 1e-4 and point['iteration'] == 1
     assert os.path.exists(os.path.join(out, 'test_at_0.0001min', 'test_000.exr'))
     assert result.metrics['progress'] == [point] and result.progress == [point]
-    # (what the run chose from the capture: the resolution, no level in bricks (a cell of the
-    # 128 level spans under two pixels at 32x24) and uniform rays, no per-photo appearance and
-    # no pose refinement for a rendered capture)
-    assert result.metrics['config'] == cfg.replace(downscale=1, grid_sparse=(), error_rays=0.0,
+    # (what the run chose from the capture: the resolution, no level in bricks in either
+    # volume (a cell of the 128 level spans under two pixels at 32x24) and uniform rays, no
+    # per-photo appearance and no pose refinement for a rendered capture)
+    assert result.metrics['config'] == cfg.replace(downscale=1, grid_sparse=(),
+                                                   bg_grid_sparse=(), error_rays=0.0,
                                                    appearance=False,
                                                    refine_poses=False).to_dict()
     # training.png: the loss named as it is computed, the held-out PSNR as points.
@@ -114,5 +115,5 @@ def test_allocation_lines_say_when_the_entries_held_a_level_back():
     assert run.allocation_lines(allocations) == [
         'sparse level fg.sparse0: 150 bricks (0.2 M entries) of the 200 the occupancy grid '
         'asked for: --sparse-entries held it back',
-        'sparse level bg.sparse0: 80 bricks (2.0 M entries) where the occupancy grid found '
-        'surfaces, of 2,048']
+        'sparse level bg.sparse0: 80 bricks (2.0 M entries) where the training rays take '
+        'their colour from, of 2,048']

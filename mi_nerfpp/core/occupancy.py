@@ -54,6 +54,16 @@ def grid_shape(domain, resolution):
     return (r, r, r) if domain == 'ball' else (max(r // 4, 4), max(r // 2, 4), r)
 
 
+def cell_index(domain, shape, x):
+    """Flat index of the cell of field inputs ``x`` (list of Floats) in a grid of ``shape``
+    cells (Z, Y, X) over ``domain``, clamped to the grid: an occupancy cell, or a sparse
+    level's brick (one per occupancy cell)."""
+    Z, Y, X = shape
+    idx = [mi.UInt32(dr.clip(mi.Int32(dr.floor(c * n)), 0, n - 1))
+           for c, n in zip(grid_coordinates(domain, x), (X, Y, Z))]
+    return (idx[2] * Y + idx[1]) * X + idx[0]
+
+
 class OccupancyGrid:
     """Occupied cells of one volume's domain (see module docs)."""
 
@@ -82,10 +92,7 @@ class OccupancyGrid:
 
     def cell(self, x):
         """Flat cell index of field inputs ``x`` (list of Floats), clamped to the grid."""
-        Z, Y, X = self.shape
-        idx = [mi.UInt32(dr.clip(mi.Int32(dr.floor(c * n)), 0, n - 1))
-               for c, n in zip(grid_coordinates(self.domain, x), (X, Y, Z))]
-        return (idx[2] * Y + idx[1]) * X + idx[0]
+        return cell_index(self.domain, self.shape, x)
 
     def occupied(self, x):
         """Whether the cells of ``x`` are occupied (Bool per point)."""

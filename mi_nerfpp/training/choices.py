@@ -40,7 +40,8 @@ def from_capture(config: TrainConfig, dataset, stored: dict | None = None, notic
     stored = stored or {}
     if sparse and config.model.grid_sparse is None:
         config = choose_sparse_level(config, dataset, stored, notice)
-    if config.model.bg_grid_sparse is None:     # none chosen: none (a stored run's own)
+    if config.model.bg_grid_sparse is None:     # none chosen: none, or a resumed run's own
+                                                # (older runs: none, their background dense)
         options = TrainConfig.stored_options(stored) if stored else {}
         config = config.replace(bg_grid_sparse=tuple(options.get('bg_grid_sparse') or ()))
     config = keep_sparse_schedule(config, stored)
@@ -159,8 +160,6 @@ def _stored_sparse_levels(config: TrainConfig, options: dict) -> TrainConfig:
     if moved in sparse and levels and moved not in levels:
         config = config.replace(grid_levels=levels,
                                 bg_grid_levels=options.get('bg_grid_levels'))
-    if config.model.bg_grid_sparse is None:     # (older runs: none, their background dense)
-        config = config.replace(bg_grid_sparse=tuple(options.get('bg_grid_sparse') or ()))
     return config
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from mi_nerfpp.core import bricks
 from mi_nerfpp.core.arrays import owned
 from mi_nerfpp.core.fields import GridField
-from mi_nerfpp.core.geometry import grid_coordinates
+from mi_nerfpp.core.occupancy import cell_index
 from mi_nerfpp.core.profiling import stage
 from mi_nerfpp.core.render import Background, RenderOptions, render_rays
 from mi_nerfpp.core.sampling import flat_index
@@ -69,10 +69,8 @@ def background_shares(model, bank, blocks, seed: int, n_rays: int = BACKGROUND_R
         rays.seed = rng.integers(mi.UInt32, n_rays, 0, 2 ** 32 - 1)
         res = render_rays(rays, *model.radiance_fields(), model.sampling, RenderOptions())
         ray, _ = flat_index(n_rays, res.bg.n)
-        c = grid_coordinates('inverted_sphere', Background(rays).inputs(ray, res.bg.position))
-        cells = [mi.UInt32(dr.clip(mi.Int32(dr.floor(c[axis] * n)), 0, n - 1))
-                 for axis, n in zip((2, 1, 0), blocks)]
-        brick = (cells[0] * blocks[1] + cells[1]) * blocks[2] + cells[2]
+        brick = cell_index('inverted_sphere', blocks,
+                           Background(rays).inputs(ray, res.bg.position))
         through = 1.0 - dr.gather(mi.Float, res.fg.shading.opacity, ray)
         share = dr.zeros(mi.Float, int(np.prod(blocks)))
         dr.scatter_reduce(dr.ReduceOp.Max, share, res.bg.weights * through, brick)
@@ -160,11 +158,11 @@ class SparseAllocation:
     def _scores(self, model, volume, field, brick, iteration):
         """``(wanted, score)`` per brick of the level ``brick`` of ``field``: the bricks its
         rule asks for (bool) and the score that ranks them within the budget."""
-        grid = model.occupancy[volume]
         if field.domain == 'inverted_sphere' and self.bank is not None and iteration > 0:
             with stage('background shares'):
                 share = background_shares(model, self.bank, brick.blocks, iteration)
             return share >= BACKGROUND_SHARE, share
+        grid = model.occupancy[volume]
         # The field's density now, not the grid's running maximum, which remembers for
         # hundreds of steps what training has carved away; at the first step, every cell.
         density = grid.numpy() if grid.fresh or iteration == 0 \
